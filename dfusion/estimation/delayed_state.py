@@ -1,0 +1,399 @@
+r"""Extended Information Filter over a delayed-state trajectory.
+
+The filter estimates the joint Gaussian of the states ``x(t_0) .. x(t_{m-1})``
+at the times of a bounded window, in information form (URUS paper, sec. 6;
+Eustice, Singh & Leonard, "Exactly Sparse Delayed-State Filters", ICRA 2005).
+
+* **predict(t)** appends ``x(t)`` with the motion factor from the newest state
+  (:class:`~dfusion.estimation.trajectory.MotionFactor`), linearized at the newest
+  state's current mean. Only the blocks of the two states change.
+* **update(t, z, sensor)** adds ``H^T R^-1 H`` and ``H^T R^-1 (z - h(mu) + H mu)``
+  to the block of the state at ``t`` (linearized at that state's current smoothed
+  mean), for any ``t`` inside the window: late and out-of-order measurements need
+  no re-filtering. A ``t`` between two window states inserts a state there
+  (exact for linear models).
+* States beyond the window are marginalized (Schur complement onto the next one).
+
+**Linearization.** Each factor is linearized once, when it is created: a motion
+factor at the mean of the state it starts from, a measurement factor at the
+smoothed mean of the state it observes. Factors are never relinearized later;
+this is what makes information that was already sent to other nodes consistent
+with what stays here. For linear models no linearization point is needed and
+the filter equals the Kalman filter/RTS smoother exactly.
+
+**Cost.** Storage is block-tridiagonal (``O(m n^2)``). The newest estimate is
+kept current by cached forward elimination, so a cycle of predict, update at
+the newest state and estimate costs O(1) in the window length; an update ``j``
+states in the past costs O(j); ``estimate(t)`` for an older time and
+``trajectory()`` cost O(m).
+"""
+from __future__ import annotations
+
+import logging
+from bisect import bisect_left
+from typing import Iterator
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..errors import (
+    NotInitializedError,
+    OutsideWindowError,
+    ShapeError,
+    TimeError,
+    ValidationError,
+)
+from ..linalg import Array, as_spd, as_vector, cholesky, check_psd, symmetrize, as_matrix, spd_inverse
+from ..models.base import MeasurementModel, MotionModel
+from .trajectory import MotionFactor, TrajectoryInformation
+
+log = logging.getLogger(__name__)
+
+#: Two time stamps closer than this (seconds) name the same state.
+DEFAULT_TIME_TOL = 1e-9
+
+
+def measurement_information(
+    sensor: MeasurementModel, z: ArrayLike, x_lin: Array
+) -> tuple[Array, Array]:
+    r"""Information added by measurement ``z`` linearized at ``x_lin``.
+
+    ``Lam = H^T R^-1 H`` and ``y = H^T R^-1 (z - h(x_lin) + H x_lin)``
+    (EIF measurement update; Thrun et al. 2005, Table 3.6, lines 6-7), computed
+    with the Cholesky factor of ``R``. Raises :class:`ShapeError`,
+    :class:`NonFiniteError` or :class:`NotPositiveDefiniteError` on bad input.
+    """
+    zv = as_vector(z, sensor.dim_z, "measurement z")
+    R = as_spd(sensor.R, sensor.dim_z, "measurement covariance R")
+    H = as_matrix(sensor.H(x_lin), (sensor.dim_z, x_lin.shape[0]), "measurement Jacobian H")
+    innov = sensor.residual(zv, sensor.h(x_lin)) + H @ x_lin
+    innov = as_vector(innov, sensor.dim_z, "innovation")
+    C = cholesky(R, "measurement covariance R")
+    A = np.linalg.solve(C, np.column_stack((H, innov)))  # C^-1 [H  r]
+    AH, Ar = A[:, :-1], A[:, -1]
+    return symmetrize(AH.T @ AH), AH.T @ Ar
+
+
+class DelayedStateEIF:
+    """Extended Information Filter over a bounded window of past states.
+
+    Parameters
+    ----------
+    motion : MotionModel
+        The motion model (``f, F, Q``).
+    window : int, optional
+        Number of states kept (``>= 1``). Older states are marginalized.
+    horizon : float, optional
+        Keep only states newer than ``latest_time - horizon`` seconds (the newest
+        state is always kept). Either or both of ``window`` and ``horizon``.
+    time_tol : float
+        Time stamps closer than this are the same state.
+
+    Attributes
+    ----------
+    motion : MotionModel
+    window : int or None
+    horizon : float or None
+    marginalized : int
+        Number of states marginalized out so far.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from dfusion import DelayedStateEIF
+    >>> from dfusion.models import ConstantVelocity, PositionSensor
+    >>> f = DelayedStateEIF(ConstantVelocity(dim=2, q=0.1), window=50)
+    >>> f.initialize(0.0, np.zeros(4), np.eye(4))
+    >>> f.predict(1.0)
+    >>> f.update(0.5, [0.1, -0.2], PositionSensor(dim=2, std=0.5))  # late: inserts a state
+    >>> mean, cov = f.estimate()
+    """
+
+    def __init__(
+        self,
+        motion: MotionModel,
+        window: int | None = 100,
+        *,
+        horizon: float | None = None,
+        time_tol: float = DEFAULT_TIME_TOL,
+    ) -> None:
+        if window is None and horizon is None:
+            raise ValidationError("give a window (number of states) or a horizon (seconds)")
+        if window is not None and (int(window) != window or window < 1):
+            raise ValidationError(f"window must be a positive integer, got {window!r}")
+        if horizon is not None and not (np.isfinite(horizon) and horizon > 0):
+            raise ValidationError(f"horizon must be positive seconds, got {horizon!r}")
+        self.motion = motion
+        self.window = None if window is None else int(window)
+        self.horizon = None if horizon is None else float(horizon)
+        self.time_tol = float(time_tol)
+        self.marginalized = 0
+        self._times: list[float] = []
+        self._traj: TrajectoryInformation | None = None
+        self._linear_cache: dict[float, tuple[Array, Array]] = {}
+
+    # ------------------------------------------------------------------ state
+    @property
+    def n(self) -> int:
+        """State dimension."""
+        return self.motion.dim
+
+    @property
+    def initialized(self) -> bool:
+        return self._traj is not None
+
+    @property
+    def times(self) -> Array:
+        """Times of the window states, oldest first (a copy)."""
+        return np.array(self._times)
+
+    @property
+    def latest_time(self) -> float:
+        self._require_init()
+        return self._times[-1]
+
+    @property
+    def oldest_time(self) -> float:
+        self._require_init()
+        return self._times[0]
+
+    def __len__(self) -> int:
+        return len(self._times)
+
+    def __repr__(self) -> str:
+        span = f"[{self._times[0]:.3f}, {self._times[-1]:.3f}]" if self._times else "uninitialized"
+        return f"DelayedStateEIF({self.motion!r}, window={self.window}, horizon={self.horizon}, states={len(self)} {span})"
+
+    def _require_init(self) -> None:
+        if self._traj is None:
+            raise NotInitializedError("call initialize(t, mean, cov) first")
+
+    def _check_time(self, t: float) -> float:
+        try:
+            tf = float(t)
+        except (TypeError, ValueError):
+            raise TimeError(f"time must be a number, got {t!r}") from None
+        if not np.isfinite(tf):
+            raise TimeError(f"time must be finite, got {t!r}")
+        return tf
+
+    def index_of(self, t: float) -> int | None:
+        """Index of the window state at time ``t`` (within ``time_tol``), or None."""
+        i = bisect_left(self._times, t - self.time_tol)
+        if i < len(self._times) and abs(self._times[i] - t) <= self.time_tol:
+            return i
+        return None
+
+    # ------------------------------------------------------------------ transaction
+    class _Transaction:
+        def __init__(self, f: "DelayedStateEIF") -> None:
+            self.f = f
+
+        def __enter__(self) -> None:
+            f = self.f
+            self.snap = (f._traj.snapshot(), list(f._times), f.marginalized)
+
+        def __exit__(self, exc_type, exc, tb) -> bool:
+            if exc_type is not None:
+                f = self.f
+                traj, times, marg = self.snap
+                f._traj.restore(traj)
+                f._times, f.marginalized = times, marg
+            return False
+
+    def _transaction(self) -> "_Transaction":
+        return DelayedStateEIF._Transaction(self)
+
+    # ------------------------------------------------------------------ API
+    def initialize(self, t: float, mean: ArrayLike, cov: ArrayLike) -> None:
+        """Start the trajectory with one state ``x(t) ~ N(mean, cov)``."""
+        tf = self._check_time(t)
+        P = as_spd(cov, self.n, "initial covariance")
+        m = as_vector(mean, self.n, "initial mean")
+        Omega = spd_inverse(P, "initial covariance")
+        self._traj = TrajectoryInformation(Omega, Omega @ m)
+        self._times = [tf]
+        self.marginalized = 0
+
+    def _motion_factor(self, x_from: Array | None, dt: float, u: Array | None) -> MotionFactor:
+        """Linearize the motion model over ``dt`` at ``x_from`` (ignored if linear)."""
+        mo = self.motion
+        if dt <= 0:
+            raise TimeError(f"motion step must be positive, got dt={dt}")
+        if mo.is_linear and u is None:
+            key = round(dt, 12)
+            cached = self._linear_cache.get(key)
+            if cached is None:
+                F = as_matrix(mo.F(dt), (self.n, self.n), "motion Jacobian F")
+                Q = as_spd(mo.Q(dt), self.n, "process noise Q")
+                if len(self._linear_cache) > 256:
+                    self._linear_cache.clear()
+                cached = self._linear_cache[key] = (F, Q)
+            F, Q = cached
+            return MotionFactor(F, Q, np.zeros(self.n), dt, None)
+        x = np.zeros(self.n) if x_from is None else x_from
+        F = as_matrix(mo.F(dt, x, u), (self.n, self.n), "motion Jacobian F")
+        Q = as_spd(mo.Q(dt, x, u), self.n, "process noise Q")
+        fx = as_vector(mo.f(x, dt, u), self.n, "predicted state f(x)")
+        # c = f(mu) - F mu, with angles of f(mu) kept continuous with F mu
+        c = mo.residual(fx, F @ x) if mo.angle_indices else fx - F @ x
+        return MotionFactor(F, Q, c, dt, None if u is None else np.array(u, float))
+
+    def predict(self, t: float, u: ArrayLike | None = None) -> None:
+        """Append the state ``x(t)``, ``t`` after the newest state, with control ``u``."""
+        self._require_init()
+        tf = self._check_time(t)
+        last = self._times[-1]
+        if tf <= last + self.time_tol:
+            raise OutsideWindowError(
+                f"predict({tf}) must be later than the newest state ({last}); "
+                "use update() for past times"
+            )
+        uu = None if u is None else as_vector(u, None, "control u")
+        with self._transaction():
+            x = None if self.motion.is_linear else self._traj.latest()[0]
+            factor = self._motion_factor(x, tf - last, uu)
+            self._traj.append(factor)
+            self._times.append(tf)
+            self._enforce_window()
+
+    def ensure_state(self, t: float) -> int:
+        """Index of the window state at ``t``, inserting one between two states if needed.
+
+        Raises :class:`OutsideWindowError` if ``t`` is older than the oldest state
+        or newer than the newest (use :meth:`predict` to go forward).
+        """
+        self._require_init()
+        tf = self._check_time(t)
+        i = self.index_of(tf)
+        if i is not None:
+            return i
+        if tf < self._times[0] or tf > self._times[-1]:
+            raise OutsideWindowError(
+                f"time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
+            )
+        with self._transaction():
+            self._insert(tf)
+            self._enforce_window()
+        return self.index_of(tf)
+
+    def _insert(self, tf: float) -> int:
+        a = bisect_left(self._times, tf) - 1
+        ta, tb = self._times[a], self._times[a + 1]
+        old = self._traj.factors[a]
+        u = old.u
+        if self.motion.is_linear and u is None:
+            first = self._motion_factor(None, tf - ta, None)
+            second = self._motion_factor(None, tb - tf, None)
+        else:
+            means, _ = self._traj.smoothed(a)
+            xa = means[0]
+            first = self._motion_factor(xa, tf - ta, u)
+            xs = self.motion.f(xa, tf - ta, u)
+            second = self._motion_factor(xs, tb - tf, u)
+        self._traj.split(a, first, second)
+        self._times.insert(a + 1, tf)
+        return a + 1
+
+    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
+        """Fuse measurement ``z`` of ``sensor`` taken at time ``t`` (any time in the window)."""
+        self._require_init()
+        tf = self._check_time(t)
+        if tf < self._times[0] - self.time_tol or tf > self._times[-1] + self.time_tol:
+            raise OutsideWindowError(
+                f"measurement time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
+            )
+        if getattr(sensor, "dim_z", None) is None:
+            raise ShapeError(f"{sensor!r} is not a measurement model")
+        with self._transaction():
+            k = self.ensure_state(tf)
+            x_lin = np.zeros(self.n) if sensor.is_linear else self._mean_at(k)
+            Lam, y = measurement_information(sensor, z, x_lin)
+            self._traj.add_information(k, Lam, y)
+            self._enforce_window()
+
+    def add_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> None:
+        """Add a factor on the single state at ``t``: ``Omega[t,t] += info_matrix``.
+
+        ``info_matrix`` must be symmetric positive semi-definite; ``t`` must be in
+        the window (a state is inserted if needed).
+        """
+        self._require_init()
+        tf = self._check_time(t)
+        Lam = as_matrix(info_matrix, (self.n, self.n), "information matrix")
+        check_psd(Lam, "information matrix")
+        y = as_vector(info_vector, self.n, "information vector")
+        with self._transaction():
+            k = self.ensure_state(tf)
+            self._traj.add_information(k, symmetrize(Lam), y)
+
+    def _mean_at(self, k: int) -> Array:
+        if k == len(self._times) - 1:
+            return self._traj.latest()[0]
+        means, _ = self._traj.smoothed(k)
+        return means[0]
+
+    def estimate(self, t: float | None = None) -> tuple[Array, Array]:
+        """``(mean, cov)`` of the newest state, or of the window state at ``t``.
+
+        For ``t`` between two window states the marginal is predicted from the
+        joint of its neighbours without changing the filter (exact for linear
+        models).
+        """
+        self._require_init()
+        if t is None:
+            mean, cov = self._traj.latest()
+            return self.motion.normalize(mean), cov
+        tf = self._check_time(t)
+        k = self.index_of(tf)
+        if k is None:
+            if tf < self._times[0] or tf > self._times[-1]:
+                raise OutsideWindowError(
+                    f"time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
+                )
+            # evaluate on a throw-away insertion, then roll back
+            snap = (self._traj.snapshot(), list(self._times))
+            try:
+                k = self._insert(tf)
+                means, covs = self._traj.smoothed(k)
+                return self.motion.normalize(means[0]), covs[0]
+            finally:
+                self._traj.restore(snap[0])
+                self._times = snap[1]
+        if k == len(self._times) - 1:
+            mean, cov = self._traj.latest()
+        else:
+            means, covs = self._traj.smoothed(k)
+            mean, cov = means[0], covs[0]
+        return self.motion.normalize(mean), cov
+
+    def trajectory(self) -> tuple[Array, Array, Array]:
+        """``(times, means, covs)`` of every window state, oldest first (smoothed marginals)."""
+        self._require_init()
+        means, covs = self._traj.smoothed(0)
+        return self.times, np.array([self.motion.normalize(m) for m in means]), np.array(covs)
+
+    def information(self) -> tuple[Array, Array, Array, Array]:
+        """``(times, D, U, eta)``: diagonal and super-diagonal blocks and vector (copies)."""
+        self._require_init()
+        D, U, eta = self._traj.blocks()
+        return self.times, np.array(D), np.array(U).reshape(-1, self.n, self.n), np.array(eta)
+
+    def dense_information(self) -> tuple[Array, Array]:
+        """Full ``(Omega, eta)`` of the window (``m n`` square; for tests and inspection)."""
+        self._require_init()
+        return self._traj.dense()
+
+    def _enforce_window(self) -> None:
+        tr = self._traj
+        while len(self._times) > 1 and (
+            (self.window is not None and len(self._times) > self.window)
+            or (self.horizon is not None and self._times[0] < self._times[-1] - self.horizon - self.time_tol)
+        ):
+            tr.drop_oldest()
+            dropped = self._times.pop(0)
+            self.marginalized += 1
+            log.debug("marginalized state at t=%.6f", dropped)
+
+    def __iter__(self) -> Iterator[float]:
+        return iter(list(self._times))
