@@ -6,6 +6,7 @@ anything from being counted twice.
 """
 from . import errors, models
 from .estimation import DelayedStateEIF, ExtendedInformationFilter
+from .fusion import ChannelFilter, FusionNode, InformationFusionPolicy, Policy, SourceEstimate
 from .gaussian import InformationGaussian
 
 __version__ = "0.1.0"
@@ -16,4 +17,9 @@ __all__ = [
     "DelayedStateEIF",
     "ExtendedInformationFilter",
     "InformationGaussian",
+    "ChannelFilter",
+    "FusionNode",
+    "Policy",
+    "InformationFusionPolicy",
+    "SourceEstimate",
 ]

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..errors import (
+    NonFiniteError,
     NotInitializedError,
     OutsideWindowError,
     ShapeError,
@@ -72,6 +73,19 @@ def measurement_information(
     A = np.linalg.solve(C, np.column_stack((H, innov)))  # C^-1 [H  r]
     AH, Ar = A[:, :-1], A[:, -1]
     return symmetrize(AH.T @ AH), AH.T @ Ar
+
+
+def _checked_square(a: ArrayLike, n: int, name: str, spd: bool = False) -> Array:
+    """Fast validation of a model's ``n x n`` output (finite; symmetric PD if ``spd``)."""
+    a = np.asarray(a, dtype=np.float64)
+    if a.shape != (n, n):
+        raise ShapeError(f"{name} must have shape {(n, n)}, got {a.shape}")
+    if not np.isfinite(a).all():
+        raise NonFiniteError(f"{name} contains NaN or inf")
+    if spd:
+        a = symmetrize(a)
+        cholesky(a, name)
+    return a
 
 
 class DelayedStateEIF:
@@ -201,8 +215,12 @@ class DelayedStateEIF:
                 f._times, f.marginalized = times, marg
             return False
 
-    def _transaction(self) -> "_Transaction":
+    def transaction(self) -> "_Transaction":
+        """Context manager: every change made inside is undone if an exception escapes."""
+        self._require_init()
         return DelayedStateEIF._Transaction(self)
+
+    _transaction = transaction
 
     # ------------------------------------------------------------------ API
     def initialize(self, t: float, mean: ArrayLike, cov: ArrayLike) -> None:
@@ -224,16 +242,16 @@ class DelayedStateEIF:
             key = round(dt, 12)
             cached = self._linear_cache.get(key)
             if cached is None:
-                F = as_matrix(mo.F(dt), (self.n, self.n), "motion Jacobian F")
-                Q = as_spd(mo.Q(dt), self.n, "process noise Q")
+                F = _checked_square(mo.F(dt), self.n, "motion Jacobian F")
+                Q = _checked_square(mo.Q(dt), self.n, "process noise Q", spd=True)
                 if len(self._linear_cache) > 256:
                     self._linear_cache.clear()
                 cached = self._linear_cache[key] = (F, Q)
             F, Q = cached
             return MotionFactor(F, Q, np.zeros(self.n), dt, None)
         x = np.zeros(self.n) if x_from is None else x_from
-        F = as_matrix(mo.F(dt, x, u), (self.n, self.n), "motion Jacobian F")
-        Q = as_spd(mo.Q(dt, x, u), self.n, "process noise Q")
+        F = _checked_square(mo.F(dt, x, u), self.n, "motion Jacobian F")
+        Q = _checked_square(mo.Q(dt, x, u), self.n, "process noise Q", spd=True)
         fx = as_vector(mo.f(x, dt, u), self.n, "predicted state f(x)")
         # c = f(mu) - F mu, with angles of f(mu) kept continuous with F mu
         c = mo.residual(fx, F @ x) if mo.angle_indices else fx - F @ x
@@ -326,6 +344,37 @@ class DelayedStateEIF:
         with self._transaction():
             k = self.ensure_state(tf)
             self._traj.add_information(k, symmetrize(Lam), y)
+
+    def add_information_batch(
+        self, entries: list[tuple[float, Array, Array]], *, validate: bool = True
+    ) -> None:
+        """Add single-state factors ``(t, info_matrix, info_vector)`` in one transaction.
+
+        With ``validate=False`` the matrices are taken as they are (symmetric,
+        finite, right shape) and may be indefinite: a fusion node uses that to
+        *replace* information it received earlier by the difference new - old.
+        Either all entries are added or, on an error, none.
+        """
+        self._require_init()
+        checked = []
+        for t, Lam, y in entries:
+            tf = self._check_time(t)
+            if validate:
+                Lam = as_matrix(Lam, (self.n, self.n), "information matrix")
+                check_psd(Lam, "information matrix")
+                y = as_vector(y, self.n, "information vector")
+            checked.append((tf, Lam, y))
+        with self._transaction():
+            for tf, Lam, y in checked:
+                k = self.index_of(tf)
+                if k is None:
+                    if tf < self._times[0] or tf > self._times[-1]:
+                        raise OutsideWindowError(
+                            f"time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
+                        )
+                    k = self._insert(tf)
+                self._traj.add_information(k, symmetrize(Lam), y)
+            self._enforce_window()
 
     def _mean_at(self, k: int) -> Array:
         if k == len(self._times) - 1:

@@ -8,13 +8,19 @@ Navigation*, 2001, sec. 6.2.2). State ``[p_1..p_d, v_1..v_d]``::
     Q(dt) = q [[dt^3/3 I, dt^2/2 I], [dt^2/2 I, dt I]]
 
 with ``q`` the power spectral density of the acceleration noise (m^2/s^3).
+
+``Unicycle``: planar unicycle ``(x, y, theta)`` driven by velocity odometry
+``u = (v, omega)``, integrated exactly along circular arcs, with control-noise
+process covariance (Thrun, Burgard & Fox, *Probabilistic Robotics*, 2005,
+sec. 5.3 and 7.4).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..errors import ShapeError, ValidationError
-from .base import Array, MotionModel
+from ..linalg import as_vector
+from .base import Array, MotionModel, wrap_angle
 
 
 class ConstantVelocity(MotionModel):
@@ -53,5 +59,155 @@ class ConstantVelocity(MotionModel):
 
     def Q(self, dt: float, x: Array | None = None, u: Array | None = None) -> Array:
         d = self.axes
-        I = np.eye(d)
-        return self.q * np.block([[dt**3 / 3.0 * I, dt**2 / 2.0 * I], [dt**2 / 2.0 * I, dt * I]])
+        Q = np.zeros((self.dim, self.dim))
+        i = np.arange(d)
+        Q[i, i] = self.q * dt**3 / 3.0
+        Q[i, i + d] = Q[i + d, i] = self.q * dt**2 / 2.0
+        Q[i + d, i + d] = self.q * dt
+        return Q
+
+
+def _positive(value: float, name: str) -> float:
+    """Return ``value`` as a float, raising :class:`ValidationError` unless positive and finite."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValidationError(f"{name} must be a positive finite number, got {value!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise ValidationError(f"{name} must be positive and finite, got {value!r}")
+    return v
+
+
+def _sinc_and_derivative(a: float) -> tuple[float, float]:
+    """``s(a) = sin(a)/a`` (``s(0) = 1``) and ``s'(a)``, both accurate for small ``a``."""
+    s = float(np.sinc(a / np.pi))
+    if abs(a) < 1e-3:  # Taylor series: the closed form below cancels catastrophically
+        ds = -a / 3.0 + a**3 / 30.0 - a**5 / 840.0
+    else:
+        ds = (a * np.cos(a) - np.sin(a)) / a**2
+    return s, ds
+
+
+class Unicycle(MotionModel):
+    """Planar unicycle (differential-drive) driven by velocity odometry.
+
+    State ``x = (x, y, theta)`` (m, m, rad), control ``u = (v, omega)`` (forward speed
+    in m/s and turn rate in rad/s, held constant over ``dt``). The exact
+    integration of ``x' = v cos(theta), y' = v sin(theta), theta' = omega``
+    (Thrun, Burgard & Fox, *Probabilistic Robotics*, 2005, sec. 5.3) is,
+    for ``|omega| > 1e-9``, the circular arc::
+
+        x_k     = x + v/omega (sin(theta + omega dt) - sin(theta))
+        y_k     = y + v/omega (cos(theta) - cos(theta + omega dt))
+        theta_k = wrap(theta + omega dt)
+
+    evaluated in the algebraically identical, cancellation-free half-angle form
+    ``x_k = x + v dt s(a) cos(theta + a)``, ``y_k = y + v dt s(a) sin(theta + a)``
+    with ``a = omega dt / 2`` and ``s(a) = sin(a)/a``. For ``|omega| <= 1e-9`` the
+    position moves on a straight line (``a = 0``, ``s = 1``). ``theta`` is wrapped
+    to ``[-pi, pi)``.
+
+    Process noise: the control is perturbed by white noise with power spectral
+    densities ``std_v^2`` (m^2/s) and ``std_w^2`` (rad^2/s). Its mean over ``dt``
+    has covariance ``M / dt`` with ``M = diag(std_v^2, std_w^2)``, and propagating
+    it to first order through ``f`` (the control-noise model of *Probabilistic
+    Robotics*, sec. 5.3 and 7.4, ``R_t = V_t M_t V_t^T``, here with ``M_t = M / dt``)
+    gives::
+
+        Q(dt, x, u) = V M V^T / dt + q_floor dt I,    V = df/du (3 x 2)
+
+    ``Q`` therefore scales consistently with the step: the heading variance is
+    exactly ``std_w^2 dt`` (a Wiener process), as is the along-track variance when
+    ``omega = 0``. The ``q_floor dt I`` term keeps ``Q`` invertible (``V M V^T`` has
+    rank 2). ``Q(0) = 0``.
+
+    Parameters
+    ----------
+    std_v : float
+        Forward-speed noise density (m / sqrt(s)), ``> 0``.
+    std_w : float
+        Turn-rate noise density (rad / sqrt(s)), ``> 0``.
+    q_floor : float
+        Spectral density of an extra isotropic noise term (units^2 / s), ``> 0``.
+    """
+
+    dim = 3
+    is_linear = False
+    angle_indices = (2,)
+    #: Below this turn rate (rad/s) the position moves on a straight line.
+    OMEGA_EPS = 1e-9
+
+    def __init__(self, std_v: float, std_w: float, q_floor: float = 1e-6) -> None:
+        self.std_v = _positive(std_v, "Unicycle std_v")
+        self.std_w = _positive(std_w, "Unicycle std_w")
+        self.q_floor = _positive(q_floor, "Unicycle q_floor")
+
+    def __repr__(self) -> str:
+        return f"Unicycle(std_v={self.std_v}, std_w={self.std_w}, q_floor={self.q_floor})"
+
+    # -- helpers -----------------------------------------------------------------------
+    def _terms(self, x: Array | None, dt: float, u: Array | None, who: str):
+        if x is None:
+            raise ValidationError(f"Unicycle is nonlinear: {who} needs the state x")
+        x = as_vector(x, 3, "Unicycle state x")
+        if u is None:
+            v, w = 0.0, 0.0
+        else:
+            v, w = (float(c) for c in as_vector(u, 2, "Unicycle control u (v, omega)"))
+        dt = float(dt)
+        if not np.isfinite(dt):
+            raise ValidationError(f"dt must be finite, got {dt}")
+        a = 0.0 if abs(w) <= self.OMEGA_EPS else 0.5 * w * dt
+        s, ds = _sinc_and_derivative(a)
+        phi = x[2] + a
+        return x, v, w, dt, s, ds, phi
+
+    # -- MotionModel -------------------------------------------------------------------
+    def f(self, x: Array, dt: float, u: Array | None = None) -> Array:
+        x, v, w, dt, s, _, phi = self._terms(x, dt, u, "f")
+        return np.array(
+            [
+                x[0] + v * dt * s * np.cos(phi),
+                x[1] + v * dt * s * np.sin(phi),
+                wrap_angle(x[2] + w * dt),
+            ]
+        )
+
+    def F(self, dt: float, x: Array | None = None, u: Array | None = None) -> Array:
+        """``df/dx = [[1, 0, -v dt s sin(theta+a)], [0, 1, v dt s cos(theta+a)], [0, 0, 1]]``."""
+        x, v, w, dt, s, _, phi = self._terms(x, dt, u, "F")
+        F = np.eye(3)
+        F[0, 2] = -v * dt * s * np.sin(phi)
+        F[1, 2] = v * dt * s * np.cos(phi)
+        return F
+
+    def V(self, dt: float, x: Array | None = None, u: Array | None = None) -> Array:
+        """Jacobian ``df/du`` (3 x 2) of the exact motion, with ``a = omega dt / 2``::
+
+            [[dt s cos(theta+a), v dt^2/2 (s'(a) cos(theta+a) - s sin(theta+a))],
+             [dt s sin(theta+a), v dt^2/2 (s'(a) sin(theta+a) + s cos(theta+a))],
+             [0,                 dt]]
+
+        On the straight-line branch this is the limit ``omega -> 0`` (``s = 1``, ``s' = 0``).
+        """
+        x, v, w, dt, s, ds, phi = self._terms(x, dt, u, "V")
+        c, sn = np.cos(phi), np.sin(phi)
+        half = 0.5 * v * dt * dt
+        return np.array(
+            [
+                [dt * s * c, half * (ds * c - s * sn)],
+                [dt * s * sn, half * (ds * sn + s * c)],
+                [0.0, dt],
+            ]
+        )
+
+    def Q(self, dt: float, x: Array | None = None, u: Array | None = None) -> Array:
+        """``V diag(std_v^2, std_w^2) V^T / dt + q_floor dt I`` (zero for ``dt = 0``)."""
+        dt = float(dt)
+        if not (np.isfinite(dt) and dt >= 0):
+            raise ValidationError(f"Unicycle Q needs a finite dt >= 0, got {dt}")
+        if dt == 0.0:
+            return np.zeros((3, 3))
+        V = self.V(dt, x, u)
+        Vs = V * np.array([self.std_v, self.std_w])
+        return (Vs @ Vs.T) / dt + self.q_floor * dt * np.eye(3)

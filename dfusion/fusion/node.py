@@ -1,0 +1,330 @@
+"""A fusion node: a delayed-state EIF, one channel filter per neighbour, a policy.
+
+Every node of a tree runs the same motion model from the same prior. Its
+belief is that common part plus single-state information: its own
+measurements and what its neighbours sent (see :mod:`dfusion.fusion.channel`
+for the protocol and why it neither double counts nor loses information).
+
+Information for state times ahead of the node's newest state is held back and
+added when :meth:`FusionNode.predict` reaches them, so a node never moves its
+trajectory forward on a neighbour's clock. Information for times older than
+the node's window cannot be added any more: it is dropped and counted in
+``stats.blocks_outside_window`` (conservative, never over-confident; choose the window
+with :func:`dfusion.topology.minimum_window` to avoid it).
+
+``fusion="naive"`` sends the whole belief, including what came from the
+recipient: the rumour-propagation failure the channel filter prevents, kept
+for comparison only.
+"""
+from __future__ import annotations
+
+import logging
+import secrets
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..errors import DfusionError, MessageError, OutsideWindowError, ValidationError
+from ..estimation.delayed_state import DelayedStateEIF, measurement_information
+from ..linalg import Array
+from ..models.base import MeasurementModel, MotionModel
+from ..wire import InfoMessage, decode, encode
+from .channel import ChannelFilter, time_key
+from .policy import InformationFusionPolicy, Policy, SourceEstimate
+
+log = logging.getLogger(__name__)
+
+FUSION_MODES = ("channel", "naive")
+
+
+@dataclass
+class NodeStats:
+    """Counters of a node's traffic."""
+
+    messages_sent: int = 0
+    bytes_sent: int = 0
+    messages_received: int = 0
+    messages_rejected: int = 0
+    duplicates: int = 0
+    blocks_outside_window: int = 0
+    rejections: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class _Info:
+    t: float
+    info: Array
+    vec: Array
+
+
+#: Differences ``T(t) - M(t)`` smaller than this, relative to ``T(t)``, are rounding noise.
+ROUNDING_RTOL = 1e-12
+
+
+def _clean_difference(diff: Array, scale: Array) -> Array:
+    """Remove rounding noise from information differences ``T(t) - M(t)``.
+
+    The exact difference is positive semi-definite (it is a sum of measurement
+    information). Computed in floating point it carries errors of order
+    ``eps * |T(t)|``: blocks below ``ROUNDING_RTOL * |T(t)|`` become exactly
+    zero, and rounding-level negative eigenvalues are clipped to zero.
+    """
+    out = diff.copy()
+    tiny = np.abs(diff).max(axis=(1, 2)) <= ROUNDING_RTOL * scale
+    out[tiny] = 0.0
+    rest = ~tiny
+    if rest.any():
+        w, V = np.linalg.eigh(out[rest])
+        neg = w.min(axis=1) < 0
+        if neg.any():
+            w = np.where(w < 0, 0.0, w)
+            fixed = np.einsum("kij,kj,klj->kil", V, w, V)
+            sub = out[rest]
+            sub[neg] = 0.5 * (fixed[neg] + np.transpose(fixed[neg], (0, 2, 1)))
+            out[rest] = sub
+    return out
+
+
+class FusionNode:
+    """One fusion node of a tree.
+
+    Parameters
+    ----------
+    name : str
+        Unique node name.
+    neighbors : iterable of str
+        Names of the neighbours in the tree.
+    motion : MotionModel
+        Motion model shared by every node of the network.
+    window : int, optional
+        States kept by the delayed-state filter.
+    prior : (t0, mean, cov)
+        The common prior, identical at every node.
+    horizon : float, optional
+        Keep states newer than ``latest - horizon`` seconds (with or instead of ``window``).
+    fusion : {"channel", "naive"}
+        ``"channel"`` (default) removes shared information; ``"naive"`` does not.
+    policy : Policy, optional
+        Decides :meth:`output`; default :class:`InformationFusionPolicy`.
+    network_key : bytes, optional
+        When set, outgoing messages carry an HMAC-SHA256 and incoming ones must.
+    epoch : int, optional
+        Identifier of this incarnation (random by default): a restarted node gets a
+        new one, and its neighbours replace what the old incarnation sent.
+
+    Attributes
+    ----------
+    filter : DelayedStateEIF
+        The local trajectory filter (prior, motion, own and received information).
+    channels : dict[str, ChannelFilter]
+    stats : NodeStats
+    """
+
+    def __init__(
+        self,
+        name: str,
+        neighbors: Iterable[str],
+        motion: MotionModel,
+        window: int | None = 100,
+        prior: tuple[float, ArrayLike, ArrayLike] | None = None,
+        *,
+        horizon: float | None = None,
+        fusion: str = "channel",
+        policy: Policy | None = None,
+        network_key: bytes | None = None,
+        epoch: int | None = None,
+        time_tol: float = 1e-9,
+    ) -> None:
+        if not isinstance(name, str) or not name:
+            raise ValidationError("node name must be a non-empty string")
+        nbrs = tuple(neighbors)
+        if name in nbrs or len(set(nbrs)) != len(nbrs):
+            raise ValidationError(f"invalid neighbours of {name!r}: {nbrs}")
+        if fusion not in FUSION_MODES:
+            raise ValidationError(f"fusion must be one of {FUSION_MODES}, got {fusion!r}")
+        if prior is None:
+            raise ValidationError("a prior (t0, mean, cov) common to all nodes is required")
+        self.name = name
+        self.neighbors = nbrs
+        self.fusion = fusion
+        self.policy: Policy = policy or InformationFusionPolicy()
+        self.network_key = network_key
+        self.epoch = secrets.randbits(63) if epoch is None else int(epoch)
+        self.filter = DelayedStateEIF(motion, window, horizon=horizon, time_tol=time_tol)
+        t0, mean, cov = prior
+        self.filter.initialize(t0, mean, cov)
+        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j) for j in nbrs}
+        self.stats = NodeStats()
+        self.sources: dict[str, SourceEstimate] = {}
+        self._own: dict[int, _Info] = {}
+        self._total: dict[int, _Info] = {}
+        self._pruned_at = self.filter.oldest_time
+
+    def __repr__(self) -> str:
+        return f"FusionNode({self.name!r}, neighbors={list(self.neighbors)}, {self.filter!r})"
+
+    # ------------------------------------------------------------------ local filter
+    @property
+    def motion(self) -> MotionModel:
+        return self.filter.motion
+
+    @property
+    def latest_time(self) -> float:
+        return self.filter.latest_time
+
+    def predict(self, t: float, u: ArrayLike | None = None) -> None:
+        """Advance the trajectory to ``t`` (or add a state at a past ``t`` in the window)."""
+        f = self.filter
+        t = f._check_time(t)
+        if t <= f.latest_time + f.time_tol:
+            if t < f.oldest_time - f.time_tol:
+                raise OutsideWindowError(f"time {t} is older than the window start {f.oldest_time}")
+            f.ensure_state(t)
+            self._prune()
+            return
+        last = f.latest_time
+        pending = [e for e in self._total.values() if last + f.time_tol < e.t <= t + f.time_tol]
+        with f.transaction():
+            f.predict(t, u)
+            if pending:
+                pending.sort(key=lambda e: e.t)
+                f.add_information_batch([(e.t, e.info, e.vec) for e in pending], validate=False)
+        self._prune()
+
+    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
+        """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window)."""
+        f = self.filter
+        t = f._check_time(t)
+        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
+            raise OutsideWindowError(
+                f"measurement time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
+            )
+        with f.transaction():
+            f.ensure_state(t)
+            x_lin = np.zeros(f.n) if sensor.is_linear else f.estimate(t)[0]
+            Lam, y = measurement_information(sensor, z, x_lin)
+            f.add_information_batch([(t, Lam, y)], validate=False)
+        key = time_key(t)
+        for store in (self._own, self._total):
+            e = store.get(key)
+            store[key] = _Info(t, Lam, y) if e is None else _Info(e.t, e.info + Lam, e.vec + y)
+        self._prune()
+
+    def estimate(self, t: float | None = None) -> tuple[Array, Array]:
+        """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""
+        return self.filter.estimate(t)
+
+    def output(self) -> SourceEstimate:
+        """The node's output: the policy's choice among the fused estimate and the sources."""
+        mean, cov = self.filter.estimate()
+        fused = SourceEstimate("fused", self.filter.latest_time, mean, cov)
+        return self.policy.decide(fused, list(self.sources.values()))
+
+    def report_source(self, estimate: SourceEstimate) -> None:
+        """Record the latest estimate of a candidate source (for switching policies)."""
+        self.sources[estimate.name] = estimate
+
+    # ------------------------------------------------------------------ messages
+    def message_to(self, neighbor: str, sent_at: float | None = None) -> bytes:
+        """The message for ``neighbor`` (msgpack bytes, ready for any transport)."""
+        ch = self.channels.get(neighbor)
+        if ch is None:
+            raise ValidationError(f"{neighbor!r} is not a neighbour of {self.name!r}")
+        n = self.filter.n
+        keys = sorted(self._total)
+        times = np.array([self._total[k].t for k in keys], dtype=float)
+        infos = np.array([self._total[k].info for k in keys], dtype=float).reshape(-1, n, n)
+        vecs = np.array([self._total[k].vec for k in keys], dtype=float).reshape(-1, n)
+        if self.fusion == "channel" and ch.received:
+            rows = [i for i, k in enumerate(keys) if k in ch.received]
+            if rows:
+                got = [ch.received[keys[i]] for i in rows]
+                scale = np.abs(infos[rows]).max(axis=(1, 2))
+                infos[rows] -= np.array([e.info for e in got])
+                vecs[rows] -= np.array([e.vec for e in got])
+                infos[rows] = _clean_difference(infos[rows], scale)
+        keep = infos.any(axis=(1, 2)) | vecs.any(axis=1)
+        times, infos, vecs = times[keep], infos[keep], vecs[keep]
+        msg = InfoMessage(
+            src=self.name,
+            dst=neighbor,
+            epoch=self.epoch,
+            seq=ch.seq_out,
+            start=self.filter.oldest_time,
+            sent_at=self.filter.latest_time if sent_at is None else float(sent_at),
+            times=times,
+            info=infos,
+            vec=vecs,
+        )
+        data = encode(msg, self.network_key)
+        ch.seq_out += 1
+        ch.messages_out += 1
+        self.stats.messages_sent += 1
+        self.stats.bytes_sent += len(data)
+        return data
+
+    def _reject(self, reason: str, detail: str) -> MessageError:
+        self.stats.messages_rejected += 1
+        self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + 1
+        log.warning("%s: rejected message (%s): %s", self.name, reason, detail)
+        return MessageError(detail)
+
+    def receive(self, data: bytes) -> int:
+        """Fuse a neighbour's message; returns the number of state blocks that changed.
+
+        Raises :class:`MessageError` (and changes nothing) if the message is
+        malformed, unauthenticated while a key is set, from a non-neighbour,
+        addressed to another node, or of another state dimension.
+        """
+        try:
+            msg = decode(data, self.network_key)
+        except MessageError as exc:
+            raise self._reject("malformed", str(exc)) from None
+        if msg.dst != self.name:
+            raise self._reject("misaddressed", f"message for {msg.dst!r} delivered to {self.name!r}")
+        ch = self.channels.get(msg.src)
+        if ch is None:
+            raise self._reject("not-a-neighbour", f"{msg.src!r} is not a neighbour of {self.name!r}")
+        if msg.n != self.filter.n:
+            raise self._reject("dimension", f"state dimension {msg.n} from {msg.src!r}, expected {self.filter.n}")
+        if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
+            self.stats.duplicates += msg.seq == ch.last_seq
+        f = self.filter
+        deltas, updates, outside = ch.plan(msg, f.oldest_time, f.time_tol)
+        latest = f.latest_time + f.time_tol
+        now = [d for d in deltas if d[0] <= latest]
+        try:
+            if now:
+                with f.transaction():
+                    f.add_information_batch(now, validate=False)
+        except DfusionError as exc:
+            raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
+        ch.commit(msg, updates)
+        for t, dL, dy in deltas:
+            key = time_key(t)
+            e = self._total.get(key)
+            self._total[key] = _Info(t, dL, dy) if e is None else _Info(e.t, e.info + dL, e.vec + dy)
+        if outside:
+            self.stats.blocks_outside_window += outside
+            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
+        self.stats.messages_received += 1
+        self._prune()
+        return len(deltas)
+
+    def _prune(self) -> None:
+        oldest = self.filter.oldest_time
+        if oldest <= self._pruned_at:
+            return
+        self._pruned_at = oldest
+        cutoff = time_key(oldest) - 1
+        for store in (self._own, self._total):
+            for key in [k for k in store if k < cutoff]:
+                del store[key]
+        for ch in self.channels.values():
+            ch.prune(cutoff)
+
+    def own_information(self) -> Sequence[tuple[float, Array, Array]]:
+        """This node's own measurement information per state time, oldest first."""
+        return [(e.t, e.info, e.vec) for _, e in sorted(self._own.items())]

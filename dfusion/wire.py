@@ -1,0 +1,186 @@
+"""The fusion message: msgpack, versioned, validated, optionally authenticated.
+
+A message from node ``src`` to its neighbour ``dst`` carries, for each state
+time ``t_i`` it covers, one block of *single-state information*
+``(Lambda_i, y_i)`` (see :mod:`dfusion.fusion.node` for what it means). Layout of
+version 1 (all floats IEEE-754 float64 little-endian; "packed" symmetric blocks
+store the upper triangle row by row, ``n(n+1)/2`` numbers)::
+
+    envelope = msgpack map {
+        "v":    1,                  # format version
+        "body": bin,                # msgpack map below, as bytes
+        "mac":  bin | nil,          # HMAC-SHA256(key, body) when a network key is set
+    }
+    body = msgpack map {
+        "src": str, "dst": str,     # sender and recipient node names
+        "epoch": int,               # random 63-bit id of the sender's incarnation
+        "seq": int,                 # per-link sequence number, strictly increasing per epoch
+        "n": int,                   # state dimension
+        "start": float,             # oldest state time the sender still holds
+        "sent_at": float,           # sender's clock when the message was made
+        "times": bin,               # m float64, strictly increasing
+        "info": bin,                # m * n(n+1)/2 float64: packed Lambda_i
+        "vec": bin,                 # m * n float64: y_i
+    }
+
+:func:`decode` rejects, with :class:`~dfusion.errors.MessageError`: anything that
+is not such a map, an unknown version, wrong types or sizes, non-finite numbers,
+times that are not strictly increasing, an information block that is not
+positive semi-definite (relative tolerance :data:`PSD_RTOL`), and, when a key is
+configured, a missing or wrong MAC (compared in constant time).
+"""
+from __future__ import annotations
+
+import hashlib
+import hmac
+from functools import lru_cache
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+
+from .errors import MessageError
+from .linalg import Array
+
+VERSION = 1
+#: Relative tolerance of the positive semi-definiteness check on received blocks.
+PSD_RTOL = 1e-9
+#: Largest message accepted (bytes); guards against memory exhaustion.
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+MAX_STATE_DIM = 64
+
+_F8 = np.dtype("<f8")
+
+
+@lru_cache(maxsize=16)
+def _triu(n: int) -> tuple[Array, Array]:
+    return np.triu_indices(n)
+
+
+@dataclass(frozen=True)
+class InfoMessage:
+    """A decoded fusion message (see the module docstring for the fields)."""
+
+    src: str
+    dst: str
+    epoch: int
+    seq: int
+    start: float
+    sent_at: float
+    times: Array       # (m,)
+    info: Array        # (m, n, n), symmetric
+    vec: Array         # (m, n)
+
+    @property
+    def n(self) -> int:
+        return self.vec.shape[1]
+
+    def __len__(self) -> int:
+        return self.times.shape[0]
+
+
+def encode(msg: InfoMessage, key: bytes | None = None) -> bytes:
+    """Serialize ``msg``; with ``key`` the envelope carries HMAC-SHA256 of the body."""
+    m, n = msg.vec.shape
+    iu = _triu(n)
+    body = msgpack.packb(
+        {
+            "src": msg.src,
+            "dst": msg.dst,
+            "epoch": int(msg.epoch),
+            "seq": int(msg.seq),
+            "n": int(n),
+            "start": float(msg.start),
+            "sent_at": float(msg.sent_at),
+            "times": np.ascontiguousarray(msg.times, dtype=_F8).tobytes(),
+            "info": np.ascontiguousarray(msg.info[:, iu[0], iu[1]], dtype=_F8).tobytes(),
+            "vec": np.ascontiguousarray(msg.vec, dtype=_F8).tobytes(),
+        },
+        use_bin_type=True,
+    )
+    mac = hmac.new(key, body, hashlib.sha256).digest() if key else None
+    return msgpack.packb({"v": VERSION, "body": body, "mac": mac}, use_bin_type=True)
+
+
+def _unpack(data: bytes) -> dict:
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=MAX_MESSAGE_BYTES)
+    except Exception as exc:  # msgpack raises many types on garbage
+        raise MessageError(f"not a msgpack message: {type(exc).__name__}: {exc}") from None
+    if not isinstance(obj, dict):
+        raise MessageError("message is not a map")
+    return obj
+
+
+def _field(d: dict, name: str, types: type | tuple) -> object:
+    if name not in d:
+        raise MessageError(f"message has no field {name!r}")
+    v = d[name]
+    if isinstance(v, bool) or not isinstance(v, types):
+        raise MessageError(f"field {name!r} has type {type(v).__name__}")
+    return v
+
+
+def _floats(buf: bytes, count: int, name: str) -> Array:
+    if len(buf) != 8 * count:
+        raise MessageError(f"field {name!r} has {len(buf)} bytes, expected {8 * count}")
+    a = np.frombuffer(buf, dtype=_F8).astype(np.float64)  # a writable copy
+    if not np.all(np.isfinite(a)):
+        raise MessageError(f"field {name!r} contains NaN or inf")
+    return a
+
+
+def decode(data: bytes, key: bytes | None = None) -> InfoMessage:
+    """Parse and validate a message; raises :class:`MessageError` on any defect."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise MessageError(f"message must be bytes, got {type(data).__name__}")
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise MessageError(f"message of {len(data)} bytes exceeds the limit")
+    env = _unpack(bytes(data))
+    version = _field(env, "v", int)
+    if version != VERSION:
+        raise MessageError(f"unknown message version {version}")
+    body = _field(env, "body", bytes)
+    mac = env.get("mac")
+    if key:
+        if not isinstance(mac, bytes):
+            raise MessageError("message is not authenticated (no MAC) but a network key is set")
+        if not hmac.compare_digest(mac, hmac.new(key, body, hashlib.sha256).digest()):
+            raise MessageError("message authentication failed (wrong MAC)")
+    d = _unpack(body)
+    src = _field(d, "src", str)
+    dst = _field(d, "dst", str)
+    epoch = _field(d, "epoch", int)
+    seq = _field(d, "seq", int)
+    n = _field(d, "n", int)
+    if not (1 <= n <= MAX_STATE_DIM):
+        raise MessageError(f"state dimension {n} out of range")
+    if seq < 0 or epoch < 0:
+        raise MessageError("negative sequence number or epoch")
+    start = float(_field(d, "start", (int, float)))
+    sent_at = float(_field(d, "sent_at", (int, float)))
+    if not (np.isfinite(start) and np.isfinite(sent_at)):
+        raise MessageError("non-finite start or sent_at")
+    tb = _field(d, "times", bytes)
+    if len(tb) % 8:
+        raise MessageError("field 'times' is not a whole number of float64")
+    m = len(tb) // 8
+    times = _floats(tb, m, "times")
+    if m and np.any(np.diff(times) <= 0):
+        raise MessageError("state times are not strictly increasing")
+    if m and times[0] < start:
+        raise MessageError("a state time precedes the window start")
+    k = n * (n + 1) // 2
+    packed = _floats(_field(d, "info", bytes), m * k, "info").reshape(m, k)
+    vec = _floats(_field(d, "vec", bytes), m * n, "vec").reshape(m, n)
+    iu = _triu(n)
+    info = np.zeros((m, n, n))
+    info[:, iu[0], iu[1]] = packed
+    info[:, iu[1], iu[0]] = packed
+    if m:
+        eig = np.linalg.eigvalsh(info)
+        scale = np.maximum(np.abs(info).max(axis=(1, 2)), 1e-300)
+        if np.any(eig[:, 0] < -PSD_RTOL * scale):
+            bad = int(np.argmax(eig[:, 0] < -PSD_RTOL * scale))
+            raise MessageError(f"information block at t={times[bad]} is not positive semi-definite")
+    return InfoMessage(src, dst, int(epoch), int(seq), start, sent_at, times, info, vec)
