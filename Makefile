@@ -1,0 +1,29 @@
+# Two commands do all the set-up: `make demo` and `make test` each create .venv
+# from pyproject.toml when it is missing or older than pyproject.toml.
+PYTHON ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed-stamp
+OUT ?= out
+
+.PHONY: demo test bench clean venv
+
+$(STAMP): pyproject.toml
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV)/bin/python -m pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/dfusion simulate topologies/tree7-outage.scenario.toml --json $(OUT)/demo.json --plot $(OUT)/demo.png
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -q
+
+bench: $(STAMP)
+	$(VENV)/bin/python benchmarks/estimation.py --quick
+	$(VENV)/bin/python benchmarks/network.py --quick
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

@@ -1,0 +1,399 @@
+r"""Particle-filter tracking of a radio tag from the RSSI of fixed receivers (URUS sec. 8.3).
+
+State: the tag's horizontal position ``(x, y)`` (``motion="random_walk"``) or
+``(x, y, vx, vy)`` (``motion="constant_velocity"``).
+
+**Motion.** Random walk: ``p' = p + w``, ``w ~ N(0, q dt I)`` (``q`` in m^2/s).
+Constant velocity: the white-noise-acceleration model of
+:class:`dfusion.models.ConstantVelocity` (``q`` in m^2/s^3), with the speed of
+each particle optionally capped at ``max_speed``.
+
+**Map constraint (URUS).** With an :class:`OccupancyGrid`, a particle whose
+move ends in an occupied cell or whose straight-line move passes through one is
+discarded: its weight becomes zero and it keeps its previous (free) position, so
+the particle set never contains a position inside an obstacle. Roughening
+jitters that would cross a wall are vetoed the same way (the particle keeps its
+resampled position). If every move of a step is refused the particles stay
+where they were (counted in ``n_all_refused``).
+
+**Likelihood ("annulus").** Receiver ``j`` at ``r_j = (a_j, b_j, c_j)`` sees the
+tag at height ``h`` with the log-distance model of :class:`RSSISensor`,
+``mu_j(p) = p0_j - 10 n_j log10(d_j(p) / d0_j)``, ``d_j = max(||(p, h) - r_j||, d_min)``.
+A reading ``z_j`` weighs particle ``p`` by the Gaussian in RSSI
+
+    log L_j(p) = -(z_j - mu_j(p))^2 / (2 sigma_j^2),
+
+which, as a function of position, is a ring ("annulus") around the receiver,
+centred on the distance ``d0_j 10^((p0_j - z_j) / (10 n_j))`` and wider the
+farther out it lies. Readings of one update are independent; missing readings
+(NaN) contribute nothing. ``std_scale`` multiplies every ``sigma_j``: values
+above 1 temper the likelihood, which accounts for shadowing that is correlated
+in time (successive packets are not independent measurements).
+
+**Information contribution (DESIGN.md sec. 4).** The Gaussian fit of the
+posterior minus the Gaussian fit of the prediction, in information form,
+``(Omega_post - Omega_pred, eta_post - eta_pred)`` over the position
+``(x, y)``, made positive semi-definite: see :meth:`WSNTracker.information_contribution`.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ..errors import NotInitializedError, ShapeError, ValidationError
+from ..gaussian import InformationGaussian
+from ..linalg import Array, as_vector, spd_inverse, symmetrize
+from ..models.measurement import RSSISensor
+from ..models.motion import ConstantVelocity
+from .occupancy import OccupancyGrid
+from .particle_filter import ParticleDepletionError, ParticleFilter, weighted_mean_cov
+
+__all__ = ["WSNTracker", "project_psd_information", "MOTIONS"]
+
+MOTIONS = ("random_walk", "constant_velocity")
+
+
+def project_psd_information(Omega: ArrayLike, eta: ArrayLike, rtol: float = 1e-9) -> tuple[Array, Array, int]:
+    """Project an information pair onto the positive semi-definite cone.
+
+    With ``Omega = V diag(lam) V^T``: eigenvalues below ``rtol * max|lam|`` are set
+    to 0 (``Omega_+ = V diag(max(lam, 0)) V^T``, the nearest PSD matrix in the
+    Frobenius norm), and ``eta`` is projected onto the range of ``Omega_+``
+    (``eta_+ = V_+ V_+^T eta``): information a measurement can carry has
+    ``eta = H^T R^-1 z'`` in that range, and directions whose information was
+    dropped must not shift the mean either. Returns ``(Omega_+, eta_+, n_clipped)``.
+    """
+    Om = symmetrize(np.asarray(Omega, dtype=float))
+    e = np.asarray(eta, dtype=float)
+    lam, V = np.linalg.eigh(Om)
+    scale = float(np.max(np.abs(lam))) if lam.size else 0.0
+    keep = lam > rtol * scale if scale > 0 else np.zeros_like(lam, dtype=bool)
+    Vk = V[:, keep]
+    Om_p = symmetrize((Vk * lam[keep]) @ Vk.T)
+    eta_p = Vk @ (Vk.T @ e)
+    return Om_p, eta_p, int(np.count_nonzero(~keep & (lam < 0)))
+
+
+def _sensor_arrays(sensors: RSSISensor | Sequence[RSSISensor]) -> dict[str, Array]:
+    """Per-receiver parameter arrays from one multi-receiver sensor or a list of sensors."""
+    if isinstance(sensors, RSSISensor):
+        sensors = [sensors]
+    sensors = list(sensors)
+    if not sensors or not all(isinstance(s, RSSISensor) for s in sensors):
+        raise ValidationError("sensors must be an RSSISensor or a non-empty sequence of RSSISensor")
+    cols: dict[str, list] = {k: [] for k in ("rxy", "rz", "height", "p0", "n", "std", "d0", "dmin")}
+    for s in sensors:
+        m = s.dim_z
+        rec = s.receivers
+        cols["rxy"].append(rec[:, :2])
+        cols["rz"].append(rec[:, 2] if rec.shape[1] == 3 else np.zeros(m))
+        for key, val in (("height", s.height), ("p0", s.p0), ("n", s.exponent), ("d0", s.d0), ("dmin", s.d_min)):
+            cols[key].append(np.full(m, val))
+        cols["std"].append(s.std)
+    return {k: np.concatenate(v) if k != "rxy" else np.vstack(v) for k, v in cols.items()}
+
+
+class WSNTracker:
+    """Particle filter tracking a tag from received signal strengths (URUS sec. 8.3).
+
+    Parameters
+    ----------
+    sensors : RSSISensor or sequence of RSSISensor
+        The receivers and their path-loss parameters. One sensor with ``m``
+        receivers shares ``p0`` and the exponent; a list (for example one
+        single-receiver sensor per receiver, as :func:`fit_path_loss` gives them)
+        gives every receiver its own. Receiver ``j`` of :meth:`update` is the
+        ``j``-th receiver in this order. The tag height is each sensor's ``height``.
+    n_particles : int
+        Number of particles.
+    motion : {"random_walk", "constant_velocity"}
+        Particle motion model.
+    q : float
+        Process noise: position diffusion (m^2/s) for the random walk, acceleration
+        spectral density (m^2/s^3) for constant velocity.
+    max_speed : float or None
+        Constant velocity only: particle speeds are capped at this value (m/s).
+    grid : OccupancyGrid or None
+        Map constraint (see the module docstring); also the initial support.
+    bounds : (x_min, y_min, x_max, y_max) or None
+        Initial support when there is no grid.
+    std_scale : float
+        Multiplies every receiver's noise standard deviation in the likelihood.
+    seed : int, Generator or None
+        Seed of the filter's random generator.
+    resampling, ess_threshold, roughening
+        As in :class:`ParticleFilter` (roughening acts on the position only).
+    """
+
+    def __init__(
+        self,
+        sensors: RSSISensor | Sequence[RSSISensor],
+        n_particles: int = 5000,
+        *,
+        motion: str = "random_walk",
+        q: float = 0.1,
+        max_speed: float | None = None,
+        grid: OccupancyGrid | None = None,
+        bounds: ArrayLike | None = None,
+        std_scale: float = 1.0,
+        seed: int | np.random.Generator | None = None,
+        resampling: str = "systematic",
+        ess_threshold: float = 0.5,
+        roughening: float = 0.0,
+    ) -> None:
+        if motion not in MOTIONS:
+            raise ValidationError(f"motion must be one of {MOTIONS}, got {motion!r}")
+        if int(n_particles) < 2:
+            raise ValidationError(f"n_particles must be >= 2, got {n_particles}")
+        if not (np.isfinite(q) and q > 0):
+            raise ValidationError(f"q must be positive, got {q}")
+        if not (np.isfinite(std_scale) and std_scale > 0):
+            raise ValidationError(f"std_scale must be positive, got {std_scale}")
+        if max_speed is not None and not (np.isfinite(max_speed) and max_speed > 0):
+            raise ValidationError(f"max_speed must be positive or None, got {max_speed}")
+        if grid is not None and not isinstance(grid, OccupancyGrid):
+            raise ValidationError("grid must be an OccupancyGrid or None")
+        if bounds is not None:
+            bounds = as_vector(bounds, 4, "bounds (x_min, y_min, x_max, y_max)")
+            if not (bounds[2] > bounds[0] and bounds[3] > bounds[1]):
+                raise ValidationError(f"bounds must have x_max > x_min and y_max > y_min, got {bounds}")
+        p = _sensor_arrays(sensors)
+        self.n_receivers = p["p0"].shape[0]
+        self.receivers = np.column_stack([p["rxy"], p["rz"]])
+        self._rx = p["rxy"][:, 0].copy()
+        self._ry = p["rxy"][:, 1].copy()
+        self._dz2 = (p["height"] - p["rz"]) ** 2
+        self._dmin2 = p["dmin"] ** 2
+        self.p0, self.exponent, self.std, self.d0 = p["p0"], p["n"], p["std"], p["d0"]
+        # log L = -0.5 * (A_j + B_j ln d^2)^2 with A_j = (z_j - p0_j + 10 n_j log10 d0_j) / s_j and
+        # B_j = 5 n_j / (s_j ln 10): the residual z - mu in units of the (scaled) std.
+        s = self.std * float(std_scale)
+        self._inv_s = 1.0 / s
+        self._B = 5.0 * self.exponent / (s * np.log(10.0))
+        self._A0 = (-self.p0 + 10.0 * self.exponent * np.log10(self.d0)) / s
+        self.std_scale = float(std_scale)
+        self.motion = motion
+        self.q = float(q)
+        self.max_speed = None if max_speed is None else float(max_speed)
+        self.grid = grid
+        self.bounds = bounds
+        self.n_particles = int(n_particles)
+        self.dim = 2 if motion == "random_walk" else 4
+        self._seed = seed
+        self._pf_args = dict(resampling=resampling, ess_threshold=ess_threshold, roughening=roughening)
+        ParticleFilter(np.zeros((2, self.dim)), **self._pf_args)  # validate the arguments now
+        self.pf: ParticleFilter | None = None
+        self._prior_fit: tuple[Array, Array] | None = None
+        self._post_fit: tuple[Array, Array] | None = None
+        #: Moves refused by the map (cumulative) and steps in which every move was refused.
+        self.n_refused = 0
+        self.n_all_refused = 0
+
+    def __repr__(self) -> str:
+        return (f"WSNTracker(receivers={self.n_receivers}, n_particles={self.n_particles}, motion={self.motion!r}, "
+                f"q={self.q}, grid={self.grid!r})")
+
+    # ------------------------------------------------------------ set-up
+    def initialize(self, mean: ArrayLike | None = None, cov: ArrayLike | None = None,
+                   speed_std: float = 0.5) -> None:
+        """Draw the initial particles.
+
+        Without ``mean``: uniform over the grid's free area (or ``bounds``). With
+        ``mean`` and ``cov`` (2 x 2): Gaussian positions; with a grid, samples in
+        obstacles are redrawn (up to 100 rounds). Velocities (constant-velocity
+        model) are ``N(0, speed_std^2 I)``.
+        """
+        rng = np.random.default_rng(self._seed) if not isinstance(self._seed, np.random.Generator) else self._seed
+        n = self.n_particles
+        if mean is None:
+            if self.grid is not None:
+                pos = self.grid.sample_free(n, rng)
+            elif self.bounds is not None:
+                lo, hi = self.bounds[:2], self.bounds[2:]
+                pos = lo + rng.random((n, 2)) * (hi - lo)
+            else:
+                raise ValidationError("initialize() needs a mean, a grid or bounds")
+        else:
+            m = as_vector(mean, 2, "initial mean")
+            C = np.eye(2) if cov is None else np.asarray(cov, dtype=float)
+            L = np.linalg.cholesky(C)
+            pos = m + rng.standard_normal((n, 2)) @ L.T
+            if self.grid is not None:
+                for _ in range(100):
+                    bad = self.grid.is_occupied(pos)
+                    if not bad.any():
+                        break
+                    pos[bad] = m + rng.standard_normal((int(bad.sum()), 2)) @ L.T
+                else:
+                    raise ValidationError("could not draw initial particles in free space around the mean")
+        x = pos if self.dim == 2 else np.column_stack([pos, rng.standard_normal((n, 2)) * speed_std])
+        self.pf = ParticleFilter(x, rng=rng, **self._pf_args)
+        self._prior_fit = self._fit()
+        self._post_fit = self._prior_fit
+
+    def _require(self) -> ParticleFilter:
+        if self.pf is None:
+            raise NotInitializedError("WSNTracker used before initialize()")
+        return self.pf
+
+    def _fit(self) -> tuple[Array, Array]:
+        pf = self._require()
+        return weighted_mean_cov(pf._x[:, :2], np.exp(pf._lw))
+
+    # -------------------------------------------------------- prediction
+    def _accept(self, old: Array, new: Array) -> np.ndarray:
+        if self.grid is None:
+            return np.ones(old.shape[0], dtype=bool)
+        return ~self.grid.segment_blocked(old[:, :2], new[:, :2])
+
+    def predict(self, dt: float) -> int:
+        """Move the particles over ``dt`` seconds; returns how many moves the map refused.
+
+        The Gaussian fit of the prediction (after the map constraint, which is part
+        of the motion model) is stored for :meth:`information_contribution`.
+        """
+        pf = self._require()
+        dt = float(dt)
+        if not (np.isfinite(dt) and dt >= 0):
+            raise ValidationError(f"dt must be finite and >= 0, got {dt}")
+        refused = 0
+        if dt > 0:
+            x = pf._x
+            n = x.shape[0]
+            if self.motion == "random_walk":
+                new = x + pf.rng.standard_normal((n, 2)) * np.sqrt(self.q * dt)
+            else:
+                L = np.linalg.cholesky(ConstantVelocity(2, self.q).Q(dt))
+                new = x.copy()
+                new[:, :2] += dt * x[:, 2:]
+                new += pf.rng.standard_normal((n, 4)) @ L.T
+                if self.max_speed is not None:
+                    sp = np.hypot(new[:, 2], new[:, 3])
+                    over = sp > self.max_speed
+                    new[over, 2:] *= (self.max_speed / sp[over])[:, None]
+            if self.grid is None:
+                pf.move(new)
+            else:
+                ok = self._accept(x, new)
+                try:
+                    refused = pf.move(new, ok)
+                except ParticleDepletionError:
+                    refused = n
+                    self.n_all_refused += 1
+                self.n_refused += refused
+        self._prior_fit = self._fit()
+        self._post_fit = self._prior_fit
+        return refused
+
+    # ------------------------------------------------------------ update
+    def log_likelihood(self, rssi: ArrayLike, receivers: ArrayLike | None = None,
+                       particles: ArrayLike | None = None) -> Array:
+        """Per-particle log-likelihood (up to a constant) of RSSI readings.
+
+        ``rssi``: ``(m,)`` with one entry per receiver, NaN where missing; or, with
+        ``receivers`` (integer indices, repeats allowed), ``(k,)`` readings of those
+        receivers. ``particles`` defaults to the filter's own.
+        """
+        z, j = self._readings(rssi, receivers)
+        x = self._require()._x if particles is None else np.asarray(particles, dtype=float)
+        if j.size == 0:
+            return np.zeros(x.shape[0])
+        dx = x[:, 0, None] - self._rx[j]
+        dy = x[:, 1, None] - self._ry[j]
+        d2 = dx * dx
+        d2 += dy * dy
+        d2 += self._dz2[j]
+        np.maximum(d2, self._dmin2[j], out=d2)
+        np.log(d2, out=d2)
+        d2 *= self._B[j]
+        d2 += z * self._inv_s[j] + self._A0[j]
+        d2 *= d2
+        return -0.5 * d2.sum(axis=1)
+
+    def _readings(self, rssi: ArrayLike, receivers: ArrayLike | None) -> tuple[Array, np.ndarray]:
+        z = np.asarray(rssi, dtype=float).reshape(-1)
+        if receivers is None:
+            if z.shape[0] != self.n_receivers:
+                raise ShapeError(f"rssi must have one entry per receiver ({self.n_receivers}), got {z.shape[0]}")
+            j = np.flatnonzero(np.isfinite(z))
+            return z[j], j
+        j = np.asarray(receivers).reshape(-1)
+        if j.shape != z.shape:
+            raise ShapeError(f"receivers and rssi must have the same length, got {j.shape[0]} and {z.shape[0]}")
+        if j.size and (not np.issubdtype(j.dtype, np.integer) or j.min() < 0 or j.max() >= self.n_receivers):
+            raise ValidationError(f"receiver indices must be integers in [0, {self.n_receivers})")
+        keep = np.isfinite(z)
+        return z[keep], j[keep].astype(np.int64)
+
+    def update(self, rssi: ArrayLike, receivers: ArrayLike | None = None) -> int:
+        """Weight the particles by RSSI readings (see :meth:`log_likelihood`), then resample if needed.
+
+        Returns the number of readings used (missing ones are skipped). The Gaussian
+        fit of the posterior (before resampling) is stored for
+        :meth:`information_contribution`.
+        """
+        pf = self._require()
+        z, j = self._readings(rssi, receivers)
+        if j.size:
+            pf.update(self.log_likelihood(z, j))
+            self._post_fit = self._fit()
+            pf.resample_if_needed(accept=self._accept if self.grid is not None else None)
+        return int(j.size)
+
+    def step(self, dt: float, rssi: ArrayLike, receivers: ArrayLike | None = None) -> int:
+        """:meth:`predict` then :meth:`update`."""
+        self.predict(dt)
+        return self.update(rssi, receivers)
+
+    # ----------------------------------------------------------- outputs
+    @property
+    def particles(self) -> Array:
+        """The ``(N, dim)`` particles (read-only)."""
+        return self._require().particles
+
+    @property
+    def weights(self) -> Array:
+        """Normalized particle weights."""
+        return self._require().weights
+
+    def gaussian_summary(self) -> tuple[Array, Array]:
+        """Weighted mean and covariance of the position ``(x, y)``."""
+        return self._fit()
+
+    def estimate(self) -> Array:
+        """Weighted mean position ``(x, y)``."""
+        pf = self._require()
+        return np.exp(pf._lw) @ pf._x[:, :2]
+
+    def information_contribution(self, rtol: float = 1e-9) -> InformationGaussian:
+        """What this node's RSSI readings added, as information on ``(x, y)`` (DESIGN.md sec. 4).
+
+        With ``(mu_pred, P_pred)`` the Gaussian fit of the particles after the last
+        :meth:`predict` (map constraint included) and ``(mu_post, P_post)`` the fit
+        after the updates since then (before any resampling)::
+
+            Omega = P_post^-1 - P_pred^-1,    eta = P_post^-1 mu_post - P_pred^-1 mu_pred
+
+        projected to positive semi-definite by :func:`project_psd_information`
+        (negative eigenvalues appear when the particle posterior is wider than its
+        prediction in some direction, e.g. a ring-shaped likelihood; that direction
+        is then dropped). Zero (and ``Omega = 0``) when there was no reading. For a
+        Gaussian prior and a near-linear measurement this tends to the EIF term
+        ``H^T R^-1 H`` and ``H^T R^-1 (z - h(mu) + H mu)``.
+
+        Because the tag's measurement depends on the position only, the posterior
+        marginal of ``(x, y)`` differs from the predicted marginal by exactly the
+        measurement's information (linear-Gaussian case), so this 2-D pair can be
+        added to the position block of a larger state (velocities get zeros).
+        Call it after the update(s) of a step and before the next :meth:`predict`.
+        """
+        self._require()
+        (m0, P0), (m1, P1) = self._prior_fit, self._post_fit
+        if self._post_fit is self._prior_fit:
+            return InformationGaussian(np.zeros(2), np.zeros((2, 2)))
+        O0 = spd_inverse(P0, "covariance of the predicted particles")
+        O1 = spd_inverse(P1, "covariance of the posterior particles")
+        Om, eta, _ = project_psd_information(O1 - O0, O1 @ m1 - O0 @ m0, rtol)
+        return InformationGaussian(eta, Om)

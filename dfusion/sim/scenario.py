@@ -1,0 +1,259 @@
+"""Scenario files: the world, the sensors and the network, in TOML.
+
+A scenario is also a valid topology file (``[[nodes]]`` and ``[[links]]``), so
+the tree check of :mod:`dfusion.topology` applies to it. Every key is
+documented in ``docs/scenarios.md``; anything invalid raises
+:class:`~dfusion.errors.ScenarioError` naming the file and the key.
+
+Sensor kinds are looked up in :data:`SENSOR_KINDS`; later node kinds register
+themselves there with :func:`register_sensor`.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import networkx as nx
+import numpy as np
+
+from ..errors import DfusionError, ScenarioError, TopologyError
+from ..models import ConstantVelocity, MeasurementModel, MotionModel, PositionSensor
+from ..topology import load_topology
+from .network import LinkSpec
+
+#: Sensor factories: ``kind -> f(node_table, scenario) -> MeasurementModel``.
+SENSOR_KINDS: dict[str, Callable[[Mapping[str, Any], "Scenario"], MeasurementModel]] = {}
+#: Motion factories: ``name -> f(target_table) -> MotionModel``.
+MOTION_KINDS: dict[str, Callable[[Mapping[str, Any]], MotionModel]] = {}
+
+FUSION_MODES = ("channel", "naive")
+
+
+def register_sensor(kind: str, factory: Callable[[Mapping[str, Any], "Scenario"], MeasurementModel]) -> None:
+    """Make ``sensor = "<kind>"`` available in scenario files."""
+    SENSOR_KINDS[kind] = factory
+
+
+def _position_sensor(table: Mapping[str, Any], sc: "Scenario") -> MeasurementModel:
+    return PositionSensor(dim=sc.target.axes, std=table.get("std", 1.0))
+
+
+def _constant_velocity(table: Mapping[str, Any]) -> MotionModel:
+    mean = table.get("initial_mean")
+    axes = len(mean) // 2 if isinstance(mean, list) and mean else 2
+    return ConstantVelocity(dim=axes, q=table.get("q", 0.1))
+
+
+register_sensor("position", _position_sensor)
+MOTION_KINDS["constant_velocity"] = _constant_velocity
+
+
+@dataclass
+class TargetSpec:
+    """The tracked target: its motion model and the common prior."""
+
+    motion_kind: str
+    motion: MotionModel
+    initial_mean: np.ndarray
+    initial_cov: np.ndarray
+
+    @property
+    def axes(self) -> int:
+        return getattr(self.motion, "axes", 2)
+
+
+@dataclass
+class NodeSpec:
+    """One fusion node: its sensor and its timing.
+
+    Attributes
+    ----------
+    rate : float
+        Measurements per second (0: the node measures nothing).
+    send_period : float
+        Seconds between two messages to each neighbour.
+    delay : float
+        Measurements reach the filter a uniform ``[0, delay]`` seconds late.
+    phase : float
+        Offset of the measurement times ``phase + k / rate``.
+    active : list of (start, end)
+        Intervals in which the sensor produces measurements (default: always).
+    detection : float
+        Probability that a measurement is produced when active.
+    """
+
+    name: str
+    sensor_kind: str
+    sensor: MeasurementModel | None
+    rate: float
+    send_period: float
+    delay: float = 0.0
+    phase: float = 0.0
+    active: list[tuple[float, float]] = field(default_factory=list)
+    detection: float = 1.0
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def is_active(self, t: float) -> bool:
+        return not self.active or any(a <= t <= b for a, b in self.active)
+
+
+@dataclass
+class Scenario:
+    """A parsed, validated scenario (see ``docs/scenarios.md``)."""
+
+    path: str
+    duration: float
+    dt: float
+    seed: int
+    window: int | None
+    horizon: float | None
+    fusion: str
+    target: TargetSpec
+    nodes: dict[str, NodeSpec]
+    links: dict[tuple[str, str], LinkSpec]
+    graph: nx.Graph
+    raw: dict[str, Any]
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.duration / self.dt))
+
+    def outages(self) -> list[tuple[str, str, float, float]]:
+        """Every outage interval as ``(a, b, start, end)``."""
+        return [(a, b, s, e) for (a, b), spec in self.links.items() for s, e in spec.outages]
+
+
+def _fail(src: str, where: str, msg: str) -> ScenarioError:
+    return ScenarioError(f"{src}: {where}: {msg}")
+
+
+def _num(src: str, where: str, v: Any, *, positive: bool = False, nonneg: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise _fail(src, where, f"must be a finite number, got {v!r}")
+    if positive and v <= 0:
+        raise _fail(src, where, f"must be positive, got {v!r}")
+    if nonneg and v < 0:
+        raise _fail(src, where, f"must be non-negative, got {v!r}")
+    return float(v)
+
+
+def _intervals(src: str, where: str, v: Any) -> list[tuple[float, float]]:
+    if not isinstance(v, list):
+        raise _fail(src, where, "must be a list of [start, end] pairs")
+    out = []
+    for i, iv in enumerate(v):
+        if not (isinstance(iv, list) and len(iv) == 2):
+            raise _fail(src, f"{where}[{i}]", "must be a [start, end] pair")
+        a, b = (_num(src, f"{where}[{i}]", x) for x in iv)
+        if b < a:
+            raise _fail(src, f"{where}[{i}]", f"end {b} before start {a}")
+        out.append((a, b))
+    return out
+
+
+_NODE_KEYS = {"name", "sensor", "std", "rate", "send_period", "delay", "phase", "active", "detection"}
+_LINK_KEYS = {"between", "quality", "latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay", "outages"}
+
+
+def load_scenario(source: str | Path | Mapping[str, Any], *, seed: int | None = None, fusion: str | None = None) -> Scenario:
+    """Read and validate a scenario file (or an already parsed mapping).
+
+    ``seed`` and ``fusion`` override the file's values.
+    """
+    if isinstance(source, Mapping):
+        raw, src = dict(source), "<scenario>"
+    else:
+        src = str(source)
+        try:
+            raw = tomllib.loads(Path(source).read_text())
+        except OSError as exc:
+            raise ScenarioError(f"{src}: cannot read: {exc}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ScenarioError(f"{src}: invalid TOML: {exc}") from None
+    try:
+        graph = load_topology(raw, source=src)
+    except TopologyError as exc:
+        raise ScenarioError(str(exc)) from None
+
+    duration = _num(src, "duration", raw.get("duration", 60.0), positive=True)
+    dt = _num(src, "dt", raw.get("dt", 0.1), positive=True)
+    if duration < dt:
+        raise _fail(src, "duration", "shorter than one time step")
+    s = raw.get("seed", 0) if seed is None else seed
+    if isinstance(s, bool) or not isinstance(s, int) or s < 0:
+        raise _fail(src, "seed", f"must be a non-negative integer, got {s!r}")
+    window = raw.get("window", 100)
+    if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 1):
+        raise _fail(src, "window", f"must be a positive integer (states), got {window!r}")
+    horizon = raw.get("horizon")
+    if horizon is not None:
+        horizon = _num(src, "horizon", horizon, positive=True)
+    fu = raw.get("fusion", "channel") if fusion is None else fusion
+    if fu not in FUSION_MODES:
+        raise _fail(src, "fusion", f"must be one of {FUSION_MODES}, got {fu!r}")
+
+    t = raw.get("target", {})
+    if not isinstance(t, dict):
+        raise _fail(src, "target", "must be a table")
+    kind = t.get("motion", "constant_velocity")
+    if kind not in MOTION_KINDS:
+        raise _fail(src, "target.motion", f"unknown motion {kind!r}; known: {sorted(MOTION_KINDS)}")
+    try:
+        motion = MOTION_KINDS[kind](t)
+    except DfusionError as exc:
+        raise _fail(src, "target", str(exc)) from None
+    n = motion.dim
+    mean = np.asarray(t.get("initial_mean", [0.0] * n), dtype=float)
+    diag = np.asarray(t.get("initial_cov_diag", [1.0] * n), dtype=float)
+    if mean.shape != (n,) or diag.shape != (n,):
+        raise _fail(src, "target", f"initial_mean and initial_cov_diag must have {n} entries")
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(diag)) and np.all(diag > 0)):
+        raise _fail(src, "target", "initial_mean must be finite and initial_cov_diag positive")
+    target = TargetSpec(kind, motion, mean, np.diag(diag))
+
+    sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw)
+
+    for i, tbl in enumerate(raw.get("nodes", [])):
+        where = f"nodes[{i}] ({tbl.get('name', '?')})"
+        kind = tbl.get("sensor", "none")
+        if kind != "none" and kind not in SENSOR_KINDS:
+            raise _fail(src, f"{where}.sensor", f"unknown sensor {kind!r}; known: {sorted(SENSOR_KINDS)} or 'none'")
+        rate = _num(src, f"{where}.rate", tbl.get("rate", 1.0 if kind != "none" else 0.0), nonneg=True)
+        spec = NodeSpec(
+            name=tbl["name"],
+            sensor_kind=kind,
+            sensor=None,
+            rate=rate,
+            send_period=_num(src, f"{where}.send_period", tbl.get("send_period", 0.5), positive=True),
+            delay=_num(src, f"{where}.delay", tbl.get("delay", 0.0), nonneg=True),
+            phase=_num(src, f"{where}.phase", tbl.get("phase", 0.0), nonneg=True),
+            active=_intervals(src, f"{where}.active", tbl.get("active", [])),
+            detection=_num(src, f"{where}.detection", tbl.get("detection", 1.0), nonneg=True),
+            params={k: v for k, v in tbl.items() if k not in _NODE_KEYS},
+        )
+        if spec.detection > 1:
+            raise _fail(src, f"{where}.detection", "must be a probability in [0, 1]")
+        if kind != "none":
+            try:
+                spec.sensor = SENSOR_KINDS[kind](tbl, sc)
+            except DfusionError as exc:
+                raise _fail(src, where, str(exc)) from None
+        sc.nodes[spec.name] = spec
+    for name in graph.nodes:   # nodes named only by links: relays without sensors
+        sc.nodes.setdefault(name, NodeSpec(name, "none", None, 0.0, 0.5))
+
+    for i, tbl in enumerate(raw.get("links", [])):
+        a, b = tbl["between"]
+        where = f"links[{i}] ({a} - {b})"
+        unknown = set(tbl) - _LINK_KEYS
+        if unknown:
+            raise _fail(src, where, f"unknown keys {sorted(unknown)}")
+        try:
+            spec = LinkSpec.from_dict({k: v for k, v in tbl.items() if k not in ("between", "quality")})
+        except DfusionError as exc:
+            raise _fail(src, where, str(exc)) from None
+        sc.links[(a, b)] = spec
+    return sc
