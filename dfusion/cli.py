@@ -1,6 +1,6 @@
 """The ``dfusion`` command line.
 
-``dfusion simulate SCENARIO [--seed N] [--fusion channel|naive] [--json OUT] [--plot OUT.png]``
+``dfusion simulate SCENARIO [--seed N] [--fusion channel|naive] [--duration S] [--json OUT] [--plot OUT.png]``
 runs a scenario in one process and prints per-node RMSE, ANEES and the gap to
 the centralized EKF, with message counts.
 """
@@ -18,7 +18,7 @@ def _simulate(args: argparse.Namespace) -> int:
     from .sim.runner import run_scenario
     from .sim.scenario import load_scenario
 
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion)
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
     result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet)
     print(result.table())
     if args.json:
@@ -40,6 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scenario", help="scenario TOML file (see docs/scenarios.md)")
     s.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     s.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
+    s.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     s.add_argument("--json", metavar="OUT", help="write the figures as JSON")
     s.add_argument("--plot", metavar="OUT.png", help="write a PNG of every node against the centralized EKF")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -12,9 +12,11 @@ the node's window cannot be added any more: it is dropped and counted in
 ``stats.blocks_outside_window`` (conservative, never over-confident; choose the window
 with :func:`dfusion.topology.minimum_window` to avoid it).
 
-``fusion="naive"`` sends the whole belief, including what came from the
-recipient: the rumour-propagation failure the channel filter prevents, kept
-for comparison only.
+``fusion="naive"`` is fusion without channel filters, kept for comparison only:
+each message carries everything the sender learned since its previous message
+to that neighbour (including what came from the recipient) and the receiver
+adds it. Information echoes back and forth and is counted again and again: the
+rumour-propagation failure the channel filter prevents.
 """
 from __future__ import annotations
 
@@ -161,6 +163,7 @@ class FusionNode:
         self._own: dict[int, _Info] = {}
         self._total: dict[int, _Info] = {}
         self._pruned_at = self.filter.oldest_time
+        self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
 
     def __repr__(self) -> str:
         return f"FusionNode({self.name!r}, neighbors={list(self.neighbors)}, {self.filter!r})"
@@ -245,6 +248,15 @@ class FusionNode:
                 infos[rows] -= np.array([e.info for e in got])
                 vecs[rows] -= np.array([e.vec for e in got])
                 infos[rows] = _clean_difference(infos[rows], scale)
+        elif self.fusion == "naive":
+            # rumour propagation: everything new since the last message, echo included
+            sent = self._naive_sent.setdefault(neighbor, {})
+            for i, k in enumerate(keys):
+                prev = sent.get(k)
+                sent[k] = (infos[i].copy(), vecs[i].copy())
+                if prev is not None:
+                    infos[i] -= prev[0]
+                    vecs[i] -= prev[1]
         keep = infos.any(axis=(1, 2)) | vecs.any(axis=1)
         times, infos, vecs = times[keep], infos[keep], vecs[keep]
         msg = InfoMessage(
@@ -292,7 +304,14 @@ class FusionNode:
         if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
             self.stats.duplicates += msg.seq == ch.last_seq
         f = self.filter
-        deltas, updates, outside = ch.plan(msg, f.oldest_time, f.time_tol)
+        if self.fusion == "naive":
+            if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
+                return 0
+            inside = msg.times >= f.oldest_time - f.time_tol
+            deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
+            updates, outside = {}, int(np.count_nonzero(~inside))
+        else:
+            deltas, updates, outside = ch.plan(msg, f.oldest_time, f.time_tol)
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
         try:

@@ -158,10 +158,16 @@ _NODE_KEYS = {"name", "sensor", "std", "rate", "send_period", "delay", "phase", 
 _LINK_KEYS = {"between", "quality", "latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay", "outages"}
 
 
-def load_scenario(source: str | Path | Mapping[str, Any], *, seed: int | None = None, fusion: str | None = None) -> Scenario:
+def load_scenario(
+    source: str | Path | Mapping[str, Any],
+    *,
+    seed: int | None = None,
+    fusion: str | None = None,
+    duration: float | None = None,
+) -> Scenario:
     """Read and validate a scenario file (or an already parsed mapping).
 
-    ``seed`` and ``fusion`` override the file's values.
+    ``seed``, ``fusion`` and ``duration`` override the file's values.
     """
     if isinstance(source, Mapping):
         raw, src = dict(source), "<scenario>"
@@ -178,7 +184,7 @@ def load_scenario(source: str | Path | Mapping[str, Any], *, seed: int | None = 
     except TopologyError as exc:
         raise ScenarioError(str(exc)) from None
 
-    duration = _num(src, "duration", raw.get("duration", 60.0), positive=True)
+    duration = _num(src, "duration", raw.get("duration", 60.0) if duration is None else duration, positive=True)
     dt = _num(src, "dt", raw.get("dt", 0.1), positive=True)
     if duration < dt:
         raise _fail(src, "duration", "shorter than one time step")

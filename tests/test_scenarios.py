@@ -1,0 +1,143 @@
+"""Scenario files, the simulated world and the `dfusion simulate` command."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dfusion.cli import main
+from dfusion.errors import ScenarioError
+from dfusion.sim.runner import run_scenario
+from dfusion.sim.scenario import load_scenario
+from dfusion.sim.world import simulate_world
+
+ROOT = Path(__file__).parent.parent
+SHIPPED = sorted((ROOT / "topologies").glob("*.scenario.toml"))
+
+
+def small(**over):
+    d = {
+        "duration": 3.0, "dt": 0.1, "seed": 1, "window": 50,
+        "target": {"motion": "constant_velocity", "q": 0.1, "initial_mean": [0, 0, 1, 0], "initial_cov_diag": [1, 1, 1, 1]},
+        "nodes": [
+            {"name": "a", "sensor": "position", "std": 0.5, "rate": 5.0, "send_period": 0.5},
+            {"name": "b", "sensor": "position", "std": 0.5, "rate": 5.0, "send_period": 0.5},
+        ],
+        "links": [{"between": ["a", "b"], "latency": 0.1}],
+    }
+    d.update(over)
+    return d
+
+
+def test_at_least_three_shipped_scenarios_load():
+    assert len(SHIPPED) >= 3
+    kinds = set()
+    for path in SHIPPED:
+        sc = load_scenario(path)
+        assert sc.graph.number_of_nodes() == len(sc.nodes)
+        kinds.add(max(dict(sc.graph.degree).values()))
+    assert any(sc.outages() for sc in map(load_scenario, SHIPPED))
+
+
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        ({"duration": -1.0}, "duration"),
+        ({"dt": "fast"}, "dt"),
+        ({"window": 0}, "window"),
+        ({"seed": -3}, "seed"),
+        ({"fusion": "magic"}, "fusion"),
+        ({"target": {"motion": "teleport"}}, "teleport"),
+        ({"target": {"motion": "constant_velocity", "initial_mean": [0, 0, 0]}}, "initial_mean"),
+        ({"target": {"motion": "constant_velocity", "initial_cov_diag": [1, 1, -1, 1]}}, "initial_cov_diag"),
+        ({"nodes": [{"name": "a", "sensor": "sonar"}, {"name": "b"}]}, "sonar"),
+        ({"nodes": [{"name": "a", "sensor": "position", "rate": -1}, {"name": "b"}]}, "rate"),
+        ({"nodes": [{"name": "a", "sensor": "position", "std": 0}, {"name": "b"}]}, "std"),
+        ({"nodes": [{"name": "a", "active": [[5, 1]]}, {"name": "b"}]}, "active"),
+        ({"links": [{"between": ["a", "b"], "drop": 1.5}]}, "drop"),
+        ({"links": [{"between": ["a", "b"], "bandwidth": 3}]}, "bandwidth"),
+        ({"links": [{"between": ["a", "b"]}, {"between": ["b", "c"]}, {"between": ["c", "a"]}]}, "cycle"),
+        ({"links": []}, "connected"),
+    ],
+)
+def test_invalid_scenarios_raise_scenario_error(change, words):
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(small(**change))
+    assert words in str(info.value)
+
+
+def test_bad_file_and_bad_toml(tmp_path):
+    with pytest.raises(ScenarioError, match="cannot read"):
+        load_scenario(tmp_path / "missing.toml")
+    p = tmp_path / "bad.toml"
+    p.write_text("duration = = 3")
+    with pytest.raises(ScenarioError, match="invalid TOML"):
+        load_scenario(p)
+
+
+def test_world_is_deterministic_and_measurements_follow_the_spec():
+    sc = load_scenario(small(nodes=[
+        {"name": "a", "sensor": "position", "std": 0.5, "rate": 5.0, "active": [[0.0, 1.0]]},
+        {"name": "b", "sensor": "position", "std": 0.5, "rate": 2.0, "delay": 0.3},
+    ]))
+    w1, w2 = simulate_world(sc), simulate_world(sc)
+    np.testing.assert_array_equal(w1.states, w2.states)
+    assert [(m.t, m.node) for m in w1.measurements] == [(m.t, m.node) for m in w2.measurements]
+    a = [m.t for m in w1.measurements if m.node == "a"]
+    b = [m for m in w1.measurements if m.node == "b"]
+    assert np.allclose(a, [0.2, 0.4, 0.6, 0.8, 1.0])            # rate 5/s while active
+    assert np.allclose([m.t for m in b], [0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
+    assert all(0 <= m.arrival - m.t <= 0.3 for m in b)
+    other = simulate_world(load_scenario(small(), seed=2))
+    assert not np.array_equal(other.states, simulate_world(load_scenario(small())).states)
+
+
+def test_measurement_noise_statistics_match_the_sensor():
+    sc = load_scenario(small(duration=200.0, nodes=[
+        {"name": "a", "sensor": "position", "std": 0.7, "rate": 10.0}, {"name": "b"}]))
+    w = simulate_world(sc)
+    err = np.array([m.z - w.truth(m.t)[:2] for m in w.measurements])
+    assert len(err) == 2000
+    assert abs(err.std() - 0.7) < 0.03 and abs(err.mean()) < 0.03
+
+
+def test_simulate_json_has_the_documented_keys_and_converges(tmp_path):
+    out = tmp_path / "r.json"
+    png = tmp_path / "r.png"
+    code = main(["simulate", str(ROOT / "topologies" / "chain3.scenario.toml"), "--seed", "3", "--duration", "25",
+                 "--json", str(out), "--plot", str(png), "-q"])
+    assert code == 0
+    data = json.loads(out.read_text())
+    for key in ("rmse", "anees"):
+        assert data["centralized"][key] > 0
+    assert set(data["nodes"]) == {"a", "b", "c"}
+    for v in data["nodes"].values():
+        assert {"rmse", "anees", "final_gap"} <= set(v)
+        assert v["final_gap"] < 1e-6
+    assert data["messages"] > 0 and data["bytes"] > data["messages"]
+    assert data["seed"] == 3 and data["steps"] == 251
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_naive_selectable_in_scenario_and_on_the_command_line():
+    sc = load_scenario(small(fusion="naive"))
+    assert sc.fusion == "naive"
+    res = run_scenario(sc)
+    assert all(v["final_gap"] > 1e-6 for v in res.metrics["nodes"].values())
+    assert load_scenario(small(), fusion="naive").fusion == "naive"
+
+
+def test_cli_reports_errors_cleanly(tmp_path, capsys):
+    bad = tmp_path / "cyc.toml"
+    bad.write_text('[[links]]\nbetween=["a","b"]\n[[links]]\nbetween=["b","c"]\n[[links]]\nbetween=["c","a"]\n')
+    assert main(["simulate", str(bad)]) == 2
+    assert "cycle" in capsys.readouterr().err
+
+
+def test_console_script_entry_point():
+    r = subprocess.run([sys.executable, "-m", "dfusion", "simulate", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--json" in r.stdout
