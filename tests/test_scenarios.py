@@ -141,3 +141,16 @@ def test_cli_reports_errors_cleanly(tmp_path, capsys):
 def test_console_script_entry_point():
     r = subprocess.run([sys.executable, "-m", "dfusion", "simulate", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "--json" in r.stdout
+
+
+def test_cyclic_graph_fused_over_its_spanning_tree_on_request():
+    links = [{"between": ["a", "b"], "quality": 0.9}, {"between": ["b", "c"], "quality": 0.8},
+             {"between": ["c", "a"], "quality": 0.3}]
+    nodes = [{"name": n, "sensor": "position", "std": 0.5, "rate": 5.0} for n in "abc"]
+    with pytest.raises(ScenarioError, match="cycle"):
+        load_scenario(small(links=links, nodes=nodes))
+    sc = load_scenario(small(links=links, nodes=nodes, spanning_tree=True))
+    assert sorted(map(sorted, sc.graph.edges)) == [["a", "b"], ["b", "c"]]   # the weakest link goes
+    assert set(sc.links) == {("a", "b"), ("b", "c")}
+    res = run_scenario(sc)
+    assert all(v["final_gap"] < 1e-9 for v in res.metrics["nodes"].values())

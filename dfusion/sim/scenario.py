@@ -179,8 +179,11 @@ def load_scenario(
             raise ScenarioError(f"{src}: cannot read: {exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ScenarioError(f"{src}: invalid TOML: {exc}") from None
+    spanning = raw.get("spanning_tree", False)
+    if not isinstance(spanning, bool):
+        raise _fail(src, "spanning_tree", f"must be true or false, got {spanning!r}")
     try:
-        graph = load_topology(raw, source=src)
+        graph = load_topology(raw, source=src, spanning_tree=spanning)
     except TopologyError as exc:
         raise ScenarioError(str(exc)) from None
 
@@ -257,6 +260,8 @@ def load_scenario(
         unknown = set(tbl) - _LINK_KEYS
         if unknown:
             raise _fail(src, where, f"unknown keys {sorted(unknown)}")
+        if not graph.has_edge(a, b):   # removed by spanning_tree = true
+            continue
         try:
             spec = LinkSpec.from_dict({k: v for k, v in tbl.items() if k not in ("between", "quality")})
         except DfusionError as exc:
