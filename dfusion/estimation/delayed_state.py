@@ -54,6 +54,22 @@ log = logging.getLogger(__name__)
 DEFAULT_TIME_TOL = 1e-9
 
 
+_NOISE_FACTORS: dict[bytes, Array] = {}
+
+
+def _noise_factor(R: ArrayLike, dim_z: int) -> Array:
+    """Cholesky factor of a validated ``R``, cached by its exact bytes."""
+    a = np.asarray(R, dtype=np.float64)
+    key = a.tobytes() + bytes(str(a.shape), "ascii")
+    C = _NOISE_FACTORS.get(key)
+    if C is None:
+        C = cholesky(as_spd(a, dim_z, "measurement covariance R"), "measurement covariance R")
+        if len(_NOISE_FACTORS) > 1024:
+            _NOISE_FACTORS.clear()
+        _NOISE_FACTORS[key] = C
+    return C
+
+
 def measurement_information(
     sensor: MeasurementModel, z: ArrayLike, x_lin: Array
 ) -> tuple[Array, Array]:
@@ -65,11 +81,10 @@ def measurement_information(
     :class:`NonFiniteError` or :class:`NotPositiveDefiniteError` on bad input.
     """
     zv = as_vector(z, sensor.dim_z, "measurement z")
-    R = as_spd(sensor.R, sensor.dim_z, "measurement covariance R")
+    C = _noise_factor(sensor.R, sensor.dim_z)
     H = as_matrix(sensor.H(x_lin), (sensor.dim_z, x_lin.shape[0]), "measurement Jacobian H")
     innov = sensor.residual(zv, sensor.h(x_lin)) + H @ x_lin
     innov = as_vector(innov, sensor.dim_z, "innovation")
-    C = cholesky(R, "measurement covariance R")
     A = np.linalg.solve(C, np.column_stack((H, innov)))  # C^-1 [H  r]
     AH, Ar = A[:, :-1], A[:, -1]
     return symmetrize(AH.T @ AH), AH.T @ Ar
