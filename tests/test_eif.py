@@ -34,11 +34,11 @@ def wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
-def ekf_step(x, P, F, Q, z, sensor, fx=None, angle_meas=()):
-    """One filterpy EKF predict + update, driven directly (column vectors throughout).
+def ekf_step(x, P, F, Q, z, sensor, angle_meas=()):
+    """One filterpy EKF predict (linear motion ``F``) + update, driven directly.
 
-    ``fx`` is the propagated mean ``f(x)`` (default ``F x``); ``angle_meas`` lists the
-    measurement components whose residual is wrapped.
+    Column vectors throughout; ``angle_meas`` lists the measurement components whose
+    residual is wrapped.
     """
     n, m = len(x), sensor.dim_z
     ekf = ExtendedKalmanFilter(dim_x=n, dim_z=m)
@@ -46,11 +46,7 @@ def ekf_step(x, P, F, Q, z, sensor, fx=None, angle_meas=()):
     ekf.P = np.array(P, float)
     ekf.F = np.array(F, float)
     ekf.Q = np.array(Q, float)
-    if fx is None:
-        ekf.predict()
-    else:
-        ekf.predict_x = lambda u=0: setattr(ekf, "x", np.asarray(fx, float).reshape(n, 1))
-        ekf.predict()
+    ekf.predict()
     ekf_update(ekf, z, sensor, angle_meas)
     return ekf.x.ravel(), ekf.P
 
@@ -105,11 +101,11 @@ def camera_case(rng):
 
 
 def range_bearing_case(rng):
-    """CV target seen from a sensor with a known pose; the bearing near +-pi tests wrapping."""
+    """CV target seen from a sensor with a known pose, random geometry (the +-pi cut: see below)."""
     pose = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(-np.pi, np.pi)])
     sensor = RangeBearing(pose, range_std=0.2, bearing_std=0.03)
-    x = np.concatenate([pose[:2] + rng.uniform(3, 8) * np.array([np.cos(b := rng.uniform(-np.pi, np.pi)), np.sin(b)]),
-                        rng.normal(0, 1.0, 2)])
+    bearing, dist = rng.uniform(-np.pi, np.pi), rng.uniform(3, 8)
+    x = np.concatenate([pose[:2] + dist * np.array([np.cos(bearing), np.sin(bearing)]), rng.normal(0, 1.0, 2)])
     P = random_spd(rng, 4, scale=0.8)
     dt = float(rng.uniform(0.05, 0.5))
     truth = cv_F(dt, 2) @ x + rng.multivariate_normal(np.zeros(4), 0.3 * P)

@@ -54,20 +54,25 @@ log = logging.getLogger(__name__)
 DEFAULT_TIME_TOL = 1e-9
 
 
-_NOISE_FACTORS: dict[bytes, Array] = {}
+_WHITENERS: dict[bytes, Array] = {}
 
 
-def _noise_factor(R: ArrayLike, dim_z: int) -> Array:
-    """Cholesky factor of a validated ``R``, cached by its exact bytes."""
+def _whitener(R: ArrayLike, dim_z: int) -> Array:
+    """``C^-1`` for the Cholesky factor ``R = C C^T`` of a validated ``R``.
+
+    Whitening with it (``C^-1 H``, ``C^-1 r``) is the triangular solve done
+    once; cached by the exact bytes of ``R``, so a changed ``R`` is validated anew.
+    """
     a = np.asarray(R, dtype=np.float64)
     key = a.tobytes() + bytes(str(a.shape), "ascii")
-    C = _NOISE_FACTORS.get(key)
-    if C is None:
+    W = _WHITENERS.get(key)
+    if W is None:
         C = cholesky(as_spd(a, dim_z, "measurement covariance R"), "measurement covariance R")
-        if len(_NOISE_FACTORS) > 1024:
-            _NOISE_FACTORS.clear()
-        _NOISE_FACTORS[key] = C
-    return C
+        W = np.linalg.solve(C, np.eye(dim_z))
+        if len(_WHITENERS) > 1024:
+            _WHITENERS.clear()
+        _WHITENERS[key] = W
+    return W
 
 
 def measurement_information(
@@ -81,12 +86,11 @@ def measurement_information(
     :class:`NonFiniteError` or :class:`NotPositiveDefiniteError` on bad input.
     """
     zv = as_vector(z, sensor.dim_z, "measurement z")
-    C = _noise_factor(sensor.R, sensor.dim_z)
+    W = _whitener(sensor.R, sensor.dim_z)
     H = as_matrix(sensor.H(x_lin), (sensor.dim_z, x_lin.shape[0]), "measurement Jacobian H")
     innov = sensor.residual(zv, sensor.h(x_lin)) + H @ x_lin
     innov = as_vector(innov, sensor.dim_z, "innovation")
-    A = np.linalg.solve(C, np.column_stack((H, innov)))  # C^-1 [H  r]
-    AH, Ar = A[:, :-1], A[:, -1]
+    AH, Ar = W @ H, W @ innov  # C^-1 H, C^-1 r
     return symmetrize(AH.T @ AH), AH.T @ Ar
 
 
@@ -243,8 +247,7 @@ class DelayedStateEIF:
         tf = self._check_time(t)
         P = as_spd(cov, self.n, "initial covariance")
         m = as_vector(mean, self.n, "initial mean")
-        Omega = spd_inverse(P, "initial covariance")
-        self._traj = TrajectoryInformation(Omega, Omega @ m)
+        self._traj = TrajectoryInformation(m, P)
         self._times = [tf]
         self.marginalized = 0
 
@@ -390,6 +393,19 @@ class DelayedStateEIF:
                     k = self._insert(tf)
                 self._traj.add_information(k, symmetrize(Lam), y)
             self._enforce_window()
+
+    def linearization_point(self, t: float) -> Array:
+        """Current mean of the window state at ``t``, angles *not* wrapped.
+
+        This is the point a new factor on that state must be linearized at:
+        the stored factors keep angles continuous, so a wrapped mean could be
+        ``2 pi`` away from them.
+        """
+        self._require_init()
+        k = self.index_of(self._check_time(t))
+        if k is None:
+            raise OutsideWindowError(f"no window state at t={t}")
+        return self._mean_at(k)
 
     def _mean_at(self, k: int) -> Array:
         if k == len(self._times) - 1:

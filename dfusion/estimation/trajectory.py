@@ -3,7 +3,8 @@ r"""Block-tridiagonal information of a trajectory, evaluated by a cached forward
 The delayed-state information over states ``x_0 .. x_{m-1}`` (oldest first) is
 a product of factors:
 
-* a *base* ``(B, b)`` on ``x_0``: the prior, or what marginalizing older states left;
+* a *base* ``N(mu_b, P_b)`` on ``x_0`` (information ``B = P_b^-1``, ``b = B mu_b``): the
+  prior, or what marginalizing older states left;
 * *single-state* factors ``(L_k, y_k)`` on each ``x_k``: measurements and fused
   information, added up;
 * *motion* factors ``x_{k+1} = F_k x_k + c_k + w``, ``w ~ N(0, Q_k)``.
@@ -22,6 +23,7 @@ information filter's predict/update recursion (Thrun et al. 2005, Table 3.6;
 Eustice et al., ICRA 2005)::
 
     x_k filtered:    A_k = Pred_k + L_k,             a_k = pred_k + y_k
+                     (evaluated as P_k = (I + P^-_k L_k)^-1 P^-_k, one LU solve)
     prediction:      P^-_{k+1} = F_k A_k^-1 F_k^T + Q_k,   mu^-_{k+1} = F_k A_k^-1 a_k + c_k
                      Pred_{k+1} = (P^-_{k+1})^-1,           pred_{k+1} = Pred_{k+1} mu^-_{k+1}
 
@@ -32,8 +34,8 @@ The filtered terms of ``x_k`` depend only on factors up to ``x_k``, so they
 are cached: appending a state invalidates nothing, a change to ``x_s``
 invalidates ``k >= s``. The usual cycle (append, update the newest, estimate)
 costs O(1) in the window length; a late measurement ``j`` states back O(j).
-Marginalizing ``x_0`` sets the new base to ``(Pred_1, pred_1)``, which the cache
-already holds.
+Marginalizing ``x_0`` sets the new base to the prediction ``N(mu^-_1, P^-_1)``,
+which the cache already holds (the base is kept in moment form for that).
 
 **Smoothing** (any window state) is the Rauch-Tung-Striebel backward pass
 (Rauch, Tung & Striebel, AIAA J. 1965)::
@@ -90,15 +92,21 @@ def _inv_from_chol(C: Array) -> Array:
     return Ci.T @ Ci
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Filtered:
     """Cached forward-pass terms of one state."""
 
-    mean: Array          # filtered mean mu_k
-    cov: Array           # filtered covariance P_k
+    mean: Array                      # filtered mean mu_k
+    cov: Array                       # filtered covariance P_k
     pred_mean: Array | None = None   # mu^-_k (None for k = 0)
     pred_cov: Array | None = None    # P^-_k
-    pred_chol: Array | None = None   # Cholesky factor of P^-_k
+    _pred_chol: Array | None = None
+
+    def pred_chol(self, k: int) -> Array:
+        """Cholesky factor of ``P^-_k``, computed on first use."""
+        if self._pred_chol is None:
+            self._pred_chol = _chol(self.pred_cov, f"the predicted covariance of window state {k}")
+        return self._pred_chol
 
 
 class TrajectoryInformation:
@@ -108,9 +116,11 @@ class TrajectoryInformation:
     (:meth:`snapshot`) is a complete, cheap checkpoint.
     """
 
-    def __init__(self, B: Array, b: Array) -> None:
-        self.n = B.shape[0]
-        self.base: tuple[Array, Array] = (symmetrize(np.array(B, float)), np.array(b, float))
+    def __init__(self, mean: Array, cov: Array) -> None:
+        self.n = cov.shape[0]
+        # the base factor on x_0, kept as moments (mean, covariance): marginalizing
+        # x_0 then just adopts the cached prediction of x_1, with no inversion
+        self.base: tuple[Array, Array] = (np.array(mean, float), symmetrize(np.array(cov, float)))
         zero = np.zeros((self.n, self.n))
         self.L: list[Array] = [zero]
         self.y: list[Array] = [np.zeros(self.n)]
@@ -161,13 +171,12 @@ class TrajectoryInformation:
         self._invalidate(a + 1)
 
     def drop_oldest(self) -> None:
-        """Marginalize ``x_0`` out: the new base is the prediction ``(Pred_1, pred_1)``."""
+        """Marginalize ``x_0`` out: the new base is the prediction ``N(mu^-_1, P^-_1)``."""
         if len(self.L) < 2:
             raise ValueError("cannot marginalize the only state")
         self._forward(2)
         f1 = self._cache[1]
-        Pred = _inv_from_chol(f1.pred_chol)
-        self.base = (symmetrize(Pred), Pred @ f1.pred_mean)
+        self.base = (f1.pred_mean, f1.pred_cov)
         del self.L[0], self.y[0], self.factors[0], self._cache[0]
         c0 = self._cache[0]
         self._cache[0] = _Filtered(c0.mean, c0.cov)
@@ -179,26 +188,32 @@ class TrajectoryInformation:
         k = len(cache)
         while k < upto:
             if k == 0:
-                A = symmetrize(self.base[0] + self.L[0])
-                C = _chol(A, "the information of the oldest window state")
-                P = _inv_from_chol(C)
-                cache.append(_Filtered(P @ (self.base[1] + self.y[0]), P))
+                cache.append(self._filtered(0, self.base[0], self.base[1]))
             else:
                 prev = cache[k - 1]
                 f = self.factors[k - 1]
                 mp = f.F @ prev.mean + f.c
                 Pp = symmetrize(f.F @ prev.cov @ f.F.T + f.Q)
-                Cp = _chol(Pp, f"the predicted covariance of window state {k}")
-                Lk = self.L[k]
-                if not Lk.any() and not self.y[k].any():
-                    cache.append(_Filtered(mp, Pp, mp, Pp, Cp))
-                else:
-                    Pred = _inv_from_chol(Cp)
-                    A = symmetrize(Pred + Lk)
-                    C = _chol(A, f"the information of window state {k}")
-                    P = _inv_from_chol(C)
-                    cache.append(_Filtered(P @ (Pred @ mp + self.y[k]), P, mp, Pp, Cp))
+                cache.append(self._filtered(k, mp, Pp))
             k += 1
+
+    def _filtered(self, k: int, mp: Array, Pp: Array) -> _Filtered:
+        """Fold the single-state information of ``x_k`` into its prediction ``N(mp, Pp)``.
+
+        ``A = (P^-)^-1 + L``: ``P = A^-1 = (I + P^- L)^-1 P^-`` and
+        ``mu = P ((P^-)^-1 mu^- + y) = (I + P^- L)^-1 (mu^- + P^- y)``, one LU solve
+        with ``n + 1`` right-hand sides. ``I + P^- L`` is invertible: it is similar
+        to ``I + (P^-)^1/2 L (P^-)^1/2``, which is positive definite.
+        """
+        Lk, yk = self.L[k], self.y[k]
+        if not Lk.any() and not yk.any():
+            return _Filtered(mp, Pp, mp, Pp)
+        M = np.eye(self.n) + Pp @ Lk
+        try:
+            X = np.linalg.solve(M, np.column_stack((Pp, mp + Pp @ yk)))
+        except np.linalg.LinAlgError:
+            raise NotPositiveDefiniteError(f"the information of window state {k} is singular") from None
+        return _Filtered(X[:, -1], symmetrize(X[:, :-1]), mp, Pp)
 
     def latest(self) -> tuple[Array, Array]:
         """Mean and covariance of the newest state (the filtered estimate)."""
@@ -217,7 +232,7 @@ class TrajectoryInformation:
             ck, nxt = self._cache[k], self._cache[k + 1]
             F = self.factors[k].F
             # G = P_k F^T (P^-_{k+1})^-1 through the Cholesky factor of P^-_{k+1}
-            Cp = nxt.pred_chol
+            Cp = nxt.pred_chol(k + 1)
             G = np.linalg.solve(Cp.T, np.linalg.solve(Cp, F @ ck.cov)).T
             mu = ck.mean + G @ (mu - nxt.pred_mean)
             P = symmetrize(ck.cov + G @ (P - nxt.pred_cov) @ G.T)
@@ -232,8 +247,9 @@ class TrajectoryInformation:
         m = len(self.L)
         D = [self.L[k].copy() for k in range(m)]
         eta = [self.y[k].copy() for k in range(m)]
-        D[0] = D[0] + self.base[0]
-        eta[0] = eta[0] + self.base[1]
+        Binfo = _inv_from_chol(_chol(self.base[1], "the base covariance"))
+        D[0] = D[0] + Binfo
+        eta[0] = eta[0] + Binfo @ self.base[0]
         U = []
         for k, f in enumerate(self.factors):
             Daa, Dab, Dbb, ya, yb = f.information_blocks()

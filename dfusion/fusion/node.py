@@ -206,7 +206,7 @@ class FusionNode:
             )
         with f.transaction():
             f.ensure_state(t)
-            x_lin = np.zeros(f.n) if sensor.is_linear else f.estimate(t)[0]
+            x_lin = np.zeros(f.n) if sensor.is_linear else f.linearization_point(t)
             Lam, y = measurement_information(sensor, z, x_lin)
             f.add_information_batch([(t, Lam, y)], validate=False)
         key = time_key(t)
