@@ -26,7 +26,9 @@ store the upper triangle row by row, ``n(n+1)/2`` numbers)::
 :func:`decode` rejects, with :class:`~dfusion.errors.MessageError`: anything that
 is not such a map, an unknown version, wrong types or sizes, non-finite numbers,
 times that are not strictly increasing, an information block that is not
-positive semi-definite (relative tolerance :data:`PSD_RTOL`), and, when a key is
+positive semi-definite (scaled test, :func:`_not_psd`), a time beyond
+:data:`MAX_ABS_TIME` or two times closer than :data:`TIME_RESOLUTION`, entries
+beyond :data:`MAX_ABS_INFO` / :data:`MAX_ABS_VEC`, and, when a key is
 configured, a missing or wrong MAC (compared in constant time).
 """
 from __future__ import annotations
@@ -43,11 +45,23 @@ from .errors import MessageError
 from .linalg import Array
 
 VERSION = 1
-#: Relative tolerance of the positive semi-definiteness check on received blocks.
+#: Positive semi-definiteness check on received blocks (see ``_not_psd``): the floor added
+#: to the diagonal, relative to the block's largest entry, and the tolerance on the
+#: smallest eigenvalue of the diagonally scaled block.
 PSD_RTOL = 1e-9
+PSD_SCALED_ATOL = 1e-6
 #: Largest message accepted (bytes); guards against memory exhaustion.
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_STATE_DIM = 64
+#: Largest |time| accepted (seconds): time keys (integer nanoseconds) stay in int64.
+MAX_ABS_TIME = 9.2e9
+#: Resolution of state times: two times of a message must be at least this far apart.
+TIME_RESOLUTION = 1e-9
+#: Largest |entry| of an information block, and of an information vector. Information of
+#: 1e12 is a standard deviation of 1e-6 (in the state's units); far larger values are
+#: refused because replacing them later would cancel every other digit.
+MAX_ABS_INFO = 1e12
+MAX_ABS_VEC = 1e18
 
 _F8 = np.dtype("<f8")
 
@@ -168,19 +182,45 @@ def decode(data: bytes, key: bytes | None = None) -> InfoMessage:
     times = _floats(tb, m, "times")
     if m and np.any(np.diff(times) <= 0):
         raise MessageError("state times are not strictly increasing")
+    if abs(start) > MAX_ABS_TIME or abs(sent_at) > MAX_ABS_TIME or (m and np.abs(times).max() > MAX_ABS_TIME):
+        raise MessageError(f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
+    if m and np.any(np.diff(np.round(times / TIME_RESOLUTION)) <= 0):
+        raise MessageError(f"two state times are closer than {TIME_RESOLUTION:g} s")
     if m and times[0] < start:
         raise MessageError("a state time precedes the window start")
     k = n * (n + 1) // 2
     packed = _floats(_field(d, "info", bytes), m * k, "info").reshape(m, k)
     vec = _floats(_field(d, "vec", bytes), m * n, "vec").reshape(m, n)
+    if m and np.abs(packed).max() > MAX_ABS_INFO:
+        raise MessageError(f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
+    if m and np.abs(vec).max() > MAX_ABS_VEC:
+        raise MessageError(f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
     iu = _triu(n)
     info = np.zeros((m, n, n))
     info[:, iu[0], iu[1]] = packed
     info[:, iu[1], iu[0]] = packed
-    if m:
-        eig = np.linalg.eigvalsh(info)
-        scale = np.maximum(np.abs(info).max(axis=(1, 2)), 1e-300)
-        if np.any(eig[:, 0] < -PSD_RTOL * scale):
-            bad = int(np.argmax(eig[:, 0] < -PSD_RTOL * scale))
-            raise MessageError(f"information block at t={times[bad]} is not positive semi-definite")
+    bad = _not_psd(info)
+    if bad is not None:
+        raise MessageError(f"information block at t={times[bad]} is not positive semi-definite")
     return InfoMessage(src, dst, int(epoch), int(seq), start, sent_at, times, info, vec)
+
+
+def _not_psd(info: Array) -> int | None:
+    """Index of the first block that is not positive semi-definite, or None.
+
+    The test is on the diagonally scaled block ``S L S``, ``S = diag(1/sqrt(d_i + f))``
+    with ``d_i`` the (non-negative part of the) diagonal and the floor
+    ``f = PSD_RTOL * max|L|``: rounding errors of a difference of information
+    matrices are relative to each entry's own diagonal, so the scaled block's
+    smallest eigenvalue must be at least ``-PSD_SCALED_ATOL``. One huge diagonal
+    entry therefore cannot hide a negative eigenvalue elsewhere, and a rank-one
+    block with a tiny diagonal entry is still accepted.
+    """
+    if not len(info):
+        return None
+    d = np.diagonal(info, axis1=1, axis2=2)
+    floor = PSD_RTOL * np.abs(info).max(axis=(1, 2))
+    s = 1.0 / np.sqrt(np.maximum(d, 0.0) + np.where(floor > 0, floor, 1.0)[:, None])
+    scaled = info * s[:, :, None] * s[:, None, :]
+    bad = np.linalg.eigvalsh(scaled)[:, 0] < -PSD_SCALED_ATOL
+    return int(np.argmax(bad)) if bad.any() else None

@@ -7,6 +7,8 @@ from __future__ import annotations
 import hashlib
 import hmac
 import math
+import re
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -15,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dfusion.errors import DfusionError, MessageError
-from dfusion.wire import MAX_MESSAGE_BYTES, MAX_STATE_DIM, PSD_RTOL, VERSION, InfoMessage, decode, encode
+from dfusion.wire import MAX_ABS_INFO, MAX_ABS_TIME, MAX_ABS_VEC, MAX_MESSAGE_BYTES, MAX_STATE_DIM, PSD_RTOL, VERSION, InfoMessage, decode, encode
 
 KEY = b"network-key-for-tests"
 FIELDS = ("src", "dst", "epoch", "seq", "n", "start", "sent_at", "times", "info", "vec")
@@ -120,7 +122,7 @@ finite = st.floats(-1e9, 1e9, allow_nan=False, allow_infinity=False)
     m=st.integers(0, 50),
     rank=st.integers(1, 8),
     seed=st.integers(0, 2**32 - 1),
-    log_scale=st.integers(-150, 150),
+    log_scale=st.integers(-150, 9),   # entries (sums of up to 8 squares) stay within MAX_ABS_INFO
     t0=finite,
     start_back=st.floats(0.0, 1e6),
     sent_at=finite,
@@ -158,13 +160,38 @@ def test_round_trip_is_bit_exact(n, m, rank, seed, log_scale, t0, start_back, se
 def test_round_trip_of_extreme_but_valid_values():
     tiny = np.finfo(float).smallest_subnormal
     msg = make_msg(
-        n=2, m=3, start=-1e300, sent_at=-0.0,
-        times=np.array([-1e300, -0.0, 1e300]),
-        info=np.array([[[1e300, 0.0], [0.0, 1e300]], [[tiny, 0.0], [0.0, 0.0]], np.zeros((2, 2))]),
-        vec=np.array([[-0.0, 1e308], [tiny, -tiny], [0.0, 0.0]]),
+        n=2, m=3, start=-MAX_ABS_TIME, sent_at=-0.0,
+        times=np.array([-MAX_ABS_TIME, -0.0, MAX_ABS_TIME]),
+        info=np.array([[[MAX_ABS_INFO, 0.0], [0.0, MAX_ABS_INFO]], [[tiny, 0.0], [0.0, 0.0]], np.zeros((2, 2))]),
+        vec=np.array([[-0.0, MAX_ABS_VEC], [tiny, -tiny], [0.0, 0.0]]),
         epoch=2**63 - 1, seq=0, src="ñødé/α", dst="",
     )
     assert_same(decode(encode(msg)), msg)
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("times", 1e300, "exceeds"),
+    ("start", -1e12, "exceeds"),
+    ("info", 1e13, "information entry exceeds"),
+    ("vec", 1e19, "information-vector entry exceeds"),
+])
+def test_values_beyond_the_limits_are_rejected(field, value, words):
+    msg = make_msg(n=2, m=2, times=np.array([1.0, 2.0]), start=0.0)
+    kw = dict(msg.__dict__)
+    if field == "times":
+        kw["times"] = np.array([1.0, value])
+    elif field == "start":
+        kw["start"] = value
+    elif field == "info":
+        kw["info"] = np.array([np.eye(2), np.eye(2) * value])
+    else:
+        kw["vec"] = np.array([[0.0, 0.0], [value, 0.0]])
+    rejected(encode(InfoMessage(**kw)), match=words)
+
+
+def test_times_closer_than_the_resolution_are_rejected():
+    msg = make_msg(n=2, m=2, times=np.array([1.0, 1.0 + 0.4e-9]), start=0.0)
+    rejected(encode(msg), match="closer than")
 
 
 def test_bytearray_and_memoryview_are_accepted():
@@ -393,7 +420,7 @@ def test_time_before_start():
 
 
 def test_empty_message_with_any_start_is_valid():
-    msg = make_msg(m=0, start=1e300)
+    msg = make_msg(m=0, start=MAX_ABS_TIME)
     out = decode(encode(msg))
     assert len(out) == 0 and out.info.shape == (0, 2, 2) and out.vec.shape == (0, 2)
 
@@ -422,12 +449,23 @@ def test_block_not_positive_semidefinite(k, block):
 
 
 def test_psd_check_tolerates_rounding():
-    ok = np.array([[1e6, 0.0], [0.0, -0.5 * PSD_RTOL * 1e6]])
+    # rounding of a difference of information matrices: ~1e-16 of the largest entry
+    ok = np.array([[1e6, 0.0], [0.0, -1e-16 * 1e6]])
     assert decode(_with_block(1, ok)) is not None
-    bad = np.array([[1e6, 0.0], [0.0, -2 * PSD_RTOL * 1e6]])
+    bad = np.array([[1e6, 0.0], [0.0, -PSD_RTOL * 1e6]])
     rejected(_with_block(1, bad), match="not positive semi-definite")
     zero = np.zeros((2, 2))
     assert decode(_with_block(1, zero)) is not None
+
+
+def test_psd_check_accepts_rank_one_blocks_with_a_tiny_diagonal_entry():
+    v = np.array([1e-6, 1.0])
+    assert decode(_with_block(1, np.outer(v, v))) is not None
+    # and refuses an indefinite part hidden next to a huge entry (brute force: eigenvalues)
+    L = np.diag([4.0, 1e11, 0.0])
+    L[0, 2] = L[2, 0] = 1e3
+    assert np.linalg.eigvalsh(L)[0] < -100
+    rejected(_with_block(1, L), match="not positive semi-definite")
 
 
 # ---------------------------------------------------------------- HMAC
@@ -509,7 +547,7 @@ def predicted_size(m: int, n: int, src: str, dst: str, epoch: int, seq: int, key
     k = n * (n + 1) // 2
     keys = sum(1 + len(f) for f in FIELDS)                # fixstr field names
     body = (
-        1 + keys                                          # fixmap of 9
+        1 + keys                                          # fixmap of 10
         + _str(src) + _str(dst) + _uint(epoch) + _uint(seq) + _uint(n)
         + 9 + 9                                           # start, sent_at: float64
         + _bin(8 * m) + _bin(8 * m * k) + _bin(8 * m * n)
@@ -545,3 +583,15 @@ def overhead_bound(src: str, dst: str) -> int:
 def test_one_block_of_dimension_four_costs_120_bytes():
     sizes = [len(encode(make_msg(n=4, m=m, seq=1, epoch=1))) for m in (10, 11)]
     assert sizes[1] - sizes[0] == 8 * (1 + 4 + 10) == 120
+
+
+def test_worked_example_of_the_docs():
+    """docs/wire-format.md shows these bytes; keep the two in step."""
+    text = (Path(__file__).parent.parent / "docs" / "wire-format.md").read_text()
+    shown = re.findall(r"```\n([0-9a-f\n]+)```", text)
+    msg = InfoMessage(src="a", dst="b", epoch=7, seq=3, start=0.5, sent_at=1.0,
+                      times=np.array([1.0]), info=np.array([[[4.0, 0.5], [0.5, 2.0]]]),
+                      vec=np.array([[1.0, -2.0]]))
+    assert bytes.fromhex(shown[0].replace("\n", "")) == encode(msg)
+    assert "ea 29 1a bf 50 cd 70 64 67 75 57 77 31 f6 50 4c" in text
+    assert encode(msg, b"secret")[0x92:0xa2].hex(" ") == "ea 29 1a bf 50 cd 70 64 67 75 57 77 31 f6 50 4c"

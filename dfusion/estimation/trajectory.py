@@ -213,7 +213,9 @@ class TrajectoryInformation:
             X = np.linalg.solve(M, np.column_stack((Pp, mp + Pp @ yk)))
         except np.linalg.LinAlgError:
             raise NotPositiveDefiniteError(f"the information of window state {k} is singular") from None
-        return _Filtered(X[:, -1], symmetrize(X[:, :-1]), mp, Pp)
+        P = symmetrize(X[:, :-1])
+        _chol(P, f"the covariance of window state {k}")   # the information must stay positive definite
+        return _Filtered(X[:, -1], P, mp, Pp)
 
     def latest(self) -> tuple[Array, Array]:
         """Mean and covariance of the newest state (the filtered estimate)."""

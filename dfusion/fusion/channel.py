@@ -38,7 +38,11 @@ from ..wire import InfoMessage
 
 
 def time_key(t: float) -> int:
-    """Integer nanoseconds: the key under which a state time is stored."""
+    """Integer nanoseconds: the key under which a state time is stored.
+
+    Messages carry times below ``dfusion.wire.MAX_ABS_TIME`` at least 1 ns apart, so
+    every block of a message has its own key.
+    """
     return int(round(t * 1e9))
 
 

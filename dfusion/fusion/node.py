@@ -148,6 +148,8 @@ class FusionNode:
             raise ValidationError(f"fusion must be one of {FUSION_MODES}, got {fusion!r}")
         if prior is None:
             raise ValidationError("a prior (t0, mean, cov) common to all nodes is required")
+        if network_key is not None and (not isinstance(network_key, (bytes, bytearray)) or len(network_key) == 0):
+            raise ValidationError("network_key must be non-empty bytes (or None to turn authentication off)")
         self.name = name
         self.neighbors = nbrs
         self.fusion = fusion
@@ -301,8 +303,7 @@ class FusionNode:
             raise self._reject("not-a-neighbour", f"{msg.src!r} is not a neighbour of {self.name!r}")
         if msg.n != self.filter.n:
             raise self._reject("dimension", f"state dimension {msg.n} from {msg.src!r}, expected {self.filter.n}")
-        if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
-            self.stats.duplicates += msg.seq == ch.last_seq
+        duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
         f = self.filter
         if self.fusion == "naive":
             if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
@@ -318,8 +319,10 @@ class FusionNode:
             if now:
                 with f.transaction():
                     f.add_information_batch(now, validate=False)
+                    f.estimate()   # the belief must still be proper; otherwise roll back
         except DfusionError as exc:
             raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
+        self.stats.duplicates += duplicate
         ch.commit(msg, updates)
         for t, dL, dy in deltas:
             key = time_key(t)
