@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import NonFiniteError, NotPositiveDefiniteError, ShapeError
+from .errors import NonFiniteError, NotPositiveDefiniteError, ShapeError, TimeError, ValidationError
 
 Array = NDArray[np.float64]
 
@@ -112,3 +112,36 @@ def spd_solve(a: Array, b: Array, name: str = "matrix") -> Array:
     """Solve ``a x = b`` for SPD ``a`` through its Cholesky factor ``a = L L^T``."""
     c = cholesky(a, name)
     return np.linalg.solve(c.T, np.linalg.solve(c, b))
+
+
+def as_finite(value: object, name: str) -> float:
+    """``value`` as a float; :class:`ValidationError` unless it is a finite number."""
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValidationError(f"{name} must be a finite number, got {value!r}") from None
+    if not np.isfinite(v):
+        raise ValidationError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def as_positive(value: object, name: str) -> float:
+    """``value`` as a float; :class:`ValidationError` unless positive and finite."""
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValidationError(f"{name} must be a positive finite number, got {value!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise ValidationError(f"{name} must be positive and finite, got {value!r}")
+    return v
+
+
+def as_time(t: object, name: str = "time") -> float:
+    """A time stamp as a float; :class:`TimeError` unless it is a finite number."""
+    try:
+        tf = float(t)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise TimeError(f"{name} must be a number, got {t!r}") from None
+    if not np.isfinite(tf):
+        raise TimeError(f"{name} must be finite, got {t!r}")
+    return tf

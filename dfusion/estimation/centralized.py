@@ -45,7 +45,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from numpy.typing import ArrayLike
 
 from ..errors import NonFiniteError, ShapeError, TimeError, ValidationError
-from ..linalg import as_spd, as_vector, symmetrize
+from ..linalg import as_time, as_spd, as_vector, symmetrize
 from ..models.base import Array, MeasurementModel, MotionModel
 
 __all__ = ["CentralizedEKF", "History"]
@@ -142,16 +142,6 @@ def _checked(a: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
     return a
 
 
-def _as_time(t: Any, name: str = "t") -> float:
-    try:
-        tf = float(t)
-    except (TypeError, ValueError):
-        raise TimeError(f"{name} must be a real number, got {t!r}") from None
-    if not math.isfinite(tf):
-        raise TimeError(f"{name} must be finite, got {tf}")
-    return tf
-
-
 class CentralizedEKF:
     """EKF over all measurements of all sensors, processed in time order whatever the arrival order.
 
@@ -223,7 +213,7 @@ class CentralizedEKF:
                 raise TypeError(f"motion model {motion!r} has no attribute {attr!r}")
         self.motion = motion
         self.dim = int(motion.dim)
-        self.t0 = _as_time(t0, "t0")
+        self.t0 = as_time(t0, "t0")
         self._mean0 = np.asarray(motion.normalize(as_vector(mean, self.dim, "mean")), dtype=float)
         self._cov0 = as_spd(cov, self.dim, "cov")
         if dt_max is not None:
@@ -292,7 +282,7 @@ class CentralizedEKF:
         NotPositiveDefiniteError
             ``sensor.R`` is not symmetric positive definite.
         """
-        tf = _as_time(t)
+        tf = as_time(t)
         if tf < self.t0:
             raise TimeError(f"measurement time {tf} is before t0 = {self.t0}")
         for attr in ("dim_z", "h", "H", "R", "residual"):
@@ -344,7 +334,7 @@ class CentralizedEKF:
         ShapeError, NonFiniteError
             ``u`` is not a vector of the length of the previous controls, or not finite.
         """
-        tf = _as_time(t)
+        tf = as_time(t)
         if tf < self.t0:
             raise TimeError(f"control time {tf} is before t0 = {self.t0}")
         n_u = self._ctrl_values[0].shape[0] if self._ctrl_values else None
@@ -377,7 +367,7 @@ class CentralizedEKF:
         TimeError
             ``t`` is not finite or is before ``t0``.
         """
-        tq = self.t_latest if t is None else _as_time(t)
+        tq = self.t_latest if t is None else as_time(t)
         if tq < self.t0:
             raise TimeError(f"time {tq} is before t0 = {self.t0}")
         self._process()
@@ -405,7 +395,7 @@ class CentralizedEKF:
         TimeError
             ``t`` is not finite or is before :attr:`t_latest`.
         """
-        tf = _as_time(t)
+        tf = as_time(t)
         if tf < self.t_latest:
             raise TimeError(f"cannot advance to {tf}: the filter is already at {self.t_latest}")
         result = self.estimate(tf)

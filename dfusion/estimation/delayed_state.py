@@ -44,7 +44,7 @@ from ..errors import (
     TimeError,
     ValidationError,
 )
-from ..linalg import Array, as_spd, as_vector, cholesky, check_psd, symmetrize, as_matrix, spd_inverse
+from ..linalg import Array, as_time, as_spd, as_vector, cholesky, check_psd, symmetrize, as_matrix, spd_inverse
 from ..models.base import MeasurementModel, MotionModel
 from .trajectory import MotionFactor, TrajectoryInformation
 
@@ -201,15 +201,6 @@ class DelayedStateEIF:
         if self._traj is None:
             raise NotInitializedError("call initialize(t, mean, cov) first")
 
-    def _check_time(self, t: float) -> float:
-        try:
-            tf = float(t)
-        except (TypeError, ValueError):
-            raise TimeError(f"time must be a number, got {t!r}") from None
-        if not np.isfinite(tf):
-            raise TimeError(f"time must be finite, got {t!r}")
-        return tf
-
     def index_of(self, t: float) -> int | None:
         """Index of the window state at time ``t`` (within ``time_tol``), or None."""
         i = bisect_left(self._times, t - self.time_tol)
@@ -244,7 +235,7 @@ class DelayedStateEIF:
     # ------------------------------------------------------------------ API
     def initialize(self, t: float, mean: ArrayLike, cov: ArrayLike) -> None:
         """Start the trajectory with one state ``x(t) ~ N(mean, cov)``."""
-        tf = self._check_time(t)
+        tf = as_time(t)
         P = as_spd(cov, self.n, "initial covariance")
         m = as_vector(mean, self.n, "initial mean")
         self._traj = TrajectoryInformation(m, P)
@@ -278,7 +269,7 @@ class DelayedStateEIF:
     def predict(self, t: float, u: ArrayLike | None = None) -> None:
         """Append the state ``x(t)``, ``t`` after the newest state, with control ``u``."""
         self._require_init()
-        tf = self._check_time(t)
+        tf = as_time(t)
         last = self._times[-1]
         if tf <= last + self.time_tol:
             raise OutsideWindowError(
@@ -300,7 +291,7 @@ class DelayedStateEIF:
         or newer than the newest (use :meth:`predict` to go forward).
         """
         self._require_init()
-        tf = self._check_time(t)
+        tf = as_time(t)
         i = self.index_of(tf)
         if i is not None:
             return i
@@ -334,7 +325,7 @@ class DelayedStateEIF:
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
         """Fuse measurement ``z`` of ``sensor`` taken at time ``t`` (any time in the window)."""
         self._require_init()
-        tf = self._check_time(t)
+        tf = as_time(t)
         if tf < self._times[0] - self.time_tol or tf > self._times[-1] + self.time_tol:
             raise OutsideWindowError(
                 f"measurement time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
@@ -355,7 +346,7 @@ class DelayedStateEIF:
         the window (a state is inserted if needed).
         """
         self._require_init()
-        tf = self._check_time(t)
+        tf = as_time(t)
         Lam = as_matrix(info_matrix, (self.n, self.n), "information matrix")
         check_psd(Lam, "information matrix")
         y = as_vector(info_vector, self.n, "information vector")
@@ -376,7 +367,7 @@ class DelayedStateEIF:
         self._require_init()
         checked = []
         for t, Lam, y in entries:
-            tf = self._check_time(t)
+            tf = as_time(t)
             if validate:
                 Lam = as_matrix(Lam, (self.n, self.n), "information matrix")
                 check_psd(Lam, "information matrix")
@@ -402,7 +393,7 @@ class DelayedStateEIF:
         ``2 pi`` away from them.
         """
         self._require_init()
-        k = self.index_of(self._check_time(t))
+        k = self.index_of(as_time(t))
         if k is None:
             raise OutsideWindowError(f"no window state at t={t}")
         return self._mean_at(k)
@@ -424,7 +415,7 @@ class DelayedStateEIF:
         if t is None:
             mean, cov = self._traj.latest()
             return self.motion.normalize(mean), cov
-        tf = self._check_time(t)
+        tf = as_time(t)
         k = self.index_of(tf)
         if k is None:
             if tf < self._times[0] or tf > self._times[-1]:

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 
 from ..errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from ..estimation.delayed_state import DelayedStateEIF, measurement_information
-from ..linalg import Array
+from ..linalg import Array, as_time
 from ..models.base import MeasurementModel, MotionModel
 from ..wire import InfoMessage, decode, encode
 from .channel import ChannelFilter, time_key
@@ -182,7 +182,7 @@ class FusionNode:
     def predict(self, t: float, u: ArrayLike | None = None) -> None:
         """Advance the trajectory to ``t`` (or add a state at a past ``t`` in the window)."""
         f = self.filter
-        t = f._check_time(t)
+        t = as_time(t)
         if t <= f.latest_time + f.time_tol:
             if t < f.oldest_time - f.time_tol:
                 raise OutsideWindowError(f"time {t} is older than the window start {f.oldest_time}")
@@ -201,7 +201,7 @@ class FusionNode:
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
         """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window)."""
         f = self.filter
-        t = f._check_time(t)
+        t = as_time(t)
         if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
             raise OutsideWindowError(
                 f"measurement time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"

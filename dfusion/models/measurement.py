@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..linalg import as_finite as _finite
+from ..linalg import as_positive as _positive
 from ..errors import ShapeError, ValidationError
 from ..linalg import as_vector
 from .base import Array, MeasurementModel, wrap_angle
@@ -57,28 +59,6 @@ class PositionSensor(MeasurementModel):
     @property
     def R(self) -> Array:
         return self._R
-
-
-def _positive(value: float, name: str) -> float:
-    """Return ``value`` as a float, raising :class:`ValidationError` unless positive and finite."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValidationError(f"{name} must be a positive finite number, got {value!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise ValidationError(f"{name} must be positive and finite, got {value!r}")
-    return v
-
-
-def _finite(value: float, name: str) -> float:
-    """Return ``value`` as a float, raising :class:`ValidationError` unless finite."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValidationError(f"{name} must be a finite number, got {value!r}") from None
-    if not np.isfinite(v):
-        raise ValidationError(f"{name} must be finite, got {value!r}")
-    return v
 
 
 def _position_state(x: Array, who: str) -> Array:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..linalg import as_positive as _positive
 from ..errors import ShapeError, ValidationError
 from ..linalg import as_vector
 from .base import Array, MotionModel, wrap_angle
@@ -65,17 +66,6 @@ class ConstantVelocity(MotionModel):
         Q[i, i + d] = Q[i + d, i] = self.q * dt**2 / 2.0
         Q[i + d, i + d] = self.q * dt
         return Q
-
-
-def _positive(value: float, name: str) -> float:
-    """Return ``value`` as a float, raising :class:`ValidationError` unless positive and finite."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValidationError(f"{name} must be a positive finite number, got {value!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise ValidationError(f"{name} must be positive and finite, got {value!r}")
-    return v
 
 
 def _sinc_and_derivative(a: float) -> tuple[float, float]:
