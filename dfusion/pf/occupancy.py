@@ -5,15 +5,24 @@ The grid holds one boolean per *node* ``(i, j)`` at world position
 ``[x_i - cell/2, x_i + cell/2) x [y_j - cell/2, y_j + cell/2)`` centred on it.
 Everything outside the grid counts as occupied.
 
-The segment test (:meth:`OccupancyGrid.segment_blocked`) is exact: it finds,
-for every segment at once, the parameters ``t`` at which the segment crosses
-a cell boundary (the vertical lines ``x = x_i + cell/2`` and the horizontal
-lines ``y = y_j + cell/2``), sorts them, and checks the cell that contains the
-midpoint of each piece between consecutive crossings: these are exactly the
-cells the segment passes through (Amanatides & Woo, "A fast voxel traversal
-algorithm for ray tracing", Eurographics 1987, done for all segments at once
-with padded numpy arrays instead of a loop). A segment that only touches a
-cell at a single corner point does not count as entering it.
+The segment test (:meth:`OccupancyGrid.segment_blocked`) is exact: a move is
+blocked when its straight segment passes through an occupied cell (start and
+end cells included). Every cell the segment visits after its start cell is
+entered through exactly one cell boundary, a vertical line
+``x = x_i + cell/2`` or a horizontal line ``y = y_j + cell/2``; the entered
+cell is known from the boundary's index and the segment's other coordinate
+where it crosses that line (the grid traversal of Amanatides & Woo, "A fast
+voxel traversal algorithm for ray tracing", Eurographics 1987, computed for
+all segments at once instead of stepping cell by cell). A segment that only
+touches a cell at a single corner point does not count as entering it.
+
+Two shortcuts keep it fast without changing the answer: a segment stays inside
+the rectangle of cells spanned by its two end cells, so if a summed-area table
+says that rectangle holds no obstacle the segment is accepted at once (four
+look-ups); a segment that crosses at most one boundary (a move within a cell
+or into a 4-neighbour) visits only its end cells. The crossings of the
+remaining segments are listed in one flat array (``np.repeat``), so the work
+is proportional to their total number of crossings.
 """
 from __future__ import annotations
 
@@ -42,6 +51,8 @@ class OccupancyGrid:
         World position of node ``(0, 0)`` (m).
     """
 
+    _PAD = 3
+
     def __init__(self, occupied: ArrayLike, cell: float, origin: ArrayLike = (0.0, 0.0)) -> None:
         occ = np.array(occupied, dtype=bool)
         if occ.ndim != 2 or min(occ.shape) < 1:
@@ -56,11 +67,23 @@ class OccupancyGrid:
         self.cell = cell
         self.origin = org
         self.shape = occ.shape
-        # Padded copy: a one-cell occupied border makes out-of-grid lookups a plain index.
-        self._padded = np.ones((occ.shape[0] + 2, occ.shape[1] + 2), dtype=bool)
-        self._padded[1:-1, 1:-1] = occ
+        # Padded copy: an occupied border of _PAD cells makes out-of-grid lookups a plain index
+        # (continuous coordinates are clipped to [-2, shape + 2] first, see _u1).
+        P = self._PAD
+        self._padded = np.ones((occ.shape[0] + 2 * P, occ.shape[1] + 2 * P), dtype=bool)
+        self._padded[P:-P, P:-P] = occ
         self._flat = self._padded.ravel()
+        self._width = occ.shape[1] + 2 * P
+        self._offset = P * self._width + P
         self._free_idx = np.flatnonzero(~occ.ravel())
+        self._ulim = np.array(occ.shape, dtype=float) + 2.0
+        # Summed-area table of the padded occupancy: the number of occupied cells in any
+        # index rectangle costs four look-ups (used to clear segments whose cell bounding
+        # box holds no obstacle).
+        sat = np.zeros((self._padded.shape[0] + 1, self._padded.shape[1] + 1), dtype=np.int32)
+        sat[1:, 1:] = np.cumsum(np.cumsum(self._padded, axis=0, dtype=np.int32), axis=1, dtype=np.int32)
+        self._sat = sat.ravel()
+        self._sat_width = sat.shape[1]
 
     def __repr__(self) -> str:
         return (f"OccupancyGrid(shape={self.shape}, cell={self.cell}, origin={self.origin.tolist()}, "
@@ -121,20 +144,23 @@ class OccupancyGrid:
         ij = np.asarray(ij)
         return (ij[..., 0] >= 0) & (ij[..., 0] < self.shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < self.shape[1])
 
+    def _flat_index(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Index into the flattened padded grid for cells in ``[-3, shape + 3)`` (the occupied border)."""
+        return i * self._width + j + self._offset
+
     def _occupied_ij(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        # Clip into the padded border (which is occupied) and index the flat array.
-        i = np.clip(i + 1, 0, self.shape[0] + 1)
-        j = np.clip(j + 1, 0, self.shape[1] + 1)
-        return self._flat[i * (self.shape[1] + 2) + j]
+        """Occupancy of integer cells; anything outside the grid is occupied."""
+        return self._flat[self._flat_index(i, j)]
 
     def is_occupied(self, xy: ArrayLike) -> np.ndarray:
-        """Occupancy of world points ``(..., 2)``; points outside the grid are occupied."""
+        """Occupancy of world points ``(..., 2)``; points outside the grid (or NaN) are occupied."""
         p = np.asarray(xy, dtype=float)
-        u = (p - self.origin) / self.cell + 0.5
-        # floor of huge or non-finite values: treat as outside
-        u = np.where(np.isfinite(u), u, -1.0)
-        ij = np.floor(np.clip(u, -2.0, np.array(self.shape) + 2.0)).astype(np.int64)
-        return self._occupied_ij(ij[..., 0], ij[..., 1])
+        if p.shape[-1:] != (2,):
+            raise ShapeError(f"points must have shape (..., 2), got {p.shape}")
+        p = np.where(np.isfinite(p), p, -1e9)
+        i = np.floor(self._u1(p[..., 0], 0)).astype(np.int64)
+        j = np.floor(self._u1(p[..., 1], 1)).astype(np.int64)
+        return self._occupied_ij(i, j)
 
     def is_free(self, xy: ArrayLike) -> np.ndarray:
         """``~is_occupied(xy)``."""
@@ -155,50 +181,92 @@ class OccupancyGrid:
         return self.cell_to_world(ij) + (rng.random((int(n), 2)) - 0.5) * self.cell
 
     # --------------------------------------------------------- segment test
+    def _u1(self, v: Array, ax: int) -> Array:
+        """Continuous cell coordinate along ``ax`` (cell ``i`` covers ``[i, i + 1)``), clipped to ``[-2, n + 2]``."""
+        u = v - (self.origin[ax] - 0.5 * self.cell)
+        u *= 1.0 / self.cell
+        np.maximum(u, -2.0, out=u)
+        np.minimum(u, self.shape[ax] + 2.0, out=u)
+        return u
+
     def segment_blocked(self, p0: ArrayLike, p1: ArrayLike) -> np.ndarray:
         """For segments ``p0[k] -> p1[k]`` (``(N, 2)`` each): does segment ``k`` enter an occupied cell?
 
-        Includes the start and end cells. Exact (see the module docstring), fully
-        vectorized; the work is ``N x (crossings of the longest segment)``.
+        Includes the start and end cells. Exact (see the module docstring) and
+        vectorized: four look-ups per segment, plus work proportional to the number of
+        cell boundaries crossed by the segments whose bounding box holds an obstacle.
         """
         a = np.asarray(p0, dtype=float)
         b = np.asarray(p1, dtype=float)
         if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 2:
             raise ShapeError(f"p0 and p1 must both have shape (N, 2), got {a.shape} and {b.shape}")
-        if a.shape[0] == 0:
-            return np.zeros(0, dtype=bool)
-        lim = np.array(self.shape, dtype=float) + 2.0
-        ua = np.clip((a - self.origin) / self.cell + 0.5, -2.0, lim)  # cell i covers u in [i, i + 1)
-        ub = np.clip((b - self.origin) / self.cell + 0.5, -2.0, lim)
-        fa = np.floor(ua)
-        fb = np.floor(ub)
-        blocked = self._occupied_ij(fa[:, 0].astype(np.int64), fa[:, 1].astype(np.int64))
-        blocked |= self._occupied_ij(fb[:, 0].astype(np.int64), fb[:, 1].astype(np.int64))
-        ncross = np.abs(fb - fa).astype(np.int64)  # boundaries crossed per axis
-        multi = ~blocked & (ncross.sum(axis=1) > 0)
-        if not np.any(multi):
+        # Work on contiguous per-axis vectors: row-wise (N, 2) operations are slow in numpy.
+        ax0, ay0, bx, by = (np.ascontiguousarray(c) for c in (a[:, 0], a[:, 1], b[:, 0], b[:, 1]))
+        ux0, uy0 = self._u1(ax0, 0), self._u1(ay0, 1)
+        ux1, uy1 = self._u1(bx, 0), self._u1(by, 1)
+        ix0, iy0 = np.floor(ux0).astype(np.int64), np.floor(uy0).astype(np.int64)
+        ix1, iy1 = np.floor(ux1).astype(np.int64), np.floor(uy1).astype(np.int64)
+        # A segment stays inside the index rectangle spanned by its end cells: if that
+        # rectangle holds no occupied cell (summed-area table), the segment is free.
+        i0 = np.minimum(ix0, ix1) + self._PAD
+        i1 = np.maximum(ix0, ix1) + (self._PAD + 1)
+        j0 = np.minimum(iy0, iy1) + self._PAD
+        j1 = np.maximum(iy0, iy1) + (self._PAD + 1)
+        i0 *= self._sat_width
+        i1 *= self._sat_width
+        sat = self._sat
+        count = sat[i1 + j1]
+        count -= sat[i0 + j1]
+        count -= sat[i1 + j0]
+        count += sat[i0 + j0]
+        blocked = np.zeros(a.shape[0], dtype=bool)
+        k = np.flatnonzero(count)
+        if k.size:
+            blocked[k] = self._blocked_exact(ux0[k], uy0[k], ix0[k], iy0[k], ux1[k], uy1[k])
+        return blocked
+
+    def _blocked_exact(self, ux0: Array, uy0: Array, ix0: np.ndarray, iy0: np.ndarray,
+                       ux1: Array, uy1: Array) -> np.ndarray:
+        """Exact cell traversal of segments given in continuous cell coordinates.
+
+        Every visited cell after the start cell is entered through exactly one cell
+        boundary. Along axis ``ax`` the ``s``-th boundary crossed (``s = 1 .. n_ax``)
+        leads into index ``i0 + s`` (moving up; the boundary is at ``u = i0 + s``) or
+        ``i0 - s`` (moving down; boundary at ``u = i0 - s + 1``); the index along the
+        other axis is the floor of the segment's other coordinate at that boundary. The
+        crossings of all segments are listed in one flat array (``np.repeat``), so the
+        work is proportional to the total number of crossings.
+        """
+        ix1, iy1 = np.floor(ux1).astype(np.int64), np.floor(uy1).astype(np.int64)
+        blocked = self._occupied_ij(ix0, iy0)
+        blocked |= self._occupied_ij(ix1, iy1)
+        nx, ny = np.abs(ix1 - ix0), np.abs(iy1 - iy0)
+        # Moves within a cell or into a 4-neighbour visit only the start and end cells.
+        todo = np.flatnonzero(~blocked & ((nx + ny > 1) | ((nx == 1) & (ny == 1))))
+        if todo.size == 0:
             return blocked
-        k = np.flatnonzero(multi)
-        ua, ub, fa, fb, nc = ua[k], ub[k], fa[k], fb[k], ncross[k]
-        du = ub - ua
-        ts = []
-        for ax in (0, 1):
-            m = int(nc[:, ax].max())
-            if m == 0:
+        n = todo.size
+        hit = np.zeros(n, dtype=np.int64)
+        axes = ((ux0[todo], ux1[todo], ix0[todo], nx[todo], uy0[todo], uy1[todo], 0),
+                (uy0[todo], uy1[todo], iy0[todo], ny[todo], ux0[todo], ux1[todo], 1))
+        for u0, u1, i0, cnt, v0, v1, ax in axes:
+            total = int(cnt.sum())
+            if total == 0:
                 continue
-            step = np.arange(1, m + 1)
-            # boundaries between fa and fb: fa + s (moving up) or fa + 1 - s (moving down)
-            up = du[:, ax] > 0
-            bnd = np.where(up[:, None], fa[:, ax, None] + step, fa[:, ax, None] + 1.0 - step)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t = (bnd - ua[:, ax, None]) / du[:, ax, None]
-            t = np.where(step <= nc[:, ax, None], t, 1.0)  # padding repeats the end point
-            ts.append(t)
-        t = np.concatenate([np.zeros((len(k), 1)), *ts, np.ones((len(k), 1))], axis=1)
-        t.sort(axis=1)
-        mid = 0.5 * (t[:, :-1] + t[:, 1:])
-        pts = ua[:, None, :] + mid[..., None] * du[:, None, :]
-        ij = np.floor(pts).astype(np.int64)
-        hit = self._occupied_ij(ij[..., 0], ij[..., 1]).any(axis=1)
-        blocked[k] = hit
+            seg = np.repeat(np.arange(n), cnt)
+            step = np.arange(1, total + 1) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            du = u1 - u0
+            down = du < 0
+            with np.errstate(divide="ignore", invalid="ignore"):  # du = 0 only where cnt = 0
+                slope = (v1 - v0) / du
+            step[down[seg]] *= -1  # signed step
+            idx = i0[seg] + step  # entered index along ax
+            w = (i0 + down - u0)[seg]  # boundary - start = (i0 + down - u0) + step
+            w += step
+            w *= slope[seg]
+            w += v0[seg]
+            jo = np.floor(w).astype(np.int64)
+            occ = self._occupied_ij(idx, jo) if ax == 0 else self._occupied_ij(jo, idx)
+            hit += np.bincount(seg[occ], minlength=n)
+        blocked[todo] |= hit > 0
         return blocked

@@ -13,9 +13,9 @@ Kong, Liu & Wong, JASA 89(425), 1994, for the effective sample size):
 * **effective sample size** ``ESS = 1 / sum_i w_i^2`` (between 1 and ``N``);
 * **resampling** when ``ESS < threshold * N``: *systematic* (one uniform
   ``u ~ U[0, 1/N)``, pointers ``u + k/N``; every particle is copied
-  ``floor(N w_i)`` or ``ceil(N w_i)`` times) or *stratified* (one uniform per
-  stratum ``[k/N, (k+1)/N)``); both are unbiased, and both cost one
-  ``searchsorted`` over the cumulative weights;
+  ``floor(N w_i)`` or ``ceil(N w_i)`` times; computed in O(N) from the
+  cumulative weights, no search) or *stratified* (one uniform per stratum
+  ``[k/N, (k+1)/N)``, one ``searchsorted``); both are unbiased;
 * **roughening** (Gordon et al. 1993, sec. 4): after resampling, every component
   ``j`` is jittered by ``N(0, sigma_j^2)`` with ``sigma_j = K E_j N^(-1/d)``,
   ``E_j`` the range (max - min) of component ``j`` over the particles and ``K``
@@ -42,6 +42,7 @@ __all__ = [
     "ParticleDepletionError",
     "effective_sample_size",
     "normalize_log_weights",
+    "systematic_counts",
     "systematic_resample",
     "stratified_resample",
     "roughening_std",
@@ -98,15 +99,33 @@ def _cumulative(weights: Array) -> Array:
     return c
 
 
-def systematic_resample(weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
-    """Indices drawn by systematic resampling: pointers ``(u + k) / n``, one ``u ~ U[0, 1)``.
+def systematic_counts(weights: ArrayLike, u: float, n: int | None = None) -> np.ndarray:
+    """How often systematic resampling with offset ``u`` in ``[0, 1)`` copies each particle.
 
-    Particle ``i`` is selected ``floor(n w_i)`` or ``ceil(n w_i)`` times.
+    The pointers ``(u + k) / n``, ``k = 0 .. n-1``, below the cumulative weight
+    ``C_i`` number ``ceil(n C_i - u)``, so particle ``i`` gets
+    ``ceil(n C_i - u) - ceil(n C_{i-1} - u)`` copies: ``floor(n w_i)`` or
+    ``ceil(n w_i)``. O(N), no search.
     """
     w = np.asarray(weights, dtype=float)
     n = w.shape[0] if n is None else int(n)
-    pointers = (rng.random() + np.arange(n)) / n
-    return np.searchsorted(_cumulative(w), pointers, side="right").clip(max=w.shape[0] - 1)
+    c = np.cumsum(w)
+    c *= n / c[-1]
+    k = np.ceil(c - u).astype(np.int64)
+    np.clip(k, 0, n, out=k)
+    k[-1] = n  # C_N = 1 exactly: every pointer lies below it
+    return np.diff(k, prepend=0)
+
+
+def systematic_resample(weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
+    """Indices drawn by systematic resampling: pointers ``(u + k) / n``, one ``u ~ U[0, 1)``.
+
+    Particle ``i`` is selected ``floor(n w_i)`` or ``ceil(n w_i)`` times (see
+    :func:`systematic_counts`); the indices come out sorted.
+    """
+    w = np.asarray(weights, dtype=float)
+    counts = systematic_counts(w, rng.random(), n)
+    return np.repeat(np.arange(w.shape[0]), counts)
 
 
 def stratified_resample(weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
@@ -147,6 +166,23 @@ def weighted_mean_cov(particles: ArrayLike, weights: ArrayLike) -> tuple[Array, 
     return m, 0.5 * (C + C.T)
 
 
+def _validated(particles: ArrayLike, log_weights: ArrayLike | None) -> tuple[Array, Array]:
+    """Copies of ``particles`` as a finite ``(N, d)`` array and of the normalized log-weights."""
+    x = np.array(particles, dtype=float)
+    if x.ndim == 1:
+        x = x[:, None]
+    if x.ndim != 2 or x.shape[0] < 1:
+        raise ShapeError(f"particles must have shape (N, d), got {np.shape(particles)}")
+    if not np.all(np.isfinite(x)):
+        raise ValidationError("particles contain NaN or inf")
+    if log_weights is None:
+        return x, np.full(x.shape[0], -np.log(x.shape[0]))
+    lw = np.array(log_weights, dtype=float)
+    if lw.shape != (x.shape[0],):
+        raise ShapeError(f"log_weights must have shape ({x.shape[0]},), got {lw.shape}")
+    return x, normalize_log_weights(lw)[0]
+
+
 class ParticleFilter:
     """Weighted particle set with resampling, roughening and a Gaussian summary.
 
@@ -180,26 +216,13 @@ class ParticleFilter:
         ess_threshold: float = 0.5,
         roughening: float = 0.0,
     ) -> None:
-        x = np.array(particles, dtype=float)
-        if x.ndim == 1:
-            x = x[:, None]
-        if x.ndim != 2 or x.shape[0] < 1:
-            raise ShapeError(f"particles must have shape (N, d), got {np.shape(particles)}")
-        if not np.all(np.isfinite(x)):
-            raise ValidationError("particles contain NaN or inf")
         if resampling not in RESAMPLERS:
             raise ValidationError(f"resampling must be one of {sorted(RESAMPLERS)}, got {resampling!r}")
         if not 0.0 <= float(ess_threshold) <= 1.0:
             raise ValidationError(f"ess_threshold must be in [0, 1], got {ess_threshold}")
         if not (np.isfinite(roughening) and roughening >= 0):
             raise ValidationError(f"roughening must be >= 0, got {roughening}")
-        if log_weights is None:
-            lw = np.full(x.shape[0], -np.log(x.shape[0]))
-        else:
-            lw = np.array(log_weights, dtype=float)
-            if lw.shape != (x.shape[0],):
-                raise ShapeError(f"log_weights must have shape ({x.shape[0]},), got {lw.shape}")
-            lw, _ = normalize_log_weights(lw)
+        x, lw = _validated(particles, log_weights)
         self._x = x
         self._lw = lw
         self.rng = _as_rng(rng)
@@ -208,6 +231,8 @@ class ParticleFilter:
         self.roughening = float(roughening)
         #: Number of resamplings performed so far.
         self.n_resamples = 0
+        #: Components jittered by roughening (None: all).
+        self.roughening_dims: tuple[int, ...] | None = None
 
     # ------------------------------------------------------------------ state
     @property
@@ -246,9 +271,8 @@ class ParticleFilter:
         return float(1.0 / np.dot(w, w))
 
     def set_particles(self, particles: ArrayLike, log_weights: ArrayLike | None = None) -> None:
-        """Replace the particle set (the number of particles may change)."""
-        other = ParticleFilter(particles, log_weights)
-        self._x, self._lw = other._x, other._lw
+        """Replace the particle set (the number of particles may change; equal weights by default)."""
+        self._x, self._lw = _validated(particles, log_weights)
 
     # ------------------------------------------------------------- prediction
     def move(self, new_particles: ArrayLike, valid: ArrayLike | None = None) -> int:
@@ -272,9 +296,13 @@ class ParticleFilter:
         alive = ok & (self._lw > -np.inf)
         if not np.any(alive):
             raise ParticleDepletionError("every move was refused")
-        lw = np.where(ok, self._lw, -np.inf)
+        bad = np.flatnonzero(~ok)
+        lw = self._lw.copy()
+        lw[bad] = -np.inf
         lw, _ = normalize_log_weights(lw)
-        self._x = np.where(ok[:, None], y, self._x)
+        x = y.copy()
+        x[bad] = np.take(self._x, bad, axis=0)
+        self._x = x
         self._lw = lw
         return int(self.n - np.count_nonzero(ok))
 
@@ -288,14 +316,18 @@ class ParticleFilter:
 
         Returns the log of the predictive likelihood ``log sum_i w_i p(z | x_i)``.
         Raises :class:`ParticleDepletionError` (filter unchanged) if no particle
-        keeps a positive weight.
+        keeps a positive weight, :class:`ValidationError` on NaN or ``+inf``.
         """
         ll = np.asarray(log_likelihood, dtype=float)
         if ll.shape != (self.n,):
             raise ShapeError(f"log-likelihood must have shape ({self.n},), got {ll.shape}")
-        if np.any(np.isnan(ll)) or np.any(ll == np.inf):
-            raise ValidationError("log-likelihood contains NaN or +inf")
-        lw, lse = normalize_log_weights(self._lw + ll)
+        lw = self._lw + ll
+        top = float(lw.max())  # NaN propagates through max
+        if not np.isfinite(top):  # NaN, +inf, or every weight zero
+            normalize_log_weights(lw)  # raises the matching error
+        e = np.exp(lw - top)
+        lse = top + float(np.log(e.sum()))
+        lw -= lse
         self._lw = lw
         return lse
 
@@ -306,7 +338,7 @@ class ParticleFilter:
         if method not in RESAMPLERS:
             raise ValidationError(f"resampling must be one of {sorted(RESAMPLERS)}, got {method!r}")
         idx = RESAMPLERS[method](np.exp(self._lw), self.rng)
-        self._x = self._x[idx]
+        self._x = np.take(self._x, idx, axis=0)  # much faster than fancy row indexing
         self._lw = np.full(self.n, -np.log(self.n))
         self.n_resamples += 1
         return idx
@@ -326,10 +358,12 @@ class ParticleFilter:
 
         ``accept(old, new) -> (N,) bool`` may veto individual jitters (those
         particles keep their state, weights are unchanged). ``dims`` restricts the
-        jitter to some components (``d`` in the formula is then ``len(dims)``).
+        jitter to some components (``d`` in the formula is then ``len(dims)``); default
+        :attr:`roughening_dims`.
         Returns the standard deviations used.
         """
         K = self.roughening if K is None else float(K)
+        dims = self.roughening_dims if dims is None else dims
         cols = np.arange(self.dim) if dims is None else np.asarray(dims, dtype=int)
         sub = self._x[:, cols]
         std = roughening_std(sub, K)

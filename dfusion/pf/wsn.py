@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike
 
 from ..errors import NotInitializedError, ShapeError, ValidationError
 from ..gaussian import InformationGaussian
-from ..linalg import Array, as_vector, spd_inverse, symmetrize
+from ..linalg import Array, as_spd, as_vector, spd_inverse, symmetrize
 from ..models.measurement import RSSISensor
 from ..models.motion import ConstantVelocity
 from .occupancy import OccupancyGrid
@@ -103,8 +103,9 @@ class WSNTracker:
     sensors : RSSISensor or sequence of RSSISensor
         The receivers and their path-loss parameters. One sensor with ``m``
         receivers shares ``p0`` and the exponent; a list (for example one
-        single-receiver sensor per receiver, as :func:`fit_path_loss` gives them)
-        gives every receiver its own. Receiver ``j`` of :meth:`update` is the
+        single-receiver sensor per receiver, as
+        :meth:`dfusion.datasets.PathLossCalibration.sensors` builds them from
+        :func:`~dfusion.models.fit_path_loss` fits) gives every receiver its own. Receiver ``j`` of :meth:`update` is the
         ``j``-th receiver in this order. The tag height is each sensor's ``height``.
     n_particles : int
         Number of particles.
@@ -112,7 +113,8 @@ class WSNTracker:
         Particle motion model.
     q : float
         Process noise: position diffusion (m^2/s) for the random walk, acceleration
-        spectral density (m^2/s^3) for constant velocity.
+        spectral density (m^2/s^3) for constant velocity. The default 0.5 m^2/s
+        suits a walking person tracked packet by packet (docs/wsn.md).
     max_speed : float or None
         Constant velocity only: particle speeds are capped at this value (m/s).
     grid : OccupancyGrid or None
@@ -121,6 +123,10 @@ class WSNTracker:
         Initial support when there is no grid.
     std_scale : float
         Multiplies every receiver's noise standard deviation in the likelihood.
+    outlier_prob, rssi_span : float
+        With ``outlier_prob = eps > 0`` each reading's likelihood becomes
+        ``(1 - eps) N(z; mu, sigma^2) + eps / rssi_span`` (a uniform floor over a
+        span of ``rssi_span`` dB); 0 (default) keeps the pure Gaussian annulus.
     seed : int, Generator or None
         Seed of the filter's random generator.
     resampling, ess_threshold, roughening
@@ -133,11 +139,13 @@ class WSNTracker:
         n_particles: int = 5000,
         *,
         motion: str = "random_walk",
-        q: float = 0.1,
+        q: float = 0.5,
         max_speed: float | None = None,
         grid: OccupancyGrid | None = None,
         bounds: ArrayLike | None = None,
         std_scale: float = 1.0,
+        outlier_prob: float = 0.0,
+        rssi_span: float = 60.0,
         seed: int | np.random.Generator | None = None,
         resampling: str = "systematic",
         ess_threshold: float = 0.5,
@@ -151,6 +159,10 @@ class WSNTracker:
             raise ValidationError(f"q must be positive, got {q}")
         if not (np.isfinite(std_scale) and std_scale > 0):
             raise ValidationError(f"std_scale must be positive, got {std_scale}")
+        if not 0.0 <= float(outlier_prob) < 1.0:
+            raise ValidationError(f"outlier_prob must be in [0, 1), got {outlier_prob}")
+        if not (np.isfinite(rssi_span) and rssi_span > 0):
+            raise ValidationError(f"rssi_span must be positive, got {rssi_span}")
         if max_speed is not None and not (np.isfinite(max_speed) and max_speed > 0):
             raise ValidationError(f"max_speed must be positive or None, got {max_speed}")
         if grid is not None and not isinstance(grid, OccupancyGrid):
@@ -162,18 +174,29 @@ class WSNTracker:
         p = _sensor_arrays(sensors)
         self.n_receivers = p["p0"].shape[0]
         self.receivers = np.column_stack([p["rxy"], p["rz"]])
-        self._rx = p["rxy"][:, 0].copy()
-        self._ry = p["rxy"][:, 1].copy()
         self._dz2 = (p["height"] - p["rz"]) ** 2
         self._dmin2 = p["dmin"] ** 2
+        # Distances are expanded about the receivers' centroid (no cancellation for
+        # large world coordinates): |p - r|^2 = |p'|^2 - 2 p'.r' + |r'|^2 with p' = p - c.
+        self._centre = p["rxy"].mean(axis=0)
+        rc = p["rxy"] - self._centre
+        self._G = np.vstack([-2.0 * rc.T, np.ones(len(self._dz2)),
+                             np.einsum("ij,ij->i", rc, rc) + self._dz2])  # (4, m)
+        # Rounding can make the expanded d^2 slightly smaller than dz^2: clamp unless there is margin.
+        self._clamp = bool(np.any(self._dz2 <= 1.01 * self._dmin2))
         self.p0, self.exponent, self.std, self.d0 = p["p0"], p["n"], p["std"], p["d0"]
-        # log L = -0.5 * (A_j + B_j ln d^2)^2 with A_j = (z_j - p0_j + 10 n_j log10 d0_j) / s_j and
+        # log L = -0.5 * (A_j + B_j ln d^2)^2 with A_j = (z_j - p0_j - 10 n_j log10 d0_j) / s_j and
         # B_j = 5 n_j / (s_j ln 10): the residual z - mu in units of the (scaled) std.
         s = self.std * float(std_scale)
         self._inv_s = 1.0 / s
         self._B = 5.0 * self.exponent / (s * np.log(10.0))
-        self._A0 = (-self.p0 + 10.0 * self.exponent * np.log10(self.d0)) / s
+        self._A0 = (-self.p0 - 10.0 * self.exponent * np.log10(self.d0)) / s
         self.std_scale = float(std_scale)
+        self.outlier_prob = float(outlier_prob)
+        self.rssi_span = float(rssi_span)
+        # Outlier floor in the same units: log(eps / (1 - eps) * s_j sqrt(2 pi) / span).
+        self._floor = (np.log(self.outlier_prob / (1.0 - self.outlier_prob)) + np.log(s * np.sqrt(2 * np.pi) / self.rssi_span)
+                       if self.outlier_prob > 0 else None)
         self.motion = motion
         self.q = float(q)
         self.max_speed = None if max_speed is None else float(max_speed)
@@ -185,8 +208,9 @@ class WSNTracker:
         self._pf_args = dict(resampling=resampling, ess_threshold=ess_threshold, roughening=roughening)
         ParticleFilter(np.zeros((2, self.dim)), **self._pf_args)  # validate the arguments now
         self.pf: ParticleFilter | None = None
-        self._prior_fit: tuple[Array, Array] | None = None
-        self._post_fit: tuple[Array, Array] | None = None
+        # (particles, log-weights) after the last predict and after the last weighting.
+        self._prior_snap: tuple[Array, Array] | None = None
+        self._post_snap: tuple[Array, Array] | None = None
         #: Moves refused by the map (cumulative) and steps in which every move was refused.
         self.n_refused = 0
         self.n_all_refused = 0
@@ -217,7 +241,7 @@ class WSNTracker:
                 raise ValidationError("initialize() needs a mean, a grid or bounds")
         else:
             m = as_vector(mean, 2, "initial mean")
-            C = np.eye(2) if cov is None else np.asarray(cov, dtype=float)
+            C = np.eye(2) if cov is None else as_spd(cov, 2, "initial covariance")
             L = np.linalg.cholesky(C)
             pos = m + rng.standard_normal((n, 2)) @ L.T
             if self.grid is not None:
@@ -230,8 +254,9 @@ class WSNTracker:
                     raise ValidationError("could not draw initial particles in free space around the mean")
         x = pos if self.dim == 2 else np.column_stack([pos, rng.standard_normal((n, 2)) * speed_std])
         self.pf = ParticleFilter(x, rng=rng, **self._pf_args)
-        self._prior_fit = self._fit()
-        self._post_fit = self._prior_fit
+        self.pf.roughening_dims = (0, 1)  # jitter positions only
+        self._prior_snap = self._snapshot()
+        self._post_snap = self._prior_snap
 
     def _require(self) -> ParticleFilter:
         if self.pf is None:
@@ -241,6 +266,11 @@ class WSNTracker:
     def _fit(self) -> tuple[Array, Array]:
         pf = self._require()
         return weighted_mean_cov(pf._x[:, :2], np.exp(pf._lw))
+
+    def _snapshot(self) -> tuple[Array, Array]:
+        # The filter replaces its arrays instead of writing into them, so references suffice.
+        pf = self._require()
+        return pf._x, pf._lw
 
     # -------------------------------------------------------- prediction
     def _accept(self, old: Array, new: Array) -> np.ndarray:
@@ -283,8 +313,8 @@ class WSNTracker:
                     refused = n
                     self.n_all_refused += 1
                 self.n_refused += refused
-        self._prior_fit = self._fit()
-        self._post_fit = self._prior_fit
+        self._prior_snap = self._snapshot()
+        self._post_snap = self._prior_snap
         return refused
 
     # ------------------------------------------------------------ update
@@ -298,19 +328,38 @@ class WSNTracker:
         """
         z, j = self._readings(rssi, receivers)
         x = self._require()._x if particles is None else np.asarray(particles, dtype=float)
+        if x.ndim != 2 or x.shape[1] < 2:
+            raise ShapeError(f"particles must have shape (N, >= 2), got {x.shape}")
         if j.size == 0:
             return np.zeros(x.shape[0])
-        dx = x[:, 0, None] - self._rx[j]
-        dy = x[:, 1, None] - self._ry[j]
-        d2 = dx * dx
-        d2 += dy * dy
-        d2 += self._dz2[j]
-        np.maximum(d2, self._dmin2[j], out=d2)
-        np.log(d2, out=d2)
-        d2 *= self._B[j]
-        d2 += z * self._inv_s[j] + self._A0[j]
-        d2 *= d2
-        return -0.5 * d2.sum(axis=1)
+        # Squared 3-D distances by expansion, as one matmul:
+        # [x, y, x^2 + y^2, 1] @ [-2 a_j, -2 b_j, 1, a_j^2 + b_j^2 + dz_j^2]
+        # (built transposed: row-wise writes into an (N, 4) array are slow in numpy)
+        PT = np.empty((4, x.shape[0]))
+        np.subtract(x[:, 0], self._centre[0], out=PT[0])
+        np.subtract(x[:, 1], self._centre[1], out=PT[1])
+        np.multiply(PT[0], PT[0], out=PT[2])
+        PT[2] += np.square(PT[1], out=PT[3])
+        PT[3] = 1.0
+        d2 = PT.T @ self._G[:, j]
+        if self._clamp:  # some receiver can be closer than d_min (else d^2 >= dz^2 >= d_min^2)
+            np.maximum(d2, self._dmin2[j], out=d2)
+        L = np.log(d2, out=d2)
+        a = z * self._inv_s[j] + self._A0[j]  # residual / std = a_j + B_j ln d^2
+        b = self._B[j]
+        if self._floor is None:
+            # sum_j (a_j + b_j L_ij)^2 = sum a^2 + L (2 a b) + L^2 (b^2)
+            out = L @ (2.0 * a * b)
+            out += np.square(L, out=L) @ (b * b)
+            out += a @ a
+            out *= -0.5
+            return out
+        L *= b
+        L += a
+        np.square(L, out=L)
+        L *= -0.5
+        np.logaddexp(L, self._floor[j], out=L)
+        return L.sum(axis=1)
 
     def _readings(self, rssi: ArrayLike, receivers: ArrayLike | None) -> tuple[Array, np.ndarray]:
         z = np.asarray(rssi, dtype=float).reshape(-1)
@@ -338,9 +387,31 @@ class WSNTracker:
         z, j = self._readings(rssi, receivers)
         if j.size:
             pf.update(self.log_likelihood(z, j))
-            self._post_fit = self._fit()
+            self._post_snap = self._snapshot()
             pf.resample_if_needed(accept=self._accept if self.grid is not None else None)
         return int(j.size)
+
+    def reweight_information(self, info: InformationGaussian) -> None:
+        """Re-weight the particles by information on ``(x, y)`` received from the network.
+
+        Multiplies each weight by ``exp(eta^T p - p^T Omega p / 2)``, the likelihood that
+        the information pair ``(eta, Omega)`` represents (DESIGN.md sec. 4: pass the fused
+        information minus this node's own share, or it is counted twice), then
+        resamples if needed. The result becomes the new reference of
+        :meth:`information_contribution` (like a prediction), so that the next
+        contribution again holds only this node's own RSSI readings; readings
+        processed since the last :meth:`predict` but not yet reported are therefore
+        lost to the network: read the contribution first.
+        """
+        pf = self._require()
+        if not isinstance(info, InformationGaussian) or info.dim != 2:
+            raise ShapeError("reweight_information needs a 2-D InformationGaussian over (x, y)")
+        p = pf._x[:, :2]
+        ll = p @ info.eta - 0.5 * np.einsum("ij,jk,ik->i", p, info.Omega, p)
+        pf.update(ll)
+        # Not a measurement of this node: fold it into the prediction side of the contribution.
+        self._prior_snap = self._post_snap = self._snapshot()
+        pf.resample_if_needed(accept=self._accept if self.grid is not None else None)
 
     def step(self, dt: float, rssi: ArrayLike, receivers: ArrayLike | None = None) -> int:
         """:meth:`predict` then :meth:`update`."""
@@ -390,9 +461,10 @@ class WSNTracker:
         Call it after the update(s) of a step and before the next :meth:`predict`.
         """
         self._require()
-        (m0, P0), (m1, P1) = self._prior_fit, self._post_fit
-        if self._post_fit is self._prior_fit:
+        if self._post_snap is self._prior_snap:
             return InformationGaussian(np.zeros(2), np.zeros((2, 2)))
+        m0, P0 = weighted_mean_cov(self._prior_snap[0][:, :2], np.exp(self._prior_snap[1]))
+        m1, P1 = weighted_mean_cov(self._post_snap[0][:, :2], np.exp(self._post_snap[1]))
         O0 = spd_inverse(P0, "covariance of the predicted particles")
         O1 = spd_inverse(P1, "covariance of the posterior particles")
         Om, eta, _ = project_psd_information(O1 - O0, O1 @ m1 - O0 @ m0, rtol)

@@ -1,0 +1,29 @@
+"""Particle filters: a generic vectorized filter, an occupancy grid, and the WSN RSSI tracker."""
+from .occupancy import OccupancyGrid
+from .particle_filter import (
+    ParticleDepletionError,
+    ParticleFilter,
+    effective_sample_size,
+    normalize_log_weights,
+    roughening_std,
+    stratified_resample,
+    systematic_counts,
+    systematic_resample,
+    weighted_mean_cov,
+)
+from .wsn import WSNTracker, project_psd_information
+
+__all__ = [
+    "ParticleFilter",
+    "ParticleDepletionError",
+    "effective_sample_size",
+    "normalize_log_weights",
+    "systematic_counts",
+    "systematic_resample",
+    "stratified_resample",
+    "roughening_std",
+    "weighted_mean_cov",
+    "OccupancyGrid",
+    "WSNTracker",
+    "project_psd_information",
+]

@@ -1,0 +1,174 @@
+"""Tests of the BLE RSSI dataset reader and of examples/ble_rssi_tracking.py on the slice in tests/data.
+
+Expected values are the ones stated in the dataset's README (receiver table, node
+counts); the baseline is checked against a plain per-row loop.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dfusion.datasets import (
+    BLERSSIDataset,
+    PathLossCalibration,
+    calibrate_path_loss,
+    error_stats,
+    find_dataset_root,
+    read_track,
+    weighted_centroid,
+)
+from dfusion.errors import ValidationError
+from dfusion.models import fit_path_loss
+
+ROOT = Path(__file__).resolve().parent.parent
+SLICE = ROOT / "tests" / "data" / "ble_rssi"
+TRACK = SLICE / "trk" / "straight_03_all_sensors.mbd"
+EXAMPLE = ROOT / "examples" / "ble_rssi_tracking.py"
+
+# From the dataset README's receiver table.
+README_RECEIVERS = {
+    "sensor10": ("b827eb4521b4", 7.00, 7.09, 1.22), "sensor11": ("000000000101", 7.18, 0.68, 2.30),
+    "sensor12": ("000000000102", 0.71, 6.16, 2.30), "sensor20": ("b827eb917e19", 7.25, 11.36, 1.22),
+    "sensor21": ("000000000201", 0.76, 12.13, 2.30), "sensor22": ("000000000202", 7.18, 17.64, 2.30),
+    "sensor30": ("b827ebf7d096", 13.14, 12.33, 1.22), "sensor31": ("000000000301", 12.82, 16.83, 2.30),
+    "sensor32": ("000000000302", 18.12, 11.93, 2.30), "sensor40": ("b827ebfd7811", 13.01, 5.51, 1.22),
+    "sensor41": ("000000000401", 17.77, 6.33, 2.30), "sensor42": ("000000000402", 12.76, 0.27, 2.30),
+}
+
+
+@pytest.fixture(scope="module")
+def ds():
+    return BLERSSIDataset(SLICE)
+
+
+def test_receivers_match_the_readme(ds):
+    assert len(ds.receivers) == 12
+    for r in ds.receivers:
+        mac, x, y, z = README_RECEIVERS[r.alias]
+        assert r.mac == mac
+        np.testing.assert_allclose(r.position, [x, y, z])
+    assert list(ds.beacons) == ["e78f135624ce"]
+    np.testing.assert_allclose(ds.limits, [0.0, 0.0, 20.660138018121128, 17.64103475472807])
+    assert find_dataset_root(TRACK) == SLICE
+
+
+def test_track_reader(ds):
+    tr = ds.load_track("straight_03")
+    assert tr.name == "straight_03" and len(tr) == 1061 and tr.n_dropped == 0
+    assert tr.duration == pytest.approx(46.8, abs=0.05)
+    assert np.all(np.diff(tr.t) >= 0) and np.all(tr.rssi < 0)
+    assert tr.rssi.min() == -98 and tr.rssi.max() == -51  # README: -98 to -51 dBm
+    assert set(np.unique(tr.receiver)) == set(range(12))
+    counts = np.bincount(tr.receiver)
+    assert counts.min() == 80 and counts.max() == 98  # README: 80-98 rows per receiver
+    assert tr.truth[:, 1].min() == pytest.approx(-0.144, abs=1e-3)
+    # the first data row of the file, parsed by hand
+    first = TRACK.read_text().splitlines()[0].split(",")
+    k = int(np.argmin(np.abs(tr.t - float(first[0]))))
+    assert tr.rssi[k] == float(first[3])
+    np.testing.assert_allclose(tr.truth[k], [float(v) for v in first[4:7]])
+
+
+def test_track_pitfalls(tmp_path, ds):
+    rows = [
+        "1581249601.5,b827eb4521b4,e78f135624ce,-87,1.0,2.0,1.8,9,9,9,9,9,9,9,9,9",
+        "1581249601.4,000000000101,e78f135624ce,-70,1.1,2.1,1.8,0,0,0,0,0,0,0,0,0",  # backwards in time
+        "1581249601.6,b827ebf7d096,e78f135624ce,42,1.2,2.2,1.8,0,0,0,0,0,0,0,0,0",  # positive RSSI
+        "1581249601.7,b827ebf7d096,e78f135624ce,-60,1.3,2.3,1.8,0,0,0,0,0,0,0,0,0",
+    ]
+    f = tmp_path / "x_all_sensors.mbd"
+    f.write_text("\n".join(rows) + "\n")
+    tr = read_track(f, ds.receiver_macs)
+    assert tr.n_dropped == 1 and len(tr) == 3
+    np.testing.assert_allclose(tr.t, [1581249601.4, 1581249601.5, 1581249601.7])
+    np.testing.assert_array_equal(tr.rssi, [-70, -87, -60])
+    np.testing.assert_array_equal(tr.receiver, [1, 0, 6])
+    f.write_text(rows[0].replace("b827eb4521b4", "ffffffffffff") + "\n")
+    with pytest.raises(ValidationError, match="unknown receiver"):
+        read_track(f, ds.receiver_macs)
+
+
+def test_occupancy_grid_of_the_slice(ds):
+    g = ds.load_grid(0.2)
+    assert g.shape == (105, 90)  # README: 105 x 90 nodes
+    assert int(g.occupied.sum()) == 4401  # README: 4,401 nodes with value 1
+    # value 1 = occupied: the border is occupied, 11 of the 12 receivers stand on 1-nodes
+    assert g.occupied[0, :].all() and g.occupied[:, 0].all()
+    assert int(g.is_occupied(ds.receiver_positions[:, :2]).sum()) == 11
+    tr = ds.load_track("straight_03")
+    assert g.is_free(tr.truth[:, :2]).mean() > 0.8
+    with pytest.raises(ValidationError):
+        ds.load_grid(0.1)  # not in the slice
+
+
+def test_weighted_centroid_against_a_loop(ds):
+    tr = ds.load_track("straight_03")
+    pos = ds.receiver_positions
+    got = weighted_centroid(tr, pos, window=2.0)
+    for k in range(0, len(tr), 37):
+        sel = np.zeros(len(tr), bool)
+        sel[: k + 1] = True
+        sel &= tr.t > tr.t[k] - 2.0
+        num, den = np.zeros(2), 0.0
+        for r in range(12):
+            m = sel & (tr.receiver == r)
+            if m.any():
+                w = 10 ** (tr.rssi[m].mean() / 10)
+                num += w * pos[r, :2]
+                den += w
+        np.testing.assert_allclose(got[k], num / den, rtol=1e-12)
+
+
+def test_calibration_and_json_round_trip(ds):
+    tr = ds.load_track("straight_03")
+    cal = calibrate_path_loss([tr], ds.receiver_positions, ds.receiver_macs)
+    j = 3
+    sel = tr.receiver == j
+    d = np.linalg.norm(tr.truth[sel] - ds.receiver_positions[j], axis=1)
+    np.testing.assert_allclose([cal.p0[j], cal.exponent[j], cal.std[j]], fit_path_loss(d, tr.rssi[sel]))
+    back = PathLossCalibration.from_json(json.loads(json.dumps(cal.to_json())), ds.receiver_macs)
+    np.testing.assert_allclose(back.p0, cal.p0)
+    np.testing.assert_allclose(back.exponent, cal.exponent)
+    assert back.height == pytest.approx(tr.truth[:, 2].mean())
+    sensors = back.sensors(ds.receiver_positions)
+    assert len(sensors) == 12 and sensors[j].p0 == pytest.approx(cal.p0[j])
+    stored = PathLossCalibration.from_json(json.loads((SLICE / "path_loss.json").read_text()), ds.receiver_macs)
+    assert "straight_03" not in stored.tracks and len(stored.tracks) == 4
+
+
+def test_error_stats():
+    e = np.array([3.0, 4.0, 0.0, 1.0])
+    s = error_stats(e)
+    assert s["rmse"] == pytest.approx(np.sqrt(26 / 4)) and s["median_error"] == pytest.approx(2.0)
+
+
+def test_example_beats_the_baseline_on_the_slice(tmp_path):
+    out = tmp_path / "res.json"
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(TRACK), "--particles", "2000", "--json", str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "straight_03" in proc.stdout and "PF RMSE" in proc.stdout
+    res = json.loads(out.read_text())
+    for key in ("rmse", "median_error", "baseline_rmse"):
+        assert np.isfinite(res[key]) and res[key] > 0
+    assert res["calibration_tracks"] and "straight_03" not in res["calibration_tracks"]
+    assert res["rmse"] < res["baseline_rmse"]
+    assert res["rmse"] < 0.9 * res["baseline_rmse"]
+    assert res["median_error"] < 2.0
+
+
+def test_example_refuses_to_run_without_an_out_of_sample_calibration(tmp_path):
+    d = tmp_path / "ds"
+    shutil.copytree(SLICE, d)
+    (d / "path_loss.json").unlink()
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(d / "trk" / TRACK.name)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "calibration" in proc.stderr
+    proc = subprocess.run([sys.executable, str(EXAMPLE), "--all"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0  # no dataset directory given
