@@ -24,6 +24,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/estimation.py --quick
 	$(VENV)/bin/python benchmarks/network.py --quick
+	$(VENV)/bin/python benchmarks/nodes.py
+	$(VENV)/bin/python benchmarks/localizers.py --quick
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis
