@@ -45,3 +45,35 @@ def test_a_custom_policy_decides_the_output():
     assert node.output().name == "camera"         # latest report replaces the previous one
     # the fused estimate is untouched by the policy
     assert node.estimate()[0][0] > 0.5
+
+
+def test_local_information_counts_as_own_and_is_shared_once():
+    """A local estimator's information is fused like a measurement (filterpy-free check:
+    the same information entered as a PositionSensor measurement gives the same node)."""
+    motion = ConstantVelocity(2, 0.1)
+    prior = (0.0, np.zeros(4), np.eye(4))
+    sensor = PositionSensor(2, 0.5)
+    a = FusionNode("a", ["b"], motion, window=10, prior=prior)
+    ref = FusionNode("a", ["b"], motion, window=10, prior=prior)
+    for n in (a, ref):
+        n.predict(1.0)
+    z = np.array([1.0, -2.0])
+    H = np.hstack([np.eye(2), np.zeros((2, 2))])
+    Lam = H.T @ H / 0.25
+    a.add_local_information(1.0, Lam, H.T @ z / 0.25)
+    ref.update(1.0, z, sensor)
+    np.testing.assert_allclose(a.estimate()[0], ref.estimate()[0], atol=1e-12)
+    np.testing.assert_allclose(a.estimate()[1], ref.estimate()[1], atol=1e-12)
+    b = FusionNode("b", ["a"], motion, window=10, prior=prior)
+    b.predict(1.0)
+    b.receive(a.message_to("b"))
+    b.receive(a.message_to("b"))     # sent twice: counted once
+    np.testing.assert_allclose(b.estimate()[1], ref.estimate()[1], atol=1e-12)
+    import pytest
+    from dfusion.errors import NotPositiveDefiniteError, OutsideWindowError
+    before = a.estimate()
+    with pytest.raises(NotPositiveDefiniteError):
+        a.add_local_information(1.0, -Lam, np.zeros(4))
+    with pytest.raises(OutsideWindowError):
+        a.add_local_information(5.0, Lam, np.zeros(4))
+    np.testing.assert_array_equal(a.estimate()[1], before[1])

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 
 from ..errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from ..estimation.delayed_state import DelayedStateEIF, measurement_information
-from ..linalg import Array, as_time
+from ..linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from ..models.base import MeasurementModel, MotionModel
 from ..wire import InfoMessage, decode, encode
 from .channel import ChannelFilter, time_key
@@ -211,11 +211,40 @@ class FusionNode:
             x_lin = np.zeros(f.n) if sensor.is_linear else f.linearization_point(t)
             Lam, y = measurement_information(sensor, z, x_lin)
             f.add_information_batch([(t, Lam, y)], validate=False)
+        self._add_own(t, Lam, y)
+        self._prune()
+
+    def add_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> None:
+        """Fuse information produced by a local estimator at time ``t``.
+
+        For sensors whose measurements are not fused by the EIF itself, such as a
+        particle filter (DESIGN.md sec. 4: the Gaussian fit of its posterior minus
+        that of its prediction, in information form). The information counts as
+        this node's own, exactly like a measurement: it is shared with the
+        neighbours and never double counted. ``info_matrix`` must be symmetric
+        positive semi-definite, of the state's dimension.
+        """
+        f = self.filter
+        t = as_time(t)
+        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
+            raise OutsideWindowError(
+                f"information time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
+            )
+        Lam = as_matrix(info_matrix, (f.n, f.n), "information matrix")
+        check_psd(Lam, "information matrix")
+        Lam = symmetrize(Lam)
+        y = as_vector(info_vector, f.n, "information vector")
+        with f.transaction():
+            f.add_information_batch([(t, Lam, y)], validate=False)
+            f.estimate()
+        self._add_own(t, Lam, y)
+        self._prune()
+
+    def _add_own(self, t: float, Lam: Array, y: Array) -> None:
         key = time_key(t)
         for store in (self._own, self._total):
             e = store.get(key)
             store[key] = _Info(t, Lam, y) if e is None else _Info(e.t, e.info + Lam, e.vec + y)
-        self._prune()
 
     def estimate(self, t: float | None = None) -> tuple[Array, Array]:
         """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""

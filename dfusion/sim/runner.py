@@ -32,7 +32,8 @@ from ..fusion.node import FusionNode
 from ..linalg import Array
 from .metrics import nees, rmse
 from .network import SimulatedNetwork
-from .scenario import Scenario
+from .frontends import EIFFrontEnd
+from .scenario import FRONT_ENDS, Scenario
 from .world import World, simulate_world
 
 log = logging.getLogger(__name__)
@@ -113,6 +114,17 @@ def build_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, 
     return nodes
 
 
+def build_front_ends(sc: Scenario) -> dict[str, object]:
+    """The front end of every node with a sensor (seeded from the scenario's seed)."""
+    out = {}
+    for i, (name, spec) in enumerate(sorted(sc.nodes.items())):
+        if spec.sensor is None:
+            continue
+        factory = FRONT_ENDS.get(spec.sensor_kind)
+        out[name] = factory(spec, sc, sc.seed * 1000 + i) if factory else EIFFrontEnd(spec.sensor)
+    return out
+
+
 def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     """Simulate ``sc`` with every node in this process; see the module docstring."""
     world = simulate_world(sc)
@@ -121,6 +133,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     motion = sc.target.motion
     central = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
     sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
+    front = build_front_ends(sc)
     names = sorted(nodes)
     K = sc.steps + 1
     n = motion.dim
@@ -148,7 +161,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
         while ia < len(by_arrival) and by_arrival[ia].arrival <= t + 1e-9:
             m = by_arrival[ia]
             try:
-                nodes[m.node].update(m.t, m.z, sensors[m.node])
+                front[m.node].process(nodes[m.node], m.t, m.z)
             except OutsideWindowError:
                 refused += 1
                 log.info("%s: measurement at t=%.3f arrived after it left the window", m.node, m.t)
@@ -176,7 +189,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
         nodes[d.dst].receive(d.data)
     for m in by_arrival[ia:]:
         try:
-            nodes[m.node].update(m.t, m.z, sensors[m.node])
+            front[m.node].process(nodes[m.node], m.t, m.z)
         except OutsideWindowError:
             refused += 1
     for m in by_time[ic:]:

@@ -26,15 +26,31 @@ from .network import LinkSpec
 
 #: Sensor factories: ``kind -> f(node_table, scenario) -> MeasurementModel``.
 SENSOR_KINDS: dict[str, Callable[[Mapping[str, Any], "Scenario"], MeasurementModel]] = {}
+#: Front-end factories: ``kind -> f(node_spec, scenario, seed) -> FrontEnd``. A front end turns
+#: a node's raw measurements into what its FusionNode fuses; kinds without one use
+#: :class:`dfusion.sim.frontends.EIFFrontEnd` (an EIF measurement update).
+FRONT_ENDS: dict[str, Callable[..., Any]] = {}
 #: Motion factories: ``name -> f(target_table) -> MotionModel``.
 MOTION_KINDS: dict[str, Callable[[Mapping[str, Any]], MotionModel]] = {}
 
 FUSION_MODES = ("channel", "naive")
 
 
-def register_sensor(kind: str, factory: Callable[[Mapping[str, Any], "Scenario"], MeasurementModel]) -> None:
-    """Make ``sensor = "<kind>"`` available in scenario files."""
+def register_sensor(
+    kind: str,
+    factory: Callable[[Mapping[str, Any], "Scenario"], MeasurementModel],
+    front_end: Callable[..., Any] | None = None,
+) -> None:
+    """Make ``sensor = "<kind>"`` available in scenario files.
+
+    ``factory(node_table, scenario)`` returns the measurement model the simulated
+    world measures with; ``front_end(node_spec, scenario, seed)``, if given, returns
+    the object that fuses those measurements into the node (see
+    :mod:`dfusion.sim.frontends`).
+    """
     SENSOR_KINDS[kind] = factory
+    if front_end is not None:
+        FRONT_ENDS[kind] = front_end
 
 
 def _position_sensor(table: Mapping[str, Any], sc: "Scenario") -> MeasurementModel:
