@@ -154,3 +154,33 @@ def test_cyclic_graph_fused_over_its_spanning_tree_on_request():
     assert set(sc.links) == {("a", "b"), ("b", "c")}
     res = run_scenario(sc)
     assert all(v["final_gap"] < 1e-9 for v in res.metrics["nodes"].values())
+
+
+def test_policy_selected_per_node_in_the_scenario():
+    from dfusion import InformationFusionPolicy, Policy
+    from dfusion.sim.runner import build_nodes
+    from dfusion.sim.scenario import POLICY_KINDS, register_policy
+
+    class Loudest(Policy):
+        name = "loudest"
+
+        def __init__(self, floor=0.0):
+            self.floor = floor
+
+        def decide(self, fused, sources):
+            return fused
+
+    register_policy("loudest", lambda p: Loudest(**p))
+    try:
+        nodes = [{"name": "a", "sensor": "position", "policy": {"kind": "loudest", "floor": 0.3}},
+                 {"name": "b", "sensor": "position", "policy": "fusion"}]
+        sc = load_scenario(small(nodes=nodes))
+        built = build_nodes(sc)
+        assert isinstance(built["a"].policy, Loudest) and built["a"].policy.floor == 0.3
+        assert isinstance(built["b"].policy, InformationFusionPolicy)
+        with pytest.raises(ScenarioError, match="unknown policy"):
+            load_scenario(small(nodes=[{"name": "a", "policy": "oracle"}, {"name": "b"}]))
+        with pytest.raises(ScenarioError, match="policy"):
+            load_scenario(small(nodes=[{"name": "a", "policy": {"kind": "loudest", "volume": 11}}, {"name": "b"}]))
+    finally:
+        POLICY_KINDS.pop("loudest", None)

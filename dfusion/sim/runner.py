@@ -108,6 +108,7 @@ def build_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, 
             horizon=sc.horizon,
             prior=prior,
             fusion=sc.fusion,
+            policy=sc.nodes[name].policy,
             network_key=network_key,
             epoch=i + 1,
         )

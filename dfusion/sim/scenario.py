@@ -30,6 +30,9 @@ SENSOR_KINDS: dict[str, Callable[[Mapping[str, Any], "Scenario"], MeasurementMod
 #: a node's raw measurements into what its FusionNode fuses; kinds without one use
 #: :class:`dfusion.sim.frontends.EIFFrontEnd` (an EIF measurement update).
 FRONT_ENDS: dict[str, Callable[..., Any]] = {}
+#: Output policies: ``name -> f(params: dict) -> Policy`` (``policy = "name"`` or
+#: ``policy = {kind = "name", ...}`` in a node table).
+POLICY_KINDS: dict[str, Callable[[Mapping[str, Any]], Any]] = {}
 #: Motion factories: ``name -> f(target_table) -> MotionModel``.
 MOTION_KINDS: dict[str, Callable[[Mapping[str, Any]], MotionModel]] = {}
 
@@ -106,6 +109,7 @@ class NodeSpec:
     sensor: MeasurementModel | None
     rate: float
     send_period: float
+    policy: Any = None
     delay: float = 0.0
     phase: float = 0.0
     active: list[tuple[float, float]] = field(default_factory=list)
@@ -170,7 +174,34 @@ def _intervals(src: str, where: str, v: Any) -> list[tuple[float, float]]:
     return out
 
 
-_NODE_KEYS = {"name", "sensor", "std", "rate", "send_period", "delay", "phase", "active", "detection"}
+_NODE_KEYS = {"name", "sensor", "std", "rate", "send_period", "delay", "phase", "active", "detection", "policy"}
+
+
+def register_policy(name: str, factory: Callable[[Mapping[str, Any]], Any]) -> None:
+    """Make ``policy = "<name>"`` available in scenario files."""
+    POLICY_KINDS[name] = factory
+
+
+def _policy(src: str, where: str, value: Any) -> Any:
+    if value is None:
+        return None
+    params: dict[str, Any]
+    if isinstance(value, str):
+        name, params = value, {}
+    elif isinstance(value, dict) and isinstance(value.get("kind"), str):
+        name, params = value["kind"], {k: v for k, v in value.items() if k != "kind"}
+    else:
+        raise _fail(src, where, 'must be a policy name or a table with kind = "name"')
+    if name == "fusion":
+        from ..fusion.policy import InformationFusionPolicy
+
+        return InformationFusionPolicy()
+    if name not in POLICY_KINDS:
+        raise _fail(src, where, f"unknown policy {name!r}; known: {sorted(['fusion', *POLICY_KINDS])}")
+    try:
+        return POLICY_KINDS[name](params)
+    except (DfusionError, TypeError) as exc:
+        raise _fail(src, where, str(exc)) from None
 _LINK_KEYS = {"between", "quality", "latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay", "outages"}
 
 
@@ -185,6 +216,8 @@ def load_scenario(
 
     ``seed``, ``fusion`` and ``duration`` override the file's values.
     """
+    from .. import sensors  # noqa: F401  (registers every sensor kind)
+
     if isinstance(source, Mapping):
         raw, src = dict(source), "<scenario>"
     else:
@@ -257,6 +290,7 @@ def load_scenario(
             phase=_num(src, f"{where}.phase", tbl.get("phase", 0.0), nonneg=True),
             active=_intervals(src, f"{where}.active", tbl.get("active", [])),
             detection=_num(src, f"{where}.detection", tbl.get("detection", 1.0), nonneg=True),
+            policy=_policy(src, f"{where}.policy", tbl.get("policy")),
             params={k: v for k, v in tbl.items() if k not in _NODE_KEYS},
         )
         if spec.detection > 1:

@@ -1,0 +1,7 @@
+"""Sensor kinds for scenario files.
+
+Each module here registers its kind(s) with
+:func:`dfusion.sim.scenario.register_sensor` when imported; importing this
+package (which :func:`dfusion.sim.scenario.load_scenario` does) makes every kind
+available. Add one import line per module below.
+"""
