@@ -1,0 +1,135 @@
+"""What the node processes, the monitor and the launcher share.
+
+* the network key (HMAC of fusion and monitor messages): ``--network-key-file``
+  or the environment (:data:`ENV_KEY_FILE`, :data:`ENV_KEY`);
+* the monitor message (msgpack; authenticated like fusion messages when a key is set);
+* the number of rounds of the final phase.
+"""
+from __future__ import annotations
+
+import hashlib
+import hmac
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import networkx as nx
+import numpy as np
+
+from ..errors import MessageError, ValidationError
+from ..sim.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+#: Environment variable naming a file that holds the network key.
+ENV_KEY_FILE = "DFUSION_NETWORK_KEY_FILE"
+#: Environment variable holding the network key itself (UTF-8 text).
+ENV_KEY = "DFUSION_NETWORK_KEY"
+MONITOR_VERSION = 1
+#: Default wall-clock seconds a node waits for a neighbour's message of a final-phase round.
+ROUND_TIMEOUT = 10.0
+
+
+def load_network_key(path: str | Path | None = None) -> bytes | None:
+    """The network key: from ``path``, else ``$DFUSION_NETWORK_KEY_FILE``, else ``$DFUSION_NETWORK_KEY``.
+
+    A key file's bytes are used as they are, except that surrounding
+    whitespace (a final newline) is stripped. ``None`` when nothing is set.
+    """
+    source = None
+    if path is None and os.environ.get(ENV_KEY_FILE):
+        path = os.environ[ENV_KEY_FILE]
+    if path is not None:
+        key = Path(path).read_bytes().strip()
+        source = str(path)
+    elif os.environ.get(ENV_KEY):
+        key = os.environ[ENV_KEY].strip().encode()
+        source = f"${ENV_KEY}"
+    else:
+        return None
+    if not key:
+        raise ValidationError(f"the network key from {source} is empty")
+    if len(key) < 16:
+        log.warning("the network key from %s has only %d bytes: use at least 16 random bytes", source, len(key))
+    return key
+
+
+def final_rounds(sc: Scenario) -> int:
+    """Rounds of the final phase: ``diameter + 1`` (as in ``dfusion.sim.runner.final_rounds``)."""
+    return (nx.diameter(sc.graph) if sc.graph.number_of_nodes() > 1 else 0) + 1
+
+
+@dataclass
+class Status:
+    """What a node publishes for the monitor (``dfusion/NET/monitor/<node>``).
+
+    ``phase`` is ``"ready"`` (waiting for the start), ``"run"`` (step ``k`` at
+    scenario time ``t``), ``"final"`` (after the final phase: the final
+    estimate) or ``"stopped"`` (stopped by a signal).
+    """
+
+    node: str
+    epoch: int
+    phase: str
+    k: int = -1
+    t: float = 0.0
+    mean: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    started: float = 0.0
+    stats: dict[str, int] = field(default_factory=dict)
+    lost: list[float] = field(default_factory=list)
+
+    def encode(self, key: bytes | None = None) -> bytes:
+        body = msgpack.packb(
+            {
+                "node": self.node, "epoch": int(self.epoch), "phase": self.phase, "k": int(self.k),
+                "t": float(self.t), "started": float(self.started),
+                "mean": None if self.mean is None else np.ascontiguousarray(self.mean, "<f8").tobytes(),
+                "cov": None if self.cov is None else np.ascontiguousarray(self.cov, "<f8").tobytes(),
+                "stats": {k: int(v) for k, v in self.stats.items()},
+                "lost": [float(x) for x in self.lost],
+            },
+            use_bin_type=True,
+        )
+        mac = hmac.new(key, body, hashlib.sha256).digest() if key else None
+        return msgpack.packb({"v": MONITOR_VERSION, "body": body, "mac": mac}, use_bin_type=True)
+
+    @classmethod
+    def decode(cls, data: bytes, key: bytes | None = None) -> Status:
+        try:
+            env = msgpack.unpackb(data, raw=False)
+            if env.get("v") != MONITOR_VERSION:
+                raise MessageError(f"unknown monitor message version {env.get('v')!r}")
+            body = env["body"]
+            if key and not (isinstance(env.get("mac"), bytes)
+                            and hmac.compare_digest(env["mac"], hmac.new(key, body, hashlib.sha256).digest())):
+                raise MessageError("monitor message not authenticated")
+            d = msgpack.unpackb(body, raw=False)
+            mean = None if d["mean"] is None else np.frombuffer(d["mean"], "<f8").copy()
+            cov = None
+            if d["cov"] is not None:
+                cov = np.frombuffer(d["cov"], "<f8").copy().reshape(len(mean), len(mean))
+            return cls(str(d["node"]), int(d["epoch"]), str(d["phase"]), int(d["k"]), float(d["t"]), mean, cov,
+                       float(d["started"]), dict(d["stats"]), list(d["lost"]))
+        except MessageError:
+            raise
+        except Exception as exc:
+            raise MessageError(f"malformed monitor message: {type(exc).__name__}: {exc}") from None
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "node": self.node, "epoch": self.epoch, "phase": self.phase, "k": self.k, "t": self.t,
+            "started": self.started, "stats": self.stats, "lost": self.lost,
+            "mean": None if self.mean is None else self.mean.tolist(),
+            "cov": None if self.cov is None else self.cov.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Status:
+        mean = None if d.get("mean") is None else np.asarray(d["mean"], float)
+        cov = None if d.get("cov") is None else np.asarray(d["cov"], float)
+        return cls(d["node"], int(d["epoch"]), d["phase"], int(d["k"]), float(d["t"]), mean, cov,
+                   float(d.get("started", 0.0)), dict(d.get("stats", {})), list(d.get("lost", [])))

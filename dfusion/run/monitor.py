@@ -1,0 +1,368 @@
+"""The monitor: records what every node publishes and builds the ``simulate`` result from it.
+
+A :class:`Monitor` opens its own Zenoh session (connected to every node's
+endpoint), subscribes to ``dfusion/NET/monitor/*`` (estimates, ready, final)
+and to the nodes' liveliness tokens. At the end, :func:`build_result` turns
+the recorded estimates into a :class:`~dfusion.sim.runner.SimulationResult`:
+
+* each node's estimate at grid step ``k`` is the one it published at step
+  ``k``; a step it did not publish (it was down, or a publication was lost) holds
+  the previous one (the prior before the first);
+* the centralized EKF runs here on the same world (the scenario's seed), exactly
+  as ``dfusion.sim.runner.run_scenario`` runs it, on every measurement except
+  those a node reported lost (made while no incarnation of it was running:
+  nobody could fuse them);
+* the metrics are computed by the runner's own code, so the table, the JSON
+  keys and the plot are those of ``dfusion simulate``; the JSON has one extra
+  key, ``run``, with what only a multi-process run has (incarnations,
+  rejected messages, lost measurements, wall-clock figures).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from ..errors import MessageError
+from ..sim.scenario import Scenario
+from ..transport.base import TransportStats
+from ..transport.zenoh import ZenohConfig, alive_key, close_session, monitor_key, open_session
+from .common import Status
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class NodeRecord:
+    """Everything the monitor heard from one node."""
+
+    name: str
+    mean: np.ndarray
+    cov: np.ndarray
+    have: np.ndarray
+    last_k: int = -1
+    phase: str = "unknown"
+    ready: bool = False
+    final: Status | None = None
+    epochs: list[int] = field(default_factory=list)
+    stats: dict[int, dict[str, int]] = field(default_factory=dict)   # last counters per epoch
+    alive: bool = False
+    losses: int = 0
+
+
+class Monitor:
+    """Subscriber to every node's estimates (see the module docstring).
+
+    Parameters
+    ----------
+    sc : Scenario
+    network : str
+    config : ZenohConfig
+        Usually ``ZenohConfig(connect=<every node's endpoint>)``.
+    network_key : bytes, optional
+        Monitor messages must carry its HMAC (unauthenticated ones are counted and ignored).
+    """
+
+    def __init__(self, sc: Scenario, network: str, config: ZenohConfig | None = None, *,
+                 network_key: bytes | None = None) -> None:
+        self.sc, self.network, self.key = sc, network, network_key
+        K, n = sc.steps + 1, sc.target.motion.dim
+        self.records = {
+            name: NodeRecord(name, np.full((K, n), np.nan), np.full((K, n, n), np.nan), np.zeros(K, bool))
+            for name in sorted(sc.nodes)
+        }
+        self.rejected = 0
+        self._queue: deque = deque()
+        self._alive_events: deque = deque()
+        self._session = open_session(config or ZenohConfig())
+        try:
+            self._session.declare_subscriber(monitor_key(network), lambda s: self._queue.append(s.payload.to_bytes()))
+            self._session.liveliness().declare_subscriber(
+                alive_key(network), lambda s: self._alive_events.append((str(s.key_expr).rsplit("/", 1)[-1], s.kind)),
+                history=True)
+        except BaseException:
+            self.close()
+            raise
+
+    def poll(self) -> int:
+        """Apply everything received so far; returns the number of publications applied."""
+        import zenoh
+
+        while self._alive_events:
+            name, kind = self._alive_events.popleft()
+            rec = self.records.get(name)
+            if rec is None:
+                continue
+            up = kind == zenoh.SampleKind.PUT
+            if rec.alive and not up and rec.final is None:
+                rec.losses += 1
+                log.warning("monitor: node %s lost", name)
+            elif up and not rec.alive and rec.losses:
+                log.info("monitor: node %s is back", name)
+            rec.alive = up
+        count = 0
+        while self._queue:
+            data = self._queue.popleft()
+            try:
+                st = Status.decode(data, self.key)
+            except MessageError as exc:
+                self.rejected += 1
+                log.warning("monitor: rejected a publication: %s", exc)
+                continue
+            rec = self.records.get(st.node)
+            if rec is None:
+                self.rejected += 1
+                continue
+            self.apply(rec, st)
+            count += 1
+        return count
+
+    def apply(self, rec: NodeRecord, st: Status) -> None:
+        """Record one publication of ``rec``'s node."""
+        if st.epoch not in rec.epochs:
+            rec.epochs.append(st.epoch)
+        rec.stats[st.epoch] = st.stats
+        if st.phase == "ready":
+            rec.ready = True
+        elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
+            rec.mean[st.k], rec.cov[st.k], rec.have[st.k] = st.mean, st.cov, True
+            rec.last_k = max(rec.last_k, st.k) if st.phase == "run" else st.k
+            if st.phase == "final":
+                rec.final = st
+        rec.phase = st.phase
+
+    def ready(self) -> set[str]:
+        self.poll()
+        return {n for n, r in self.records.items() if r.ready}
+
+    def progress(self) -> int:
+        """The smallest step every node has published (``-1`` before any)."""
+        return min(r.last_k for r in self.records.values())
+
+    def alive(self) -> set[str]:
+        return {n for n, r in self.records.items() if r.alive}
+
+    def close(self) -> None:
+        close_session(self._session)
+
+    def __enter__(self) -> Monitor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def wait_final(self, names, timeout: float) -> bool:
+        """Wait until every node in ``names`` published its final estimate."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self.poll()
+            if all(self.records[n].final is not None for n in names):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+
+
+def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
+    """The centralized EKF as ``run_scenario`` runs it: ``(mean (K,n), cov (K,n,n), final mean)``.
+
+    ``exclude`` holds ``(node, time_key)`` of measurements nobody received.
+    """
+    from ..estimation.centralized import CentralizedEKF   # filterpy and scipy.stats: slow to import
+    from ..fusion.channel import time_key
+
+    motion = sc.target.motion
+    central = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
+    sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
+    K, n = sc.steps + 1, motion.dim
+    times = np.round(sc.dt * np.arange(K), 9)
+    by_time = [m for m in world.measurements if (m.node, time_key(m.t)) not in exclude]
+    c_mean, c_cov = np.empty((K, n)), np.empty((K, n, n))
+    c_mean[0], c_cov[0] = central.estimate(times[0])
+    ic = 0
+    for k in range(1, K):
+        t = float(times[k])
+        while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
+            m = by_time[ic]
+            central.add(m.t, m.z, sensors[m.node], seq=ic)
+            ic += 1
+        c_mean[k], c_cov[k] = central.estimate(times[k])
+    for m in by_time[ic:]:
+        central.add(m.t, m.z, sensors[m.node], seq=ic)
+        ic += 1
+    c_final, _ = central.estimate(float(times[-1]))
+    return c_mean, c_cov, c_final
+
+
+def _filled(rec: NodeRecord, sc: Scenario) -> tuple[np.ndarray, np.ndarray, int]:
+    """The record on the whole grid, holding the last published estimate; and the number of gaps."""
+    mean, cov = rec.mean.copy(), rec.cov.copy()
+    have = rec.have
+    if not have[0]:
+        mean[0], cov[0] = sc.target.initial_mean, sc.target.initial_cov
+    for k in range(1, len(have)):
+        if not have[k]:
+            mean[k], cov[k] = mean[k - 1], cov[k - 1]
+    return mean, cov, int(np.count_nonzero(~have[1:]))
+
+
+def build_result(
+    sc: Scenario,
+    records: dict[str, NodeRecord],
+    finals: dict[str, Status],
+    *,
+    world=None,
+    extra: dict[str, Any] | None = None,
+):
+    """The :class:`SimulationResult` of a multi-process run (see the module docstring).
+
+    ``finals`` holds each node's final status (from its result file or the
+    monitor); a node without one is judged on its last published estimate.
+    """
+    from ..fusion.channel import time_key
+    from ..sim.runner import SimulationResult, _metrics
+    from ..sim.world import simulate_world
+
+    world = world if world is not None else simulate_world(sc)
+    lost = {(name, time_key(t)) for name, st in finals.items() for t in st.lost}
+    c_mean, c_cov, c_final = centralized_reference(sc, world, lost)
+    K = sc.steps + 1
+    times = np.round(sc.dt * np.arange(K), 9)
+    truth = np.array([world.truth(t) for t in times])
+    node_mean, node_cov, views, run_nodes = {}, {}, {}, {}
+    delivered = sent = refused = 0
+    for name in sorted(records):
+        rec = records[name]
+        node_mean[name], node_cov[name], gaps = _filled(rec, sc)
+        fin = finals.get(name)
+        final_mean = fin.mean if fin is not None and fin.mean is not None else node_mean[name][-1]
+        per_epoch = list(rec.stats.values())
+        if fin is not None:
+            rec.stats[fin.epoch] = fin.stats
+            per_epoch = list(rec.stats.values())
+        total = {key: sum(s.get(key, 0) for s in per_epoch) for key in set().union(*per_epoch)} if per_epoch else {}
+        stats = SimpleNamespace(messages_sent=total.get("messages_sent", 0), bytes_sent=total.get("bytes_sent", 0),
+                                messages_rejected=total.get("messages_rejected", 0))
+        views[name] = SimpleNamespace(estimate=lambda m=final_mean: (m, None), stats=stats)
+        delivered += total.get("delivered", 0)
+        sent += total.get("messages_sent", 0)
+        refused += total.get("measurements_refused", 0)
+        run_nodes[name] = {
+            "incarnations": max(1, len(rec.epochs)),
+            "finished": fin is not None,
+            "steps_missing": gaps,
+            "messages_received": total.get("messages_received", 0),
+            "messages_rejected": total.get("messages_rejected", 0),
+            "sends_skipped_not_alive": total.get("skipped_not_alive", 0),
+            "dropped_emulated": total.get("dropped_emulated", 0),
+            "measurements_fused": total.get("measurements_fused", 0),
+            "measurements_replayed": total.get("measurements_replayed", 0),
+            "measurements_lost": len(fin.lost) if fin is not None else 0,
+            "liveliness_losses": rec.losses,
+            "max_lag_wall_s": max((s.get("max_lag_ms", 0) for s in per_epoch), default=0) / 1000,
+        }
+    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov)
+    net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
+                                                                       dropped=max(0, sent - delivered))))
+    result.metrics = _metrics(sc, result, views, c_final, net, len(world.measurements), refused)
+    result.metrics["run"] = {
+        "nodes": run_nodes,
+        "measurements_lost": len(lost),
+        **(extra or {}),
+    }
+    return result
+
+
+def run_table(result) -> str:
+    """The lines ``dfusion run`` prints after the ``simulate`` table."""
+    run = result.metrics.get("run", {})
+    lines = []
+    for name, v in run.get("nodes", {}).items():
+        bits = []
+        if v["incarnations"] > 1:
+            bits.append(f"{v['incarnations']} incarnations, {v['measurements_replayed']} measurements replayed")
+        if v["measurements_lost"]:
+            bits.append(f"{v['measurements_lost']} measurements lost while down")
+        if v["messages_rejected"]:
+            bits.append(f"{v['messages_rejected']} messages rejected")
+        if v["liveliness_losses"]:
+            bits.append(f"lost {v['liveliness_losses']}x")
+        if not v["finished"]:
+            bits.append("did not finish")
+        if bits:
+            lines.append(f"  {name}: " + "; ".join(bits))
+    lag = max((v.get("max_lag_wall_s", 0.0) for v in run.get("nodes", {}).values()), default=0.0)
+    bits = []
+    if "speed" in run:
+        bits.append(f"speed x{run['speed']:g}, wall {run.get('wall_seconds', math.nan):.1f} s")
+    bits.append(f"largest lag behind the clock {lag:.2f} s wall")
+    bits.append(f"network {run.get('network', '?')}")
+    head = "processes: " + ", ".join(bits)
+    return "\n".join([head] + lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m dfusion.run.monitor``: watch nodes started by hand (e.g. on several hosts).
+
+    Connects to the given node endpoints, waits until every node of the
+    scenario has published its final estimate (or ``--timeout``), then prints
+    the ``simulate`` table and writes ``--json`` / ``--plot``.
+    """
+    import argparse
+    import json as _json
+    import signal
+    import sys
+    from pathlib import Path
+
+    from ..sim.scenario import load_scenario
+    from .common import load_network_key
+
+    p = argparse.ArgumentParser(prog="python -m dfusion.run.monitor", description=main.__doc__.split("\n")[0])
+    p.add_argument("--scenario", required=True)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--fusion", choices=("channel", "naive"), default=None)
+    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--network", default="dfusion")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="a node's or router's endpoint")
+    p.add_argument("--mode", choices=("peer", "client"), default="peer")
+    p.add_argument("--network-key-file", default=None)
+    p.add_argument("--timeout", type=float, default=3600.0, help="seconds to wait for every final estimate")
+    p.add_argument("--json", default=None)
+    p.add_argument("--plot", default=None)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    stop: list[int] = []
+    signal.signal(signal.SIGTERM, lambda s, f: stop.append(s))
+    signal.signal(signal.SIGINT, lambda s, f: stop.append(s))
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
+    cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else ())
+    with Monitor(sc, args.network, cfg, network_key=load_network_key(args.network_key_file)) as mon:
+        deadline = time.monotonic() + args.timeout
+        names = sorted(sc.nodes)
+        while not stop and time.monotonic() < deadline:
+            if mon.wait_final(names, 0.2):
+                break
+        finals = {n: r.final for n, r in mon.records.items() if r.final is not None}
+        if stop or not finals:
+            print("monitor: stopped before any final estimate", file=sys.stderr)
+            return 1
+        result = build_result(sc, mon.records, finals, extra={"network": args.network})
+    print(result.table())
+    print(run_table(result))
+    if args.json:
+        Path(args.json).write_text(_json.dumps(result.metrics, indent=2, sort_keys=True))
+    if args.plot:
+        from ..plots import plot_result
+
+        plot_result(result, args.plot)
+    return 0 if len(finals) == len(sc.nodes) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

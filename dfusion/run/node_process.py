@@ -1,0 +1,494 @@
+"""One fusion node as an OS process, talking to its neighbours over Zenoh.
+
+``python -m dfusion.run.node_process --scenario F --node NAME [options]`` (or
+``python nodes/fusion_node.py ...``). The node
+
+1. loads the scenario and takes its own measurements from the simulated world
+   of the scenario's seed (the same world ``dfusion simulate`` uses), or from a
+   recording (``--measurements``);
+2. opens a :class:`~dfusion.transport.zenoh.ZenohTransport`, declares its
+   liveliness token and waits for the common start time (``--start-time`` or
+   ``--start-file``), publishing ``ready`` to the monitor once its neighbours
+   are up;
+3. runs in real time, scenario time ``(wall - start) * speed``; every ``dt``:
+   predict, fuse the measurements whose arrival time has come, receive, send to
+   each neighbour whose send period has elapsed and whose liveliness token is
+   seen, and publish its estimate on ``dfusion/NET/monitor/NAME``; messages are
+   also received as soon as they arrive between steps;
+4. after the scenario's end, exchanges ``diameter + 1`` more rounds without
+   new measurements (synchronized rounds: round ``r`` goes to every neighbour,
+   then the node waits for every live neighbour's round ``r``), publishes its
+   final estimate (and writes it to ``--result``) and exits 0.
+
+SIGTERM or SIGINT stops it within a fraction of a second (the session is
+closed, exit status 0); so does the death of ``--parent-pid``. With
+``--state-dir`` every measurement is appended to a log before it is fused and
+a restarted node replays it (``docs/processes.md``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DfusionError, MessageError, OutsideWindowError
+from ..fusion.node import FusionNode
+from ..sim.scenario import Scenario, load_scenario
+from ..transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
+from .common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
+from .measurements import MeasurementLog, OwnMeasurement, load_recording, save_recording, world_measurements
+
+log = logging.getLogger("dfusion.node")
+
+#: Longest time the node blocks without looking at its stop flag (seconds).
+POLL = 0.05
+#: Wall-clock period of the "ready" publication while waiting for the start.
+READY_PERIOD = 0.2
+EPS = 1e-9
+
+
+class NodeProcess:
+    """The real-time loop of one fusion node (see the module docstring).
+
+    Parameters
+    ----------
+    sc : Scenario
+    name : str
+        This node.
+    network : str
+        Network name (Zenoh key chunk).
+    zconfig : ZenohConfig
+        Session settings: this node's listen endpoints, its neighbours' as ``connect``.
+    speed : float
+        Scenario seconds per wall-clock second.
+    start : float or None
+        Common start (UNIX time) of scenario time 0; ``None``: read ``start_file``.
+    start_file : path, optional
+        A file that will hold the start time (written by the launcher).
+    measurements : list of OwnMeasurement
+        This node's measurements, in fusing order.
+    state_dir : path, optional
+        Where the measurement log lives; ``run_id`` identifies the run.
+    network_key : bytes, optional
+        HMAC key of fusion and monitor messages.
+    result : path, optional
+        Where to write the final status (JSON).
+    emulate_links : bool
+        Apply the scenario links' ``drop`` and ``outages`` to outgoing messages.
+    round_timeout : float
+        Wall-clock seconds to wait for a live neighbour's message of a final-phase round.
+    parent_pid : int, optional
+        Stop when this process is no longer the parent.
+    """
+
+    def __init__(
+        self,
+        sc: Scenario,
+        name: str,
+        *,
+        network: str = "dfusion",
+        zconfig: ZenohConfig | None = None,
+        speed: float = 1.0,
+        start: float | None = None,
+        start_file: str | Path | None = None,
+        measurements: list[OwnMeasurement] | None = None,
+        state_dir: str | Path | None = None,
+        run_id: str | None = None,
+        fsync: bool = False,
+        network_key: bytes | None = None,
+        result: str | Path | None = None,
+        emulate_links: bool = False,
+        round_timeout: float = ROUND_TIMEOUT,
+        parent_pid: int | None = None,
+        ready_timeout: float = 5.0,
+    ) -> None:
+        if name not in sc.nodes:
+            raise DfusionError(f"{name!r} is not a node of {sc.path} (nodes: {sorted(sc.nodes)})")
+        check_name(name)
+        if not (speed > 0 and math.isfinite(speed)):
+            raise DfusionError(f"speed must be a positive number, got {speed}")
+        self._start_now = start is None and start_file is None   # start as soon as the session is open
+        self.sc, self.name, self.network = sc, name, network
+        self.neighbors = tuple(sorted(sc.graph.neighbors(name)))
+        self.zconfig = zconfig or ZenohConfig()
+        self.speed = float(speed)
+        self.start = start
+        self.start_file = Path(start_file) if start_file else None
+        self.meas = measurements if measurements is not None else world_measurements(sc, name)
+        self.state_dir, self.run_id, self.fsync = state_dir, run_id, fsync
+        self.key = network_key
+        self.result = Path(result) if result else None
+        self.emulate_links = emulate_links
+        self.rounds, self.round_timeout = final_rounds(sc), float(round_timeout)
+        self._round_seen: dict[str, int] = {}
+        self._replay: dict[int, OwnMeasurement] = {}
+        self.parent_pid = parent_pid
+        self.ready_timeout = ready_timeout
+        self.stop_reason: str | None = None
+        self.times = np.round(sc.dt * np.arange(sc.steps + 1), 9)
+        spec = sc.nodes[name]
+        self.sensor = spec.sensor
+        self.send_period = spec.send_period
+        self.node = FusionNode(name, self.neighbors, sc.target.motion, window=sc.window, horizon=sc.horizon,
+                               prior=(0.0, sc.target.initial_mean, sc.target.initial_cov), fusion=sc.fusion,
+                               network_key=network_key)   # a random epoch: a new one per incarnation
+        self.counters = {"skipped_not_alive": 0, "dropped_emulated": 0, "measurements_fused": 0,
+                         "measurements_refused": 0, "measurements_replayed": 0,
+                         "max_lag_ms": 0}
+        self.lost: list[float] = []
+        self.t_started = 0.0
+        self._links = {}
+        if emulate_links:
+            from ..sim.network import _link_generator
+
+            for (a, b), lspec in sc.links.items():
+                if name in (a, b):
+                    other = b if a == name else a
+                    self._links[other] = (lspec, _link_generator(sc.seed, name, other))
+        self.tr: ZenohTransport | None = None
+        self._mlog: MeasurementLog | None = None
+
+    # ------------------------------------------------------------------ clocks and stopping
+    def request_stop(self, reason: str) -> None:
+        """Ask the loop to stop (safe from a signal handler: only sets a flag)."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+
+    def _should_stop(self) -> bool:
+        if self.parent_pid is not None and os.getppid() != self.parent_pid:
+            self.request_stop(f"parent process {self.parent_pid} is gone")
+        return self.stop_reason is not None
+
+    def now(self) -> float:
+        """Scenario time (``-inf`` before the start time is known)."""
+        if self.start is None:
+            return -math.inf
+        return (time.time() - self.start) * self.speed
+
+    def _wait_wall(self, deadline: float) -> bool:
+        """Receive messages until the wall-clock ``deadline``; False if asked to stop."""
+        while True:
+            if self._should_stop():
+                return False
+            left = deadline - time.time()
+            if left <= 0:
+                return True
+            if self.tr.wait(min(left, POLL)):
+                self._receive()
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> int:
+        """Run to the end (or until stopped); returns the exit status (0)."""
+        try:
+            with ZenohTransport(self.network, {self.name: self.neighbors}, self.zconfig, clock=self.now) as tr:
+                self.tr = tr
+                self._monitor_key = monitor_key(self.network, self.name)
+                self._pub = tr.session.declare_publisher(self._monitor_key)
+                self._run()
+                if self.stop_reason is not None:
+                    log.info("%s: stopping: %s", self.name, self.stop_reason)
+                    self._publish("stopped", -1)
+        finally:
+            if self._mlog is not None:
+                self._mlog.close()
+        return 0
+
+    def _run(self) -> None:
+        if not self._wait_for_start():
+            return
+        if self.state_dir is not None:
+            self._mlog = MeasurementLog(self.state_dir, self.name, self.run_id or repr(self.start), fsync=self.fsync)
+        k = self._catch_up()
+        self._publish("run", k)
+        next_send = self.send_period * (math.floor(self.t_started / self.send_period + EPS) + 1)
+        for k in range(k + 1, len(self.times)):
+            t = float(self.times[k])
+            if not self._wait_wall(self.start + t / self.speed):
+                return
+            self.node.predict(t)
+            self._fuse_until(t)
+            self._receive()
+            if t + EPS >= next_send:
+                self._send_all(t)
+                while next_send <= t + EPS:
+                    next_send += self.send_period
+            self._publish("run", k)
+            lag = (time.time() - self.start) - t / self.speed   # wall seconds behind the schedule
+            if lag * 1000 > self.counters["max_lag_ms"]:
+                self.counters["max_lag_ms"] = int(lag * 1000)
+        self._final_phase()
+
+    def _wait_for_start(self) -> bool:
+        """Wait for the start time; publish "ready" once the neighbours are seen. False if stopped."""
+        opened = time.time()
+        last_ready = -math.inf
+        before_start = False
+        if self._start_now:
+            self.start, before_start = time.time(), True
+        while True:
+            if self._should_stop():
+                return False
+            if self.start is None and self.start_file is not None and self.start_file.exists():
+                try:
+                    self.start = float(self.start_file.read_text().strip())
+                except ValueError:
+                    pass   # being written
+            if self.start is not None:
+                if time.time() >= self.start:
+                    break
+                before_start = True
+            up = all(self.tr.alive(nb) for nb in self.neighbors)
+            if (up or time.time() - opened > self.ready_timeout) and time.time() - last_ready >= READY_PERIOD:
+                self._publish("ready", -1)
+                last_ready = time.time()
+            if self.tr.wait(POLL):
+                self._receive()   # an early neighbour's messages (or a stranger's): do not spin on them
+        now = self.now()
+        # started on time: scenario time 0; started late (restart): everything before now is past
+        self.t_started = 0.0 if before_start or now <= self.sc.dt * 0.5 else now
+        if self.t_started > 0:
+            log.warning("%s: started at scenario time %.3f (incarnation %d)", self.name, self.t_started, self.node.epoch)
+        return True
+
+    def _catch_up(self) -> int:
+        """After a late start: predict to now, replaying logged measurements; returns the last step done."""
+        self._replay = {m.key: m for m in self._mlog.entries} if self._mlog is not None else {}
+        k0 = int(np.searchsorted(self.times, self.t_started + EPS, side="right")) - 1
+        for k in range(1, k0 + 1):
+            t = float(self.times[k])
+            self.node.predict(t)
+            self._fuse_until(t)
+        if self.t_started > 0:
+            log.warning("%s: replayed %d logged measurements, %d lost while down; resuming at step %d (t=%.2f)",
+                        self.name, self.counters["measurements_replayed"], len(self.lost), k0, self.times[k0])
+        return k0
+
+    # ------------------------------------------------------------------ pieces of a step
+    def _fuse_until(self, t: float) -> None:
+        meas, i = self.meas, getattr(self, "_im", 0)
+        while i < len(meas) and meas[i].arrival <= t + EPS:
+            self._fuse(meas[i])
+            i += 1
+        self._im = i
+
+    def _fuse(self, m: OwnMeasurement) -> None:
+        logged = self._replay.get(m.key)
+        replayed = logged is not None
+        if replayed:
+            m = logged   # the log is the record of what this node measured
+        elif m.arrival < self.t_started - EPS:
+            self.lost.append(m.t)   # arrived while no incarnation of this node was running
+            return
+        if self._mlog is not None and not replayed:
+            self._mlog.append(m)   # write-ahead: logged before it is fused
+        try:
+            self.node.update(m.t, m.z, self.sensor)
+            self.counters["measurements_fused"] += 1
+            self.counters["measurements_replayed"] += replayed
+        except OutsideWindowError:
+            self.counters["measurements_refused"] += 1
+            log.info("%s: measurement at t=%.3f arrived after it left the window", self.name, m.t)
+
+    def _receive(self) -> int:
+        changed = 0
+        T = float(self.times[-1])
+        for d in self.tr.receive(self.name):
+            if d.t_sent > T + EPS:   # a final-phase round: sent at scenario time T + r dt
+                r = int(round((d.t_sent - T) / self.sc.dt))
+                self._round_seen[d.src] = max(self._round_seen.get(d.src, 0), r)
+            try:
+                changed += self.node.receive(d.data)
+            except MessageError:
+                pass   # counted in node.stats.messages_rejected and logged by the node
+        return changed
+
+    def _send_all(self, t: float, *, final: bool = False) -> None:
+        for nb in self.neighbors:
+            if not self.tr.alive(nb):
+                self.counters["skipped_not_alive"] += 1
+                continue
+            data = self.node.message_to(nb, sent_at=t)
+            link = None if final else self._links.get(nb)   # the final phase is lossless, as in simulate
+            if link is not None:
+                spec, rng = link
+                u = rng.random()
+                if spec.is_down(t) or u < spec.drop:
+                    self.counters["dropped_emulated"] += 1
+                    continue
+            self.tr.send(self.name, nb, data, t)
+
+    def _final_phase(self) -> None:
+        """``diameter + 1`` synchronized rounds without new measurements, then the final estimate.
+
+        Round ``r``: send to every live neighbour (transport time ``T + r dt``),
+        then wait until every live neighbour's round ``r`` has arrived (or
+        ``round_timeout``). Information thus moves one hop per round whatever
+        the nodes' relative delays, so after ``diameter + 1`` rounds every node
+        holds everything: the in-process ``final_rounds`` over a real network.
+        """
+        T = float(self.times[-1])
+        self.tr.quiet_loss = True   # neighbours leaving now is the normal end
+        self._fuse_until(math.inf)
+        for r in range(1, self.rounds + 1):
+            self._receive()
+            self._send_all(T + r * self.sc.dt, final=True)
+            deadline = time.time() + self.round_timeout
+            while True:
+                waiting = [nb for nb in self.neighbors if self._round_seen.get(nb, 0) < r and self.tr.alive(nb)]
+                if not waiting:
+                    break
+                if time.time() >= deadline:
+                    log.warning("%s: no round %d from %s after %.1f s: going on", self.name, r, waiting,
+                                self.round_timeout)
+                    break
+                if self._should_stop():
+                    return
+                if self.tr.wait(POLL):
+                    self._receive()
+        self._receive()
+        status = self._publish("final", len(self.times) - 1)
+        if self.result is not None:
+            self.result.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.result.with_suffix(".tmp")
+            tmp.write_text(json.dumps(status.to_json()))
+            tmp.replace(self.result)
+        log.info("%s: final estimate published (t=%.2f)", self.name, T)
+        time.sleep(0.05)   # let the last publications leave before the session closes
+
+    def stats(self) -> dict[str, int]:
+        s = self.node.stats
+        tot = self.tr.stats.total if self.tr is not None else None
+        out = {
+            "messages_sent": s.messages_sent, "bytes_sent": s.bytes_sent, "messages_received": s.messages_received,
+            "messages_rejected": s.messages_rejected, "duplicates": s.duplicates,
+            "blocks_outside_window": s.blocks_outside_window,
+            "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
+        }
+        out.update(self.counters)
+        return out
+
+    def _publish(self, phase: str, k: int) -> Status:
+        if phase in ("ready", "stopped"):
+            mean = cov = None
+            t = self.now() if self.start is not None else 0.0
+        else:
+            mean, cov = self.node.estimate()
+            t = float(self.times[k])
+        st = Status(self.name, self.node.epoch, phase, k, t if math.isfinite(t) else 0.0, mean, cov,
+                    self.t_started, self.stats(), list(self.lost) if phase == "final" else [])
+        try:
+            import zenoh
+
+            if phase == "final":
+                self.tr.session.put(self._monitor_key, st.encode(self.key),
+                                    congestion_control=zenoh.CongestionControl.BLOCK)
+            else:
+                self._pub.put(st.encode(self.key))
+        except Exception as exc:   # the monitor is optional
+            log.debug("%s: monitor publication failed: %s", self.name, exc)
+        return st
+
+
+# ---------------------------------------------------------------------- command line
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fusion_node", description="Run one dfusion fusion node over Zenoh.")
+    p.add_argument("--scenario", required=True, help="scenario TOML file")
+    p.add_argument("--node", required=True, help="this node's name in the scenario")
+    p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    p.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
+    p.add_argument("--duration", type=float, default=None, help="override the scenario's duration")
+    p.add_argument("--network", default="dfusion", help="network name: the Zenoh key space dfusion/NETWORK/...")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint of a neighbour or router to connect to (repeatable)")
+    p.add_argument("--mode", choices=("peer", "client"), default="peer", help="Zenoh mode (client: via routers)")
+    p.add_argument("--zenoh-option", action="append", default=[], metavar="PATH=JSON",
+                   help="extra Zenoh configuration, e.g. transport/link/tx/lease=2000 (repeatable)")
+    p.add_argument("--speed", type=float, default=1.0, help="scenario seconds per wall-clock second")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--start-time", type=float, default=None, help="UNIX time of scenario time 0 (default: now)")
+    g.add_argument("--start-file", default=None, help="wait for this file to hold the UNIX start time")
+    p.add_argument("--measurements", default=None, help="recording of this node's measurements (.jsonl or .npz)")
+    p.add_argument("--record", default=None, metavar="OUT",
+                   help="write this node's measurements of the scenario to OUT (.jsonl or .npz) and exit")
+    p.add_argument("--state-dir", default=None, help="directory of the measurement log replayed at restart")
+    p.add_argument("--run-id", default=None, help="identifies the run in the state log (default: the start time)")
+    p.add_argument("--fsync", action="store_true", help="fsync the measurement log after every line")
+    p.add_argument("--network-key-file", default=None,
+                   help="HMAC key file (default: $DFUSION_NETWORK_KEY_FILE or $DFUSION_NETWORK_KEY)")
+    p.add_argument("--result", default=None, help="write the final estimate and counters here (JSON)")
+    p.add_argument("--emulate-links", action="store_true", help="apply the scenario's link drops and outages")
+    p.add_argument("--round-timeout", type=float, default=ROUND_TIMEOUT,
+                   help="seconds to wait for a live neighbour's message of a final-phase round")
+    p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is no longer the parent")
+    p.add_argument("--ready-timeout", type=float, default=5.0,
+                   help="report ready after this many seconds even if a neighbour is not up")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    return p
+
+
+def _extra_options(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        path, sep, value = item.partition("=")
+        if not sep:
+            raise DfusionError(f"--zenoh-option needs PATH=JSON, got {item!r}")
+        try:
+            out[path] = json.loads(value)
+        except ValueError:
+            out[path] = value
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    proc: NodeProcess | None = None
+    early: list[str] = []
+
+    def on_signal(signum, frame):  # only sets a flag; the loop looks at it every POLL seconds
+        name = signal.Signals(signum).name
+        if proc is not None:
+            proc.request_stop(name)
+        else:
+            early.append(name)
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    level = [logging.INFO, logging.DEBUG][min(args.verbose, 1)]
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format=f"%(asctime)s %(levelname)s [{args.node}] %(name)s: %(message)s")
+    try:
+        sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
+        if args.record:
+            path = save_recording(args.record, args.node, world_measurements(sc, args.node))
+            print(f"wrote {path}")
+            return 0
+        meas = load_recording(args.measurements, args.node) if args.measurements else None
+        zc = ZenohConfig(mode=args.mode, listen=tuple(args.listen), connect=tuple(args.connect),
+                         extra=_extra_options(args.zenoh_option))
+        proc = NodeProcess(
+            sc, args.node, network=args.network, zconfig=zc, speed=args.speed, start=args.start_time,
+            start_file=args.start_file, measurements=meas, state_dir=args.state_dir, run_id=args.run_id,
+            fsync=args.fsync, network_key=load_network_key(args.network_key_file), result=args.result,
+            emulate_links=args.emulate_links, round_timeout=args.round_timeout, parent_pid=args.parent_pid,
+            ready_timeout=args.ready_timeout,
+        )
+        if early:
+            return 0
+        return proc.run()
+    except (DfusionError, OSError) as exc:
+        log.error("%s", exc)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

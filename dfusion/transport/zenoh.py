@@ -1,0 +1,485 @@
+"""Fusion messages over Zenoh: one key expression per directed link, liveliness per node.
+
+Key space of a network called ``NET`` (node names are Zenoh key chunks)::
+
+    dfusion/NET/<src>/<dst>        fusion messages of the directed link src -> dst
+    dfusion/NET/alive/<name>       liveliness token of each running node
+    dfusion/NET/monitor/<name>     estimates published for the monitor (dfusion.run)
+
+A :class:`ZenohTransport` serves the nodes that run in its process (usually
+one). It opens one Zenoh session in **peer** mode, configured by
+:class:`ZenohConfig`: by default it listens on loopback only
+(``tcp/127.0.0.1:0``) with multicast and gossip scouting off, so nothing leaves
+the machine and nothing is discovered by accident. To reach other hosts, give
+explicit ``listen`` and ``connect`` endpoints (each node connects to its
+neighbours' endpoints: peer mode delivers only over direct links), or connect
+every node to a Zenoh router (``mode="client"`` or a router endpoint in
+``connect``); see ``docs/zenoh.md``.
+
+Pitfalls handled here (measured in ``ZENOH_NOTES.md``):
+
+* Subscribers are callback subscribers that only append to this object's
+  deques (never block); :meth:`ZenohTransport.receive` drains them.
+* The session is always closed: :meth:`close` (idempotent), the context
+  manager, and every user of this class closes it in ``finally`` (an open
+  session with callback subscribers keeps the process from exiting).
+* ``transport/unicast/open_timeout`` is 1000 ms, so :meth:`close` does not
+  block for seconds when a reconnection is in flight; and :meth:`close` gives
+  up after :data:`CLOSE_TIMEOUT` seconds when messages are queued towards a
+  frozen peer (Zenoh would block about 10 s; see :func:`close_session`).
+* The lowlatency transport is refused (it drops payloads over 49,144 bytes).
+* Publications use ``CongestionControl.DROP``: ``send`` never blocks. A message
+  published while a link is down is lost (Zenoh does not buffer); the fusion
+  protocol tolerates that (the next message carries the same window).
+
+Liveliness: each local node declares ``dfusion/NET/alive/<name>``; one
+liveliness subscriber (``history=True``) follows every node's token. Loss of a
+neighbour is logged with ``logging.warning`` (``info`` once
+:attr:`ZenohTransport.quiet_loss` is set, e.g. at a normal end of run), its
+return with ``info``, and both are exposed through :meth:`ZenohTransport.alive`
+and callbacks registered with :meth:`ZenohTransport.on_liveliness` (called in
+the thread that calls :meth:`receive` or :meth:`poll`, never in Zenoh's).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import socket
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from ..errors import ValidationError
+from .base import Delivery, LinkKey, StatsReport, Transport, TransportStats
+
+log = logging.getLogger(__name__)
+
+KEY_ROOT = "dfusion"
+#: Key chunks with a meaning of their own: not allowed as node names.
+RESERVED_NAMES = frozenset({"alive", "monitor", "control"})
+_BAD_CHARS = frozenset("/*$?#@ \t\n\r")
+#: Copies waiting per local node before the oldest are discarded (counted as dropped).
+MAX_QUEUE = 10_000
+_T_SENT = struct.Struct("<d")
+
+
+def check_name(name: str, what: str = "node name") -> str:
+    """Return ``name`` if it can be one key chunk, else raise :class:`ValidationError`."""
+    if not isinstance(name, str) or not name or _BAD_CHARS & set(name) or name in RESERVED_NAMES:
+        raise ValidationError(
+            f"invalid {what} {name!r}: must be a non-empty key chunk without / * $ ? # @ or blanks, "
+            f"and not one of {sorted(RESERVED_NAMES)}"
+        )
+    return name
+
+
+def link_key(network: str, src: str, dst: str) -> str:
+    """Key expression of the directed link ``src -> dst``."""
+    return f"{KEY_ROOT}/{network}/{src}/{dst}"
+
+
+def alive_key(network: str, name: str = "*") -> str:
+    """Key expression of a node's liveliness token (``*``: every node)."""
+    return f"{KEY_ROOT}/{network}/alive/{name}"
+
+
+def monitor_key(network: str, name: str = "*") -> str:
+    """Key expression on which a node publishes its estimates for the monitor."""
+    return f"{KEY_ROOT}/{network}/monitor/{name}"
+
+
+def free_tcp_endpoints(count: int, host: str = "127.0.0.1") -> list[str]:
+    """``count`` endpoints ``tcp/HOST:PORT`` on ports that were free a moment ago.
+
+    The ports are found by binding to port 0; another program may take one
+    before Zenoh binds it (unlikely on a test machine).
+    """
+    socks = []
+    try:
+        for _ in range(count):
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.bind((host, 0))
+            socks.append(s)
+        return [f"tcp/{host}:{s.getsockname()[1]}" for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    """How a dfusion process opens its Zenoh session.
+
+    Attributes
+    ----------
+    mode : {"peer", "client", "router"}
+        ``"peer"`` (default): direct links to the configured endpoints only.
+        ``"client"``: everything goes through the router(s) in ``connect``.
+    listen : sequence of str
+        Endpoints to listen on; empty means ``tcp/127.0.0.1:0`` (loopback, a
+        free port) in peer mode and nothing in client mode.
+    connect : sequence of str
+        Endpoints (neighbours, routers) to connect to; retried in the background
+        every ``retry_period_ms`` (backing off to ``retry_max_ms``) until they answer,
+        and again after a link is lost.
+    multicast_scouting, gossip_scouting : bool
+        Off by default: peers only know the endpoints they are given.
+    open_timeout_ms : int
+        ``transport/unicast/open_timeout``; low so that ``close()`` never hangs.
+    lease_ms : int
+        ``transport/link/tx/lease``: a frozen peer is declared gone after this.
+        A killed one is detected at once (its TCP connection resets).
+    extra : mapping
+        Further configuration paths and JSON values, e.g.
+        ``{"transport/link/tls/root_ca_certificate": "ca.pem"}``.
+    """
+
+    mode: str = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    gossip_scouting: bool = False
+    open_timeout_ms: int = 1000
+    lease_ms: int = 3000
+    retry_period_ms: int = 200
+    retry_max_ms: int = 500
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client", "router"):
+            raise ValidationError(f"zenoh mode must be peer, client or router, got {self.mode!r}")
+        object.__setattr__(self, "listen", tuple(self.listen))
+        object.__setattr__(self, "connect", tuple(self.connect))
+        for ep in self.listen + self.connect:
+            if not isinstance(ep, str) or "/" not in ep:
+                raise ValidationError(f"a zenoh endpoint looks like tcp/HOST:PORT, got {ep!r}")
+        if self.extra.get("transport/unicast/lowlatency") not in (None, False):
+            raise ValidationError("the lowlatency transport silently drops payloads over 49,144 bytes: not allowed")
+        if self.mode == "client" and not self.connect:
+            raise ValidationError("client mode needs at least one router endpoint in connect")
+
+    def to_zenoh(self) -> zenoh.Config:
+        """The ``zenoh.Config`` these settings describe."""
+        listen = list(self.listen) or (["tcp/127.0.0.1:0"] if self.mode != "client" else [])
+        values: dict[str, Any] = {
+            "mode": self.mode,
+            "listen/endpoints": listen,
+            "connect/endpoints": list(self.connect),
+            "connect/exit_on_failure": False,
+            "connect/retry": {"period_init_ms": self.retry_period_ms, "period_max_ms": self.retry_max_ms,
+                              "period_increase_factor": 2},
+            "scouting/multicast/enabled": self.multicast_scouting,
+            "scouting/gossip/enabled": self.gossip_scouting,
+            "scouting/delay": 0,
+            "transport/unicast/open_timeout": self.open_timeout_ms,
+            "transport/unicast/lowlatency": False,
+            "transport/link/tx/lease": self.lease_ms,
+            # express messages are one batch each: the default queue of 2 batches lost
+            # 1-20% of 7 kB messages at 900 msg/s on loopback; 16 lost none
+            "transport/link/tx/queue/size/data": 16,
+        }
+        values.update(self.extra)
+        cfg = zenoh.Config()
+        for path, value in values.items():
+            cfg.insert_json5(path, json.dumps(value))
+        return cfg
+
+    def with_endpoints(self, listen: Iterable[str] = (), connect: Iterable[str] = ()) -> ZenohConfig:
+        """A copy with other endpoints."""
+        return ZenohConfig(self.mode, tuple(listen), tuple(connect), self.multicast_scouting, self.gossip_scouting,
+                           self.open_timeout_ms, self.lease_ms, self.retry_period_ms, self.retry_max_ms, dict(self.extra))
+
+
+def open_session(config: ZenohConfig | None = None) -> zenoh.Session:
+    """Open a Zenoh session with ``config`` (loopback defaults). Close it with :func:`close_session`."""
+    return zenoh.open((config or ZenohConfig()).to_zenoh())
+
+
+#: Seconds :func:`close_session` waits for ``Session.close()``.
+CLOSE_TIMEOUT = 1.0
+
+
+def close_session(session: zenoh.Session, timeout: float = CLOSE_TIMEOUT) -> bool:
+    """Close ``session``, waiting at most ``timeout`` seconds; True if the close finished.
+
+    ``Session.close()`` blocks for about 10 s when messages are still queued
+    towards a frozen peer (SIGSTOPped, or a hung host), whatever
+    ``open_timeout``, the lease or the congestion settings (measured with
+    zenoh 1.10.2). The close therefore runs in a daemon thread; if it does not
+    finish in time it is abandoned with a warning, and the process can still
+    exit at once (measured: exit 0 about 1.1 s after the close began).
+    """
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            session.close()
+        except Exception as exc:  # already closed
+            errors.append(exc)
+
+    th = threading.Thread(target=run, name="zenoh-close", daemon=True)
+    th.start()
+    th.join(timeout)
+    if th.is_alive():
+        log.warning("zenoh session close still blocked after %.1f s (a peer is frozen with messages queued "
+                    "towards it): abandoned", timeout)
+        return False
+    if errors:
+        log.debug("zenoh close: %s", errors[0])
+    return True
+
+
+class ZenohTransport(Transport):
+    """:class:`Transport` over Zenoh for the nodes of this process.
+
+    Parameters
+    ----------
+    network : str
+        Name of the network (one key chunk); nodes of different networks never
+        see each other's messages.
+    nodes : mapping
+        ``{local node: its neighbours}`` for every node run by this process.
+    config : ZenohConfig, optional
+        Session settings (default: loopback only, a free port).
+    clock : callable, optional
+        Returns the local time used to stamp arrivals (``Delivery.t_arrival``)
+        and compared with ``until`` in :meth:`receive`; ``time.monotonic`` by
+        default (the node program passes its scenario clock).
+    express : bool
+        Publish fusion messages without batching (lower latency). Default true.
+    session : zenoh.Session, optional
+        Use an existing session instead of opening one (it is then not closed
+        by :meth:`close`).
+
+    ``send`` never blocks and never raises for a lost message; ``receive``
+    returns the copies that arrived for a local node. See the module docstring.
+    """
+
+    def __init__(
+        self,
+        network: str,
+        nodes: Mapping[str, Iterable[str]],
+        config: ZenohConfig | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        express: bool = True,
+        session: zenoh.Session | None = None,
+    ) -> None:
+        self.network = check_name(network, "network name")
+        self.neighbors: dict[str, tuple[str, ...]] = {}
+        for name, nbrs in nodes.items():
+            nb = tuple(check_name(n) for n in nbrs)
+            if check_name(name) in nb or len(set(nb)) != len(nb):
+                raise ValidationError(f"invalid neighbours of {name!r}: {nb}")
+            self.neighbors[name] = nb
+        if not self.neighbors:
+            raise ValidationError("a ZenohTransport needs at least one local node")
+        self.config = config or ZenohConfig()
+        self.clock = clock
+        self.quiet_loss = False
+        self._lock = threading.Lock()
+        self._event = threading.Event()
+        self._queues: dict[str, deque[Delivery]] = {n: deque() for n in self.neighbors}
+        self._stats: dict[LinkKey, TransportStats] = {}
+        for name, nbrs in self.neighbors.items():
+            for nb in nbrs:
+                self._stats[(name, nb)] = TransportStats()
+                self._stats[(nb, name)] = TransportStats()
+        self._alive: dict[str, bool] = {}
+        self._alive_events: deque[tuple[str, bool]] = deque()
+        self._callbacks: list[Callable[[str, bool], None]] = []
+        self._publishers: dict[LinkKey, Any] = {}
+        self._declared: list[Any] = []
+        self._closed = False
+        self._own_session = session is None
+        self._session = open_session(self.config) if session is None else session
+        try:
+            z = self._session
+            for name, nbrs in self.neighbors.items():
+                for nb in nbrs:
+                    self._declared.append(
+                        z.declare_subscriber(link_key(self.network, nb, name), self._make_callback(nb, name)))
+                    self._publishers[(name, nb)] = z.declare_publisher(
+                        link_key(self.network, name, nb),
+                        congestion_control=zenoh.CongestionControl.DROP,
+                        reliability=zenoh.Reliability.RELIABLE,
+                        priority=zenoh.Priority.DATA,
+                        express=express,
+                    )
+            self._declared.append(z.liveliness().declare_subscriber(alive_key(self.network), self._on_liveliness,
+                                                                     history=True))
+            self._tokens = [z.liveliness().declare_token(alive_key(self.network, name)) for name in self.neighbors]
+        except BaseException:
+            self.close()
+            raise
+        log.debug("zenoh transport %s: nodes %s, config %s", self.network, list(self.neighbors), self.config)
+
+    # ------------------------------------------------------------------ zenoh callbacks (never block)
+    def _make_callback(self, src: str, dst: str) -> Callable[[zenoh.Sample], None]:
+        queue = self._queues[dst]
+        stats = self._stats[(src, dst)]
+        clock, event = self.clock, self._event
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            data = sample.payload.to_bytes()
+            att = sample.attachment
+            t_sent = math.nan
+            if att is not None:
+                raw = att.to_bytes()
+                if len(raw) == _T_SENT.size:
+                    t_sent = _T_SENT.unpack(raw)[0]
+            if len(queue) >= MAX_QUEUE:
+                queue.popleft()
+                stats.dropped += 1
+            queue.append(Delivery(clock(), src, dst, data, t_sent))
+            event.set()
+
+        return on_sample
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        self._alive_events.append((name, sample.kind == zenoh.SampleKind.PUT))
+        self._event.set()
+
+    # ------------------------------------------------------------------ Transport
+    def send(self, src: str, dst: str, data: bytes, t: float) -> None:
+        """Publish ``data`` on ``dfusion/NET/src/dst`` (``t`` travels as an attachment)."""
+        pub = self._publishers.get((src, dst))
+        if pub is None:
+            if self._closed:
+                return
+            raise ValidationError(f"there is no local link {src!r} -> {dst!r}")
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise ValidationError(f"data must be bytes, got {type(data).__name__}")
+        payload = bytes(data)
+        stats = self._stats[(src, dst)]
+        stats.sent += 1
+        stats.bytes_sent += len(payload)
+        try:
+            pub.put(payload, attachment=_T_SENT.pack(float(t)))
+        except zenoh.ZError as exc:   # session closing: a lost message, as documented
+            stats.dropped += 1
+            log.debug("send %s -> %s failed: %s", src, dst, exc)
+
+    def receive(self, node: str, until: float = math.inf) -> list[Delivery]:
+        """Remove and return the copies for local ``node`` stamped at or before ``until``."""
+        queue = self._queues.get(node)
+        if queue is None:
+            raise ValidationError(f"{node!r} is not a node of this transport")
+        self.poll()
+        out: list[Delivery] = []
+        while queue and queue[0].t_arrival <= until:
+            d = queue.popleft()
+            st = self._stats[(d.src, d.dst)]
+            st.delivered += 1
+            st.bytes_delivered += len(d.data)
+            out.append(d)
+        return out
+
+    def pending(self, node: str | None = None) -> int:
+        """Copies waiting in the local queues."""
+        if node is None:
+            return sum(len(q) for q in self._queues.values())
+        return len(self._queues[node])
+
+    def wait(self, timeout: float) -> bool:
+        """Block up to ``timeout`` seconds until a message or liveliness change is waiting."""
+        if self.pending() or self._alive_events:
+            return True
+        self._event.wait(max(0.0, timeout))
+        self._event.clear()
+        return bool(self.pending() or self._alive_events)
+
+    def wake(self) -> None:
+        """Make a pending or the next :meth:`wait` return at once (thread-safe)."""
+        self._event.set()
+
+    @property
+    def stats(self) -> StatsReport:
+        """Per directed link: ``sent``/``bytes_sent`` on outgoing links, ``delivered`` on incoming ones.
+
+        A process only sees its own side: messages lost in transit are not
+        counted here (``dropped`` counts local queue overflows and failed puts).
+        """
+        return StatsReport.from_links(self._stats)
+
+    # ------------------------------------------------------------------ liveliness
+    def poll(self) -> list[tuple[str, bool]]:
+        """Apply pending liveliness changes, log them and call the callbacks; returns them."""
+        changes = []
+        while self._alive_events:
+            name, up = self._alive_events.popleft()
+            was = self._alive.get(name)
+            self._alive[name] = up
+            if was == up:
+                continue
+            changes.append((name, up))
+            mine = [n for n, nb in self.neighbors.items() if name in nb]
+            if mine:
+                if up:
+                    log.info("%s: neighbour %s is %s", ",".join(mine), name, "back" if was is False else "up")
+                else:
+                    level = logging.INFO if self.quiet_loss else logging.WARNING
+                    log.log(level, "%s: neighbour %s lost (liveliness token gone)", ",".join(mine), name)
+            for cb in list(self._callbacks):
+                try:
+                    cb(name, up)
+                except Exception:  # a callback must not break the transport
+                    log.exception("liveliness callback failed")
+        return changes
+
+    def alive(self, name: str) -> bool:
+        """Whether ``name``'s liveliness token is currently seen."""
+        self.poll()
+        return self._alive.get(name, False)
+
+    def alive_nodes(self) -> set[str]:
+        """Every node (local ones included) whose token is currently seen."""
+        self.poll()
+        return {n for n, up in self._alive.items() if up}
+
+    def on_liveliness(self, callback: Callable[[str, bool], None]) -> None:
+        """Call ``callback(name, alive)`` on every change (from :meth:`poll`/:meth:`receive`)."""
+        self._callbacks.append(callback)
+
+    # ------------------------------------------------------------------ session
+    @property
+    def session(self) -> zenoh.Session:
+        """The Zenoh session (to declare more publishers, e.g. for the monitor)."""
+        return self._session
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (idempotent, never hangs for long)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._publishers.clear()
+        if self._own_session:
+            close_session(self._session)
+        else:
+            for ent in getattr(self, "_tokens", []) + self._declared:
+                try:
+                    ent.undeclare()
+                except Exception as exc:
+                    log.debug("zenoh undeclare: %s", exc)
+        self._event.set()
+
+    def __enter__(self) -> ZenohTransport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"ZenohTransport({self.network!r}, nodes={list(self.neighbors)}, mode={self.config.mode!r})"

@@ -1,0 +1,229 @@
+"""ZenohTransport on loopback: delivery, rates, liveliness, endpoints, closing."""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from dfusion.errors import ValidationError  # noqa: E402
+from dfusion.transport import ZenohConfig, ZenohTransport  # noqa: E402
+from dfusion.transport.zenoh import free_tcp_endpoints, link_key, open_session  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+_count = iter(range(10**6))
+
+
+def network() -> str:
+    return f"t{os.getpid()}n{next(_count)}"
+
+
+def wait_for(cond, timeout=5.0, step=0.005) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(step)
+    return cond()
+
+
+@pytest.fixture
+def pair():
+    """Two transports, a <-> b, joined by explicit loopback endpoints; always closed."""
+    net = network()
+    ea, eb = free_tcp_endpoints(2)
+    made = []
+    try:
+        a = ZenohTransport(net, {"a": ["b"]}, ZenohConfig(listen=[ea]))
+        made.append(a)
+        b = ZenohTransport(net, {"b": ["a"]}, ZenohConfig(listen=[eb], connect=[ea]))
+        made.append(b)
+        assert wait_for(lambda: a.alive("b") and b.alive("a")), "the two sessions never saw each other"
+        yield a, b, (net, ea, eb)
+    finally:
+        for t in made:
+            t.close()
+
+
+def test_delivery_both_ways(pair):
+    a, b, _ = pair
+    a.send("a", "b", b"hello", 1.5)
+    b.send("b", "a", bytes(range(256)) * 300, 2.5)   # 76.8 kB: more than the lowlatency limit
+    assert wait_for(lambda: b.pending("b") == 1 and a.pending("a") == 1)
+    (d,) = b.receive("b")
+    assert (d.src, d.dst, d.data, d.t_sent) == ("a", "b", b"hello", 1.5)
+    (e,) = a.receive("a")
+    assert e.data == bytes(range(256)) * 300 and e.t_sent == 2.5 and e.src == "b"
+    assert b.receive("b") == []   # each copy is returned once
+    assert a.stats.links[("a", "b")].sent == 1 and b.stats.links[("a", "b")].delivered == 1
+    assert b.stats.total.bytes_delivered == 5
+
+
+def test_receive_until_uses_the_clock():
+    net = network()
+    ea, eb = free_tcp_endpoints(2)
+    now = [10.0]
+    with ZenohTransport(net, {"a": ["b"]}, ZenohConfig(listen=[ea])) as a, \
+            ZenohTransport(net, {"b": ["a"]}, ZenohConfig(listen=[eb], connect=[ea]), clock=lambda: now[0]) as b:
+        assert wait_for(lambda: a.alive("b"))
+        a.send("a", "b", b"x", 0.0)
+        assert wait_for(lambda: b.pending("b") == 1)
+        assert b.receive("b", until=9.0) == []
+        (d,) = b.receive("b", until=10.0)
+        assert d.t_arrival == 10.0
+
+
+def test_no_loss_on_loopback_at_a_moderate_rate(pair):
+    """1000 messages of 7 kB (a 100-state window) at about 1000 per second: all arrive, in order."""
+    a, b, _ = pair
+    payloads = [i.to_bytes(4, "little") + bytes(7000) for i in range(1000)]
+    got = []
+    t0 = time.monotonic()
+    for i, p in enumerate(payloads):
+        a.send("a", "b", p, float(i))
+        while time.monotonic() < t0 + (i + 1) / 1000:
+            got += b.receive("b")
+            time.sleep(0.0002)
+    assert wait_for(lambda: b.pending("b") + len(got) >= 1000, timeout=5)
+    got += b.receive("b")
+    assert [d.data for d in got] == payloads
+    assert a.stats.total.dropped == 0
+
+
+def test_wait_wakes_on_arrival(pair):
+    a, b, _ = pair
+    assert b.wait(0.01) is False
+    a.send("a", "b", b"ping", 0.0)
+    t0 = time.monotonic()
+    assert b.wait(2.0) is True
+    assert time.monotonic() - t0 < 1.0
+    assert len(b.receive("b")) == 1
+
+
+def test_liveliness_loss_and_return_are_detected_and_logged(caplog):
+    net = network()
+    ea, eb = free_tcp_endpoints(2)
+    events = []
+    a = ZenohTransport(net, {"a": ["b"]}, ZenohConfig(listen=[ea]))
+    b = None
+    try:
+        a.on_liveliness(lambda name, up: events.append((name, up)))
+        b = ZenohTransport(net, {"b": ["a"]}, ZenohConfig(listen=[eb], connect=[ea]))
+        assert wait_for(lambda: a.alive("b"))
+        with caplog.at_level(logging.INFO, logger="dfusion.transport.zenoh"):
+            b.close()
+            assert wait_for(lambda: not a.alive("b"), timeout=3), "loss of b not detected"
+            b = ZenohTransport(net, {"b": ["a"]}, ZenohConfig(listen=[eb], connect=[ea]))
+            assert wait_for(lambda: a.alive("b"), timeout=5), "return of b not detected"
+        assert ("b", False) in events and events[-1] == ("b", True)
+        text = caplog.text
+        assert "neighbour b lost" in text and "neighbour b is back" in text
+        assert any(r.levelno == logging.WARNING and "lost" in r.getMessage() for r in caplog.records)
+    finally:
+        a.close()
+        if b is not None:
+            b.close()
+
+
+def test_two_sessions_joined_only_by_explicit_endpoints():
+    """The documented example: A listens on tcp/127.0.0.1:P, B connects to it; scouting is off.
+
+    A third session with the default configuration (loopback, no connect) discovers
+    neither: nothing is found by multicast or gossip.
+    """
+    net = network()
+    (ep,) = free_tcp_endpoints(1)
+    cfg_a = ZenohConfig(listen=[ep])                  # listens only
+    cfg_b = ZenohConfig(listen=[], connect=[ep])      # connects only (listens on a free loopback port)
+    assert cfg_a.to_zenoh().get_json("scouting/multicast/enabled") == "false"
+    assert cfg_a.to_zenoh().get_json("transport/unicast/lowlatency") == "false"
+    with ZenohTransport(net, {"a": ["b"]}, cfg_a) as a, ZenohTransport(net, {"b": ["a"]}, cfg_b) as b, \
+            ZenohTransport(net, {"c": ["a"]}, ZenohConfig()) as c:
+        assert wait_for(lambda: a.alive("b") and b.alive("a"))
+        a.send("a", "b", b"to b", 0.0)
+        b.send("b", "a", b"to a", 0.0)
+        assert wait_for(lambda: a.pending("a") == 1 and b.pending("b") == 1)
+        time.sleep(0.2)
+        assert not c.alive("a") and not a.alive("c")
+        assert [d.data for d in a.receive("a")] == [b"to a"]
+        assert [d.data for d in b.receive("b")] == [b"to b"]
+
+
+def test_close_does_not_hang_with_a_frozen_peer_and_reconnects_in_flight():
+    """A peer process is frozen (SIGSTOP) and another endpoint never answers: close() is quick."""
+    net = network()
+    ea, eb, dead = free_tcp_endpoints(3)
+    code = textwrap.dedent(f"""
+        import sys, time
+        from dfusion.transport import ZenohTransport, ZenohConfig
+        with ZenohTransport({net!r}, {{"b": ["a"]}}, ZenohConfig(listen=[{eb!r}], connect=[{ea!r}])) as t:
+            print("up", flush=True)
+            time.sleep(60)
+    """)
+    peer = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    a = None
+    try:
+        a = ZenohTransport(net, {"a": ["b"]}, ZenohConfig(listen=[ea], connect=[eb, dead]))
+        assert peer.stdout.readline().strip() == "up"
+        assert wait_for(lambda: a.alive("b"), timeout=10)
+        os.kill(peer.pid, signal.SIGSTOP)
+        for i in range(50):
+            a.send("a", "b", bytes(20000), float(i))   # never blocks, even towards a frozen peer
+        t0 = time.monotonic()
+        a.close()
+        assert time.monotonic() - t0 < 2.0
+    finally:
+        if a is not None:
+            a.close()
+        os.kill(peer.pid, signal.SIGKILL)
+        peer.wait(5)
+
+
+def test_a_process_with_an_open_transport_exits_when_it_closes_it():
+    net = network()
+    code = textwrap.dedent(f"""
+        from dfusion.transport import ZenohTransport
+        t = ZenohTransport({net!r}, {{"a": ["b"]}})
+        t.send("a", "b", b"x", 0.0)
+        t.close()
+        print("done", flush=True)
+    """)
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0 and "done" in out.stdout, out.stderr
+    assert time.monotonic() - t0 < 15
+
+
+def test_stranger_on_the_key_space_is_only_delivered_as_bytes(pair):
+    """The transport does not judge content: a stranger's put on a link key reaches the node,
+    which must authenticate it (tested with real nodes in test_run_processes)."""
+    a, b, (net, ea, _) = pair
+    with open_session(ZenohConfig(connect=[ea])) as z:
+        assert wait_for(lambda: a.alive("b"))
+        time.sleep(0.2)
+        z.put(link_key(net, "b", "a"), b"forged")
+        assert wait_for(lambda: a.pending("a") == 1)
+    (d,) = a.receive("a")
+    assert d.data == b"forged" and d.src == "b"
+    assert d.t_sent != d.t_sent   # no attachment: NaN
+
+
+@pytest.mark.parametrize("bad", ["", "a/b", "x*", "alive", "monitor", "has space"])
+def test_names_are_checked(bad):
+    with pytest.raises(ValidationError):
+        ZenohTransport(bad or "", {"a": ["b"]}) if bad in ("", "a/b") else ZenohTransport("net", {bad: ["b"]})
+
+
+def test_lowlatency_is_refused():
+    with pytest.raises(ValidationError, match="lowlatency"):
+        ZenohConfig(extra={"transport/unicast/lowlatency": True})
