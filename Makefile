@@ -26,6 +26,7 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/network.py --quick
 	$(VENV)/bin/python benchmarks/nodes.py
 	$(VENV)/bin/python benchmarks/localizers.py --quick
+	$(VENV)/bin/python benchmarks/transport.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

@@ -226,7 +226,7 @@ def build_result(
     monitor); a node without one is judged on its last published estimate.
     """
     from ..fusion.channel import time_key
-    from ..sim.runner import SimulationResult, _metrics
+    from ..sim.runner import SimulationResult, compute_metrics
     from ..sim.world import simulate_world
 
     world = world if world is not None else simulate_world(sc)
@@ -270,7 +270,7 @@ def build_result(
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov)
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
-    result.metrics = _metrics(sc, result, views, c_final, net, len(world.measurements), refused)
+    result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)
     result.metrics["run"] = {
         "nodes": run_nodes,
         "measurements_lost": len(lost),

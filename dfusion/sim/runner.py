@@ -201,7 +201,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     c_final, _ = central.estimate(T)
 
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov)
-    result.metrics = _metrics(sc, result, nodes, c_final, net, len(world.measurements), refused)
+    result.metrics = compute_metrics(sc, result, nodes, c_final, net, len(world.measurements), refused)
     return result
 
 
@@ -214,7 +214,13 @@ def final_rounds(nodes: dict[str, FusionNode], graph: nx.Graph) -> None:
             nodes[nb].receive(data)
 
 
-def _metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refused) -> dict[str, Any]:
+def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refused) -> dict[str, Any]:
+    """The figures of a run (the JSON keys of docs/scenarios.md).
+
+    ``nodes`` maps names to objects with ``estimate()`` and ``stats``; ``c_final`` is the
+    centralized mean at the end; ``net`` has ``stats.total`` (delivered, dropped).
+    Shared by ``dfusion simulate`` and ``dfusion run``.
+    """
     from .metrics import chi2_interval
 
     axes = sc.target.axes
