@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/dfusion simulate topologies/tree7-outage.scenario.toml --json $(OUT)/demo.json --plot $(OUT)/demo.png
+	$(VENV)/bin/python examples/urus_demo.py --out $(OUT)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q

@@ -54,3 +54,112 @@ def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | No
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _intervals(mask: np.ndarray, t: np.ndarray) -> list[tuple[float, float]]:
+    """``[start, end]`` time intervals where ``mask`` is true (half a step added on each side)."""
+    if not mask.any():
+        return []
+    half = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    m = np.concatenate([[False], mask, [False]]).astype(int)
+    starts = np.flatnonzero(np.diff(m) == 1)
+    ends = np.flatnonzero(np.diff(m) == -1) - 1
+    return [(float(t[a]) - half, float(t[b]) + half) for a, b in zip(starts, ends)]
+
+
+def plot_figure33(result, node: str, path: str | Path, *, title: str | None = None) -> Path:
+    """URUS Figure 33: one node's X and Y against the centralized EKF, with 3-sigma bounds, over time.
+
+    Rows: X, Y (node mean in red with its ±3σ bounds, centralized EKF in black
+    with its ±3σ band, truth dotted green), then the gap ``max |node - centralized|``
+    over the state on a log scale. Link outages are shaded red (darker where the
+    link touches ``node``); periods when the target is in ``node``'s camera view
+    (its sensor's ``in_view`` at the true state) are marked by a green strip at the
+    top of each panel, with a tick per detection of the node (grey crosses: false
+    detections).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    if node not in result.node_mean:
+        raise KeyError(f"{node!r} is not a node of the result (nodes: {sorted(result.node_mean)})")
+    t = result.times
+    mean, cov = result.node_mean[node], result.node_cov[node]
+    cm, cc = result.central_mean, result.central_cov
+    spec = result.scenario.nodes.get(node)
+    sensor = getattr(spec, "sensor", None)
+    in_view = None
+    if sensor is not None and hasattr(sensor, "in_view"):
+        in_view = np.array([sensor.in_view(x) for x in result.truth])
+    meas = [m for m in getattr(result.world, "measurements", []) if m.node == node]
+    det_t = np.array([m.t for m in meas if not getattr(m, "clutter", False)])
+    clut_t = np.array([m.t for m in meas if getattr(m, "clutter", False)])
+    outages = result.scenario.outages()
+
+    fig, axes = plt.subplots(3, 1, figsize=(11, 8.2), sharex=True, gridspec_kw={"height_ratios": [3, 3, 1.6]})
+
+    def shade(ax) -> None:
+        for a, b, t0, t1 in outages:
+            ax.axvspan(t0, t1, color="tab:red", alpha=0.16 if node in (a, b) else 0.06, lw=0)
+
+    def strip(ax) -> None:
+        tr = ax.get_xaxis_transform()   # x in data, y in axes fraction
+        if in_view is not None:
+            for a, b in _intervals(in_view, t):
+                ax.fill_between([a, b], 0.955, 1.0, transform=tr, color="tab:green", alpha=0.55, lw=0)
+        if det_t.size:
+            ax.vlines(det_t, 0.925, 0.955, transform=tr, color="tab:green", lw=0.6)
+        if clut_t.size:
+            ax.plot(clut_t, np.full(clut_t.size, 0.94), "x", transform=tr, color="0.4", ms=3, mew=0.7)
+
+    for row, label in enumerate(("X", "Y")):
+        ax = axes[row]
+        shade(ax)
+        s_node = 3 * np.sqrt(cov[:, row, row])
+        s_cen = 3 * np.sqrt(cc[:, row, row])
+        ax.fill_between(t, cm[:, row] - s_cen, cm[:, row] + s_cen, color="0.55", alpha=0.35, lw=0,
+                        label="centralized ±3σ")
+        ax.plot(t, cm[:, row], color="k", lw=1.1, label="centralized EKF")
+        ax.plot(t, mean[:, row], color="tab:red", lw=1.1, label=f"{node}")
+        ax.plot(t, mean[:, row] + s_node, color="tab:red", lw=0.8, ls="--", label=f"{node} ±3σ")
+        ax.plot(t, mean[:, row] - s_node, color="tab:red", lw=0.8, ls="--")
+        ax.plot(t, result.truth[:, row], color="tab:green", lw=0.9, ls=":", label="truth")
+        strip(ax)
+        lo = np.minimum(cm[:, row] - s_cen, result.truth[:, row]).min()
+        hi = np.maximum(cm[:, row] + s_cen, result.truth[:, row]).max()
+        pad = 0.08 * (hi - lo) + 0.2
+        # keep the node's bounds from flattening the curves: clip the axis to the centralized range
+        ax.set_ylim(lo - pad, hi + 2.2 * pad)
+        ax.set_ylabel(f"{label} [m]")
+        ax.grid(alpha=0.25)
+    handles, labels = axes[0].get_legend_handles_labels()
+    handles += [Patch(color="tab:red", alpha=0.3, label="link outage (this node)")]
+    if in_view is not None:
+        handles += [Patch(color="tab:green", alpha=0.55, label=f"target in {node}'s view (ticks: detections)")]
+    axes[0].legend(handles=handles, loc="lower right", fontsize=7.5, ncol=2, framealpha=0.9)
+
+    ax = axes[2]
+    shade(ax)
+    gap = np.abs(mean - cm).max(axis=1)
+    ax.semilogy(t, np.maximum(gap, 1e-12), color="tab:red", lw=0.9)
+    ax.set_ylabel("|node − central|\nmax over state")
+    ax.set_ylim(max(1e-6, float(np.min(gap[gap > 0])) * 0.5 if np.any(gap > 0) else 1e-6),
+                max(1.0, float(gap.max()) * 2))
+    ax.grid(alpha=0.25, which="both")
+    strip(ax)
+    ax.set_xlabel("time [s]")
+    ax.set_xlim(t[0], t[-1])
+    m = result.metrics.get("nodes", {}).get(node, {})
+    sub = (f"RMSE {m['rmse']:.2f} m (centralized {result.metrics['centralized']['rmse']:.2f} m), "
+           f"mean gap {m['mean_gap']:.2g}, final gap {m['final_gap']:.2g}") if m else ""
+    fig.suptitle(title or f"{node}: estimated X and Y (red) vs the centralized EKF (black), ±3σ "
+                 f"— URUS Figure 33 style\n{sub}", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

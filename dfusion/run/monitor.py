@@ -190,11 +190,13 @@ def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = f
         t = float(times[k])
         while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
             m = by_time[ic]
-            central.add(m.t, m.z, sensors[m.node], seq=ic)
+            if not m.clutter:   # the reference knows which detections are false
+                central.add(m.t, m.z, sensors[m.node], seq=ic)
             ic += 1
         c_mean[k], c_cov[k] = central.estimate(times[k])
     for m in by_time[ic:]:
-        central.add(m.t, m.z, sensors[m.node], seq=ic)
+        if not m.clutter:
+            central.add(m.t, m.z, sensors[m.node], seq=ic)
         ic += 1
     c_final, _ = central.estimate(float(times[-1]))
     return c_mean, c_cov, c_final

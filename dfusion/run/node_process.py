@@ -41,6 +41,7 @@ import numpy as np
 
 from ..errors import DfusionError, MessageError, OutsideWindowError
 from ..fusion.node import FusionNode
+from ..sim.runner import build_front_end
 from ..sim.scenario import Scenario, load_scenario
 from ..transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
 from .common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
@@ -136,6 +137,8 @@ class NodeProcess:
         self.times = np.round(sc.dt * np.arange(sc.steps + 1), 9)
         spec = sc.nodes[name]
         self.sensor = spec.sensor
+        # the same front end as in `dfusion simulate` (EIF update, camera gate, WSN particle filter...)
+        self.front = build_front_end(sc, name)
         self.send_period = spec.send_period
         self.node = FusionNode(name, self.neighbors, sc.target.motion, window=sc.window, horizon=sc.horizon,
                                prior=(0.0, sc.target.initial_mean, sc.target.initial_cov), fusion=sc.fusion,
@@ -290,7 +293,7 @@ class NodeProcess:
         if self._mlog is not None and not replayed:
             self._mlog.append(m)   # write-ahead: logged before it is fused
         try:
-            self.node.update(m.t, m.z, self.sensor)
+            self.front.process(self.node, m.t, m.z)
             self.counters["measurements_fused"] += 1
             self.counters["measurements_replayed"] += replayed
         except OutsideWindowError:

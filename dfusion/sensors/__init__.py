@@ -5,3 +5,5 @@ Each module here registers its kind(s) with
 package (which :func:`dfusion.sim.scenario.load_scenario` does) makes every kind
 available. Add one import line per module below.
 """
+from . import camera  # noqa: F401  (sensor kind "camera")
+from . import wsn  # noqa: F401  (sensor kind "wsn_rssi")

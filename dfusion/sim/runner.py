@@ -115,15 +115,20 @@ def build_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, 
     return nodes
 
 
+def build_front_end(sc: Scenario, name: str):
+    """The front end of node ``name`` (None without a sensor), seeded from the scenario's
+    seed and the node's rank, so that ``simulate`` and ``run`` build the same one."""
+    spec = sc.nodes[name]
+    if spec.sensor is None:
+        return None
+    factory = FRONT_ENDS.get(spec.sensor_kind)
+    seed = sc.seed * 1000 + sorted(sc.nodes).index(name)
+    return factory(spec, sc, seed) if factory else EIFFrontEnd(spec.sensor)
+
+
 def build_front_ends(sc: Scenario) -> dict[str, object]:
-    """The front end of every node with a sensor (seeded from the scenario's seed)."""
-    out = {}
-    for i, (name, spec) in enumerate(sorted(sc.nodes.items())):
-        if spec.sensor is None:
-            continue
-        factory = FRONT_ENDS.get(spec.sensor_kind)
-        out[name] = factory(spec, sc, sc.seed * 1000 + i) if factory else EIFFrontEnd(spec.sensor)
-    return out
+    """The front end of every node with a sensor."""
+    return {name: fe for name in sorted(sc.nodes) if (fe := build_front_end(sc, name)) is not None}
 
 
 def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
@@ -169,7 +174,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
             ia += 1
         while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
             m = by_time[ic]
-            central.add(m.t, m.z, sensors[m.node], seq=ic)
+            if not m.clutter:   # the reference knows which detections are false
+                central.add(m.t, m.z, sensors[m.node], seq=ic)
             ic += 1
         for nm in names:
             for d in net.receive(nm, t + 1e-9):
@@ -194,7 +200,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
         except OutsideWindowError:
             refused += 1
     for m in by_time[ic:]:
-        central.add(m.t, m.z, sensors[m.node], seq=ic)
+        if not m.clutter:
+            central.add(m.t, m.z, sensors[m.node], seq=ic)
         ic += 1
     final_rounds(nodes, sc.graph)
     T = float(times[-1])

@@ -8,6 +8,16 @@ measures at ``phase + k / rate`` while active, with probability ``detection``,
 ``z = h(x(t)) + v``, ``v ~ N(0, R)``; a sensor with an ``in_view(x)`` method
 (a camera) only measures when the target is in view. Measurements reach the
 node ``U[0, delay]`` seconds late.
+
+False detections (clutter): a sensor with a positive ``clutter_rate`` attribute
+(a camera with ``false_detection_rate``) also produces, at every measurement
+time while active, a Poisson(``clutter_rate``) number of false measurements
+drawn by its ``sample_clutter(rng, k)`` (uniform in the image for a camera),
+whether or not the target is in view or detected. They arrive with the frame's
+delay and are flagged ``Measurement.clutter``. Their random draws come from a
+third generator spawned from the seed, so the truth and the true measurements
+of a scenario do not change when clutter is switched on, and scenarios without
+clutter produce bit-identical worlds.
 """
 from __future__ import annotations
 
@@ -29,6 +39,8 @@ class Measurement:
     node: str
     z: Array
     arrival: float
+    #: A false detection (clutter), not a measurement of the target.
+    clutter: bool = False
 
 
 @dataclass
@@ -38,6 +50,11 @@ class World:
     times: Array            # (T,) sorted
     states: Array           # (T, n)
     measurements: list[Measurement]
+
+    @property
+    def n_clutter(self) -> int:
+        """Number of false detections among the measurements."""
+        return sum(m.clutter for m in self.measurements)
 
     def truth(self, t: float) -> Array:
         i = int(np.searchsorted(self.times, t - 1e-9))
@@ -74,17 +91,23 @@ def simulate_world(sc: Scenario) -> World:
         states[i] = x
     index = {float(t): i for i, t in enumerate(times)}
     meas: list[Measurement] = []
+    rng_clutter = None   # spawned only when needed (does not disturb the other two streams)
     for t, name in sorted(planned):
         spec = sc.nodes[name]
         sensor = spec.sensor
         draw = rng_meas.random()
         noise = rng_meas.standard_normal(sensor.dim_z)
         delay = rng_meas.uniform(0.0, spec.delay) if spec.delay > 0 else 0.0
-        if not spec.is_active(t) or draw >= spec.detection:
-            continue
+        arrival = round(t + delay, TIME_DECIMALS)
         x = states[index[t]]
-        if hasattr(sensor, "in_view") and not sensor.in_view(x):
-            continue
-        z = sensor.h(x) + np.linalg.cholesky(sensor.R) @ noise
-        meas.append(Measurement(t, name, z, round(t + delay, TIME_DECIMALS)))
+        if spec.is_active(t) and draw < spec.detection and not (hasattr(sensor, "in_view") and not sensor.in_view(x)):
+            z = sensor.h(x) + np.linalg.cholesky(sensor.R) @ noise
+            meas.append(Measurement(t, name, z, arrival))
+        rate = float(getattr(sensor, "clutter_rate", 0.0) or 0.0)
+        if rate > 0 and spec.is_active(t):
+            if rng_clutter is None:
+                rng_clutter = np.random.default_rng(np.random.SeedSequence(sc.seed).spawn(3)[2])
+            k = int(rng_clutter.poisson(rate))
+            for z in np.atleast_2d(sensor.sample_clutter(rng_clutter, k))[:k]:
+                meas.append(Measurement(t, name, np.asarray(z, dtype=float), arrival, clutter=True))
     return World(times, states, meas)
