@@ -103,8 +103,9 @@ def test_wait_wakes_on_arrival(pair):
     assert b.wait(0.01) is False
     a.send("a", "b", b"ping", 0.0)
     t0 = time.monotonic()
-    assert b.wait(2.0) is True
-    assert time.monotonic() - t0 < 1.0
+    assert b.wait(10.0) is True
+    # woken by the arrival, not by the timeout (generous bound: CI machines are loaded)
+    assert time.monotonic() - t0 < 5.0
     assert len(b.receive("b")) == 1
 
 
