@@ -142,7 +142,7 @@ class NodeProcess:
         self.send_period = spec.send_period
         self.node = FusionNode(name, self.neighbors, sc.target.motion, window=sc.window, horizon=sc.horizon,
                                prior=(0.0, sc.target.initial_mean, sc.target.initial_cov), fusion=sc.fusion,
-                               network_key=network_key)   # a random epoch: a new one per incarnation
+                               policy=spec.policy, network_key=network_key)   # a random epoch: a new one per incarnation
         self.counters = {"skipped_not_alive": 0, "dropped_emulated": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
                          "max_lag_ms": 0}

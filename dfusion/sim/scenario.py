@@ -217,6 +217,7 @@ def load_scenario(
     ``seed``, ``fusion`` and ``duration`` override the file's values.
     """
     from .. import sensors  # noqa: F401  (registers every sensor kind)
+    from .. import switching  # noqa: F401  (registers the switching policies)
 
     if isinstance(source, Mapping):
         raw, src = dict(source), "<scenario>"
