@@ -27,6 +27,7 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/nodes.py
 	$(VENV)/bin/python benchmarks/localizers.py --quick
 	$(VENV)/bin/python benchmarks/transport.py
+	$(VENV)/bin/python benchmarks/switching.py --quick
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis
