@@ -15,6 +15,19 @@ Tables:
 3. ICP of a 360-beam scan against the map's wall points (goal: at most 5 ms).
 
 Times are the median of ``--repeats`` runs after a warm-up, wall clock, one thread.
+
+Accuracy on real data, when the data paths are given (``docs/robots.md``):
+
+4. ``--carmen LOG``: ``examples/carmen_localization.py`` on a CARMEN log (e.g.
+   ``/work/shared/data/carmen/intel-corrected.log.gz``, about 10 s): position and heading
+   RMSE of MCL and of scan matching + odometry EKF against the corrected poses, beside the
+   simulated odometry.
+5. ``--mrclam DIR``: ``examples/mrclam_tracking.py`` on an MRCLAM dataset directory (e.g.
+   ``/work/shared/data/mrclam/dataset6``) for both target models (``cv``, ``odometry``),
+   over ``--mrclam-duration`` seconds (300; about 35 s): robot 1's RMSE per node, for the
+   centralized references and dead reckoning, and each observer's self-localization RMSE.
+
+Only the accuracy tables:  ``--no-timing``.
 """
 from __future__ import annotations
 
@@ -61,9 +74,67 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--quick", action="store_true", help="5 repeats (for make bench)")
+    ap.add_argument("--carmen", type=Path, default=None, help="CARMEN log: accuracy table of the CARMEN example")
+    ap.add_argument("--mrclam", type=Path, default=None, help="MRCLAM dataset dir: accuracy table of the MRCLAM example")
+    ap.add_argument("--mrclam-duration", type=float, default=300.0)
+    ap.add_argument("--no-timing", action="store_true", help="only the accuracy tables")
     args = ap.parse_args()
     R = 5 if args.quick else args.repeats
     print(f"numpy {np.__version__}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    if not args.no_timing:
+        timing(R)
+    if args.carmen:
+        carmen_table(args.carmen)
+    if args.mrclam:
+        mrclam_table(args.mrclam, args.mrclam_duration)
+    return 0
+
+
+def carmen_table(log: Path) -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    import carmen_localization as ex  # noqa: PLC0415
+
+    ap = argparse.Namespace(log=log, max_scans=None, seed=0, resolution=0.05, map_range=30.0, laser_range=30.0,
+                            odom_noise=1.0)
+    r = ex.run(ap)
+    rows = []
+    for key, label in (("odometry", "simulated odometry"), ("mcl", "MCL, likelihood field"),
+                       ("scan_matching", "ICP + odometry EKF")):
+        v = r[key]
+        rows.append([label, f"{v['rmse']:.3f}", f"{v['median']:.3f}", f"{v['p95']:.3f}", f"{v['heading_rmse']:.4f}",
+                     f"{v['ms_per_scan']:.1f}" if "ms_per_scan" in v else "-"])
+    table(f"CARMEN {log.name}: {r['localized_scans']} scans localized against a map of {r['map_scans']} others "
+          f"(seed 0, run {r['runtime_s']:.1f} s)",
+          ["localizer", "RMSE m", "median m", "95 % m", "heading RMSE rad", "ms/scan"], rows)
+
+
+def mrclam_table(root: Path, duration: float) -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    import mrclam_tracking as ex  # noqa: PLC0415
+
+    res = {}
+    for model in ("cv", "odometry"):
+        ns = argparse.Namespace(dataset=root, duration=duration, json=None, target=1, observers=[2, 3, 4, 5], seed=0,
+                                target_model=model, **ex.DEFAULTS)
+        res[model] = ex.run(ns)
+    cv, od = res["cv"], res["odometry"]
+    rows = [[f"node robot{o}", f"{cv['nodes'][o]['rmse']:.3f}", f"{od['nodes'][o]['rmse']:.3f}"] for o in cv["nodes"]]
+    rows += [["centralized (joint EKF)", f"{cv['centralized']['rmse']:.3f}", f"{od['centralized']['rmse']:.3f}"],
+             ["centralized tracking (union, R_eff)", f"{cv['centralized_tracking']['rmse']:.3f}",
+              f"{od['centralized_tracking']['rmse']:.3f}"],
+             ["dead reckoning (robot 1 odometry)", f"{cv['dead_reckoning']['1']['rmse']:.3f}", "-"]]
+    t0, t1 = cv["span"]
+    table(f"MRCLAM {root.name}: robot 1 position RMSE (m), {t0:.1f}-{t1:.1f} s "
+          f"(runs {cv['runtime_s']:.0f} s and {od['runtime_s']:.0f} s)",
+          ["estimator", "target model cv", "target model odometry"], rows)
+    rows = [[o, f"{cv['localization'][o]['rmse']:.3f}", f"{cv['localization'][o]['heading_rmse']:.3f}",
+             f"{cv['centralized_localization'][o]['rmse']:.3f}", f"{cv['dead_reckoning'][o]['rmse']:.3f}"]
+            for o in cv["localization"]]
+    table("MRCLAM observers' self-localization RMSE", ["robot", "landmark EKF m", "heading rad", "joint EKF m",
+                                                      "dead reckoning m"], rows)
+
+
+def timing(R: int) -> None:
 
     grid = OccupancyGrid.rooms()  # 16 m x 10 m, 0.05 m cells
     laser = LaserConfig.uniform(181, math.pi, 12.0)
@@ -188,7 +259,6 @@ def main() -> int:
         ["method", "nearest", "trim", "points", "iterations", "error cm", "ms", "goal <= 5 ms"],
         icp_rows,
     )
-    return 0
 
 
 if __name__ == "__main__":

@@ -37,6 +37,17 @@ Generated maps
 :meth:`OccupancyGrid.repetitive_corridor` draw synthetic buildings (outside unknown, inside
 free, walls occupied), deterministic for a given ``seed``.
 
+Map constraint (particle motion)
+--------------------------------
+:meth:`OccupancyGrid.is_blocked` (points) and :meth:`OccupancyGrid.segment_blocked`
+(straight moves, exact grid traversal, vectorized) treat occupied cells, unknown cells
+(``unknown_blocks=True``) and everything off the map as blocking;
+:meth:`OccupancyGrid.sample_free` draws points uniformly over the free cells. The WSN
+particle filter (:class:`dfusion.pf.WSNTracker`) uses them; ``dfusion.pf.OccupancyGrid``
+is only a node-lattice view of this class (x-first indexing, node-centred origin), kept
+for the BLE RSSI dataset's ``.occ`` grids (:meth:`OccupancyGrid.from_occ_file`,
+:meth:`OccupancyGrid.from_nodes`).
+
 Maps from scans
 ---------------
 :meth:`OccupancyGrid.from_scans` runs the log-odds occupancy-grid mapping algorithm with
@@ -397,6 +408,190 @@ class OccupancyGrid:
         out[ok] = self._data[i[ok], j[ok]]
         return out
 
+    # -- map constraint: point and segment tests ---------------------------------------
+    #: Width of the blocking border added around the grid for the point and segment tests.
+    _PAD = 3
+
+    def _constraint_tables(self, unknown_blocks: bool) -> dict[str, Any]:
+        """Padded flat blocking mask and its summed-area table (cached per ``unknown_blocks``).
+
+        The blocking mask (occupied cells, and unknown ones if ``unknown_blocks``) gets a
+        blocking border of ``_PAD`` cells, so that a lookup of any cell in
+        ``[-_PAD, n + _PAD)`` along each axis is a plain index: everything off the map
+        blocks. The summed-area table gives the number of blocking cells in any index
+        rectangle with four look-ups.
+        """
+        key = f"_constraint_{bool(unknown_blocks)}"
+        tab = self._cache.get(key)
+        if tab is None:
+            P = self._PAD
+            blk = self.blocking(unknown_blocks)
+            H, W = blk.shape
+            padded = np.ones((H + 2 * P, W + 2 * P), dtype=bool)
+            padded[P:-P, P:-P] = blk
+            sat = np.zeros((H + 2 * P + 1, W + 2 * P + 1), dtype=np.int32)
+            sat[1:, 1:] = np.cumsum(np.cumsum(padded, axis=0, dtype=np.int32), axis=1, dtype=np.int32)
+            tab = {
+                "flat": padded.ravel(),
+                "width": W + 2 * P,
+                "offset": P * (W + 2 * P) + P,
+                "sat": sat.ravel(),
+                "sat_width": W + 2 * P + 1,
+                "ulim": (W + 2.0, H + 2.0),
+            }
+            self._cache[key] = tab
+        return tab
+
+    def _u1(self, g: Array, ax: int) -> Array:
+        """Continuous cell coordinate (cell ``k`` covers ``[k, k + 1)``) of grid-frame metres ``g``
+        along axis ``ax`` (0 = x = columns, 1 = y = rows), clipped to ``[-2, n + 2]``."""
+        u = np.multiply(g, 1.0 / self.resolution)
+        np.maximum(u, -2.0, out=u)
+        np.minimum(u, float(self.width if ax == 0 else self.height) + 2.0, out=u)
+        return u
+
+    def _grid_xy(self, points: Array) -> tuple[Array, Array]:
+        """Grid-frame coordinates of world points ``(N, 2)`` as two contiguous vectors."""
+        if self.origin[2] == 0.0:
+            return points[:, 0] - self.origin[0], points[:, 1] - self.origin[1]
+        g = self.world_to_grid(points)
+        return np.ascontiguousarray(g[:, 0]), np.ascontiguousarray(g[:, 1])
+
+    def _blocked_cells(self, ix: np.ndarray, iy: np.ndarray, tab: dict[str, Any]) -> np.ndarray:
+        """Blocking state of integer cells (column ``ix``, row ``iy``), each in ``[-_PAD, n + _PAD)``."""
+        return tab["flat"][iy * tab["width"] + ix + tab["offset"]]
+
+    def is_blocked(self, points: ArrayLike, unknown_blocks: bool = True) -> np.ndarray:
+        """True for world points ``(..., 2)`` in a blocking cell, off the map, or NaN.
+
+        Blocking cells are the occupied ones and, with ``unknown_blocks`` (default), the
+        unknown ones: the motion constraint of :meth:`segment_blocked`.
+        """
+        p = np.asarray(points, dtype=float)
+        if p.shape[-1:] != (2,):
+            raise ShapeError(f"points must have shape (..., 2), got {p.shape}")
+        shape = p.shape[:-1]
+        q = p.reshape(-1, 2)
+        q = np.where(np.isfinite(q), q, -1e9)
+        gx, gy = self._grid_xy(q)
+        tab = self._constraint_tables(unknown_blocks)
+        ix = np.floor(self._u1(gx, 0)).astype(np.int64)
+        iy = np.floor(self._u1(gy, 1)).astype(np.int64)
+        return self._blocked_cells(ix, iy, tab).reshape(shape)
+
+    def sample_free(self, n: int, rng: np.random.Generator | int | None = None) -> Array:
+        """``n`` world points ``(n, 2)`` uniform over the free cells.
+
+        A free cell is drawn uniformly (cells enumerated column by column, i.e. x-major:
+        the order of the former ``dfusion.pf`` grid, so seeded draws are unchanged), then a
+        point uniformly inside it.
+        """
+        rng = np.random.default_rng(rng)
+        n = int(n)
+        if "free_xmajor" not in self._cache:
+            fj, fi = np.nonzero(self.free.T)
+            self._cache["free_xmajor"] = (fi, fj)
+        fi, fj = self._cache["free_xmajor"]
+        if fi.size == 0:
+            raise ValidationError("the map has no free cell")
+        k = rng.integers(0, fi.size, size=n)
+        u = rng.random((n, 2))
+        g = np.empty((n, 2))
+        g[:, 0] = (fj[k] + u[:, 0]) * self.resolution
+        g[:, 1] = (fi[k] + u[:, 1]) * self.resolution
+        return self.grid_to_world(g)
+
+    def segment_blocked(self, p0: ArrayLike, p1: ArrayLike, unknown_blocks: bool = True) -> np.ndarray:
+        r"""For segments ``p0[k] -> p1[k]`` (world, ``(N, 2)`` each): does segment ``k`` enter a
+        blocking cell (occupied, unknown if ``unknown_blocks``, or off the map)?
+
+        The start and end cells count. Exact: every cell the segment visits after its start
+        cell is entered through exactly one cell boundary, a vertical grid line or a
+        horizontal one; the entered cell is known from the boundary's index and the
+        segment's other coordinate where it crosses that line (the grid traversal of
+        Amanatides & Woo, Eurographics 1987, computed for all segments at once). A segment
+        that only touches a cell at a corner point does not enter it.
+
+        Two shortcuts keep it fast without changing the answer: a segment stays inside the
+        rectangle of cells spanned by its two end cells, so if the summed-area table says
+        that rectangle holds no blocking cell the segment is free (four look-ups); a segment
+        that crosses at most one boundary visits only its end cells. The crossings of the
+        remaining segments are listed in one flat array, so the work is proportional to
+        their number. (This is the map constraint of the WSN particle filter,
+        :class:`dfusion.pf.WSNTracker`.)
+        """
+        a = np.asarray(p0, dtype=float)
+        b = np.asarray(p1, dtype=float)
+        if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 2:
+            raise ShapeError(f"p0 and p1 must both have shape (N, 2), got {a.shape} and {b.shape}")
+        tab = self._constraint_tables(unknown_blocks)
+        ax0, ay0 = self._grid_xy(a)
+        bx, by = self._grid_xy(b)
+        ux0, uy0 = self._u1(ax0, 0), self._u1(ay0, 1)
+        ux1, uy1 = self._u1(bx, 0), self._u1(by, 1)
+        ix0, iy0 = np.floor(ux0).astype(np.int64), np.floor(uy0).astype(np.int64)
+        ix1, iy1 = np.floor(ux1).astype(np.int64), np.floor(uy1).astype(np.int64)
+        P = self._PAD
+        sw = tab["sat_width"]
+        r0 = (np.minimum(iy0, iy1) + P) * sw
+        r1 = (np.maximum(iy0, iy1) + (P + 1)) * sw
+        c0 = np.minimum(ix0, ix1) + P
+        c1 = np.maximum(ix0, ix1) + (P + 1)
+        sat = tab["sat"]
+        count = sat[r1 + c1]
+        count -= sat[r0 + c1]
+        count -= sat[r1 + c0]
+        count += sat[r0 + c0]
+        blocked = np.zeros(a.shape[0], dtype=bool)
+        k = np.flatnonzero(count)
+        if k.size:
+            blocked[k] = self._blocked_exact(ux0[k], uy0[k], ix0[k], iy0[k], ux1[k], uy1[k], unknown_blocks)
+        return blocked
+
+    def _blocked_exact(self, ux0: Array, uy0: Array, ix0: np.ndarray, iy0: np.ndarray,
+                       ux1: Array, uy1: Array, unknown_blocks: bool = True) -> np.ndarray:
+        """Exact cell traversal of segments given in continuous cell coordinates (x, y).
+
+        Along axis ``ax`` the ``s``-th boundary crossed (``s = 1 .. n_ax``) leads into index
+        ``i0 + s`` (moving up; the boundary is at ``u = i0 + s``) or ``i0 - s`` (moving
+        down; boundary at ``u = i0 - s + 1``); the index along the other axis is the floor
+        of the segment's other coordinate at that boundary.
+        """
+        tab = self._constraint_tables(unknown_blocks)
+        ix1, iy1 = np.floor(ux1).astype(np.int64), np.floor(uy1).astype(np.int64)
+        blocked = self._blocked_cells(ix0, iy0, tab)
+        blocked |= self._blocked_cells(ix1, iy1, tab)
+        nx, ny = np.abs(ix1 - ix0), np.abs(iy1 - iy0)
+        # Moves within a cell or into a 4-neighbour visit only the start and end cells.
+        todo = np.flatnonzero(~blocked & ((nx + ny > 1) | ((nx == 1) & (ny == 1))))
+        if todo.size == 0:
+            return blocked
+        n = todo.size
+        hit = np.zeros(n, dtype=np.int64)
+        axes = ((ux0[todo], ux1[todo], ix0[todo], nx[todo], uy0[todo], uy1[todo], 0),
+                (uy0[todo], uy1[todo], iy0[todo], ny[todo], ux0[todo], ux1[todo], 1))
+        for u0, u1, i0, cnt, v0, v1, ax in axes:
+            total = int(cnt.sum())
+            if total == 0:
+                continue
+            seg = np.repeat(np.arange(n), cnt)
+            step = np.arange(1, total + 1) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+            du = u1 - u0
+            down = du < 0
+            with np.errstate(divide="ignore", invalid="ignore"):  # du = 0 only where cnt = 0
+                slope = (v1 - v0) / du
+            step[down[seg]] *= -1  # signed step
+            idx = i0[seg] + step  # entered index along ax
+            w = (i0 + down - u0)[seg]  # boundary - start = (i0 + down - u0) + step
+            w += step
+            w *= slope[seg]
+            w += v0[seg]
+            jo = np.floor(w).astype(np.int64)
+            occ = self._blocked_cells(idx, jo, tab) if ax == 0 else self._blocked_cells(jo, idx, tab)
+            hit += np.bincount(seg[occ], minlength=n)
+        blocked[todo] |= hit > 0
+        return blocked
+
     # -- derived fields ----------------------------------------------------------------
     def distance_field(self) -> Array:
         """Euclidean distance (m) from each cell centre to the nearest occupied cell centre.
@@ -555,6 +750,70 @@ class OccupancyGrid:
             f"free_thresh: {self.free_thresh!r}\n"
         )
         return image_path
+
+    # -- node lattices (the BLE RSSI dataset's .occ grids) -----------------------------
+    @classmethod
+    def from_nodes(cls, occupied: ArrayLike, cell: float, node_origin: ArrayLike = (0.0, 0.0)) -> "OccupancyGrid":
+        """A grid from a boolean node lattice indexed ``occupied[ix, iy]`` (x first).
+
+        Node ``(ix, iy)`` is the centre of a cell at world ``node_origin + cell (ix, iy)``;
+        the returned grid has ``data[iy, ix]`` (ROS layout) occupied (100) or free (0),
+        resolution ``cell`` and origin ``node_origin - cell / 2`` (the lower-left corner of
+        the first cell), yaw 0.
+        """
+        occ = np.array(occupied, dtype=bool)
+        if occ.ndim != 2 or min(occ.shape) < 1:
+            raise ShapeError(f"occupied must be a non-empty 2-D array, got shape {occ.shape}")
+        c = float(cell)
+        if not (np.isfinite(c) and c > 0):
+            raise ValidationError(f"cell size must be positive, got {cell}")
+        org = np.array(node_origin, dtype=float).reshape(-1)
+        if org.shape != (2,) or not np.all(np.isfinite(org)):
+            raise ShapeError(f"node_origin must be 2 finite numbers, got {node_origin!r}")
+        data = np.where(occ.T, OCCUPIED, FREE)
+        return cls(data, c, (org[0] - 0.5 * c, org[1] - 0.5 * c, 0.0))
+
+    @classmethod
+    def from_occ_file(cls, path: str | Path, occupied_value: int = 1) -> "OccupancyGrid":
+        """Read a ``.occ`` node grid of the BLE RSSI dataset (Danis et al.).
+
+        Format: line 1 ``[[x_min, y_min], [x_max, y_max]]::cell``; every other line
+        ``[x, y]::v``, one per node, in any order; node ``(x, y)`` is the centre of a
+        ``cell`` x ``cell`` square (see :meth:`from_nodes`). ``occupied_value`` is the
+        value that marks an obstacle: the dataset's own README says 1 = traversable, but
+        the data show the reverse (tracks run on 0-nodes, tables and the border are 1), so
+        1 = occupied is the default. Raises :class:`ValidationError` on a malformed file,
+        a missing or duplicated node, or a node off the lattice.
+        """
+        import json  # noqa: PLC0415
+
+        path = Path(path)
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+        if not lines:
+            raise ValidationError(f"{path}: empty occupancy file")
+        try:
+            head, cell_s = lines[0].rsplit("::", 1)
+            (x0, y0), (x1, y1) = json.loads(head)
+            cell = float(cell_s)
+            pts = np.array([json.loads(ln.split("::", 1)[0]) for ln in lines[1:]], dtype=float)
+            vals = np.array([int(ln.rsplit("::", 1)[1]) for ln in lines[1:]])
+        except (ValueError, TypeError) as exc:
+            raise ValidationError(f"{path}: malformed occupancy file ({exc})") from None
+        if pts.ndim != 2 or pts.shape[1] != 2 or not np.all(np.isin(vals, (0, 1))):
+            raise ValidationError(f"{path}: node lines must be '[x, y]::0' or '[x, y]::1'")
+        ij = np.rint((pts - np.array([x0, y0])) / cell).astype(int)
+        if np.max(np.abs(ij * cell + np.array([x0, y0]) - pts)) > 1e-6 * max(1.0, cell) or np.any(ij < 0):
+            raise ValidationError(f"{path}: node positions are not on the {cell} m lattice from ({x0}, {y0})")
+        nx, ny = ij.max(axis=0) + 1
+        if nx * ny != len(ij):
+            raise ValidationError(f"{path}: expected {nx} x {ny} = {nx * ny} nodes, found {len(ij)}")
+        occ = np.zeros((nx, ny), dtype=bool)
+        seen = np.zeros((nx, ny), dtype=bool)
+        seen[ij[:, 0], ij[:, 1]] = True
+        if not seen.all():
+            raise ValidationError(f"{path}: duplicated or missing nodes")
+        occ[ij[:, 0], ij[:, 1]] = vals == occupied_value
+        return cls.from_nodes(occ, cell, (x0, y0))
 
     # -- maps from laser scans ---------------------------------------------------------
     @classmethod

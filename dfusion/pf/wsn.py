@@ -8,10 +8,13 @@ Constant velocity: the white-noise-acceleration model of
 :class:`dfusion.models.ConstantVelocity` (``q`` in m^2/s^3), with the speed of
 each particle optionally capped at ``max_speed``.
 
-**Map constraint (URUS).** With an :class:`OccupancyGrid`, a particle whose
+**Map constraint (URUS).** With an occupancy grid (a :class:`dfusion.maps.OccupancyGrid`,
+or its node-lattice view :class:`dfusion.pf.OccupancyGrid`), a particle whose
 move ends in an occupied cell or whose straight-line move passes through one is
 discarded: its weight becomes zero and it keeps its previous (free) position, so
-the particle set never contains a position inside an obstacle. Roughening
+the particle set never contains a position inside an obstacle (occupied and unknown
+cells block, and so does everything off the map:
+:meth:`dfusion.maps.OccupancyGrid.segment_blocked`). Roughening
 jitters that would cross a wall are vetoed the same way (the particle keeps its
 resampled position). If every move of a step is refused the particles stay
 where they were (counted in ``n_all_refused``).
@@ -47,7 +50,8 @@ from ..gaussian import InformationGaussian
 from ..linalg import Array, as_spd, as_vector, spd_inverse, symmetrize
 from ..models.measurement import RSSISensor
 from ..models.motion import ConstantVelocity
-from .occupancy import OccupancyGrid
+from ..maps.grid import OccupancyGrid as MapGrid
+from .occupancy import OccupancyGrid, as_map_grid
 from .particle_filter import ParticleDepletionError, ParticleFilter, weighted_mean_cov
 
 __all__ = ["WSNTracker", "project_psd_information", "MOTIONS"]
@@ -117,7 +121,7 @@ class WSNTracker:
         suits a walking person tracked packet by packet (docs/wsn.md).
     max_speed : float or None
         Constant velocity only: particle speeds are capped at this value (m/s).
-    grid : OccupancyGrid or None
+    grid : dfusion.maps.OccupancyGrid, dfusion.pf.OccupancyGrid or None
         Map constraint (see the module docstring); also the initial support.
     bounds : (x_min, y_min, x_max, y_max) or None
         Initial support when there is no grid.
@@ -141,7 +145,7 @@ class WSNTracker:
         motion: str = "random_walk",
         q: float = 0.5,
         max_speed: float | None = None,
-        grid: OccupancyGrid | None = None,
+        grid: MapGrid | OccupancyGrid | None = None,
         bounds: ArrayLike | None = None,
         std_scale: float = 1.0,
         outlier_prob: float = 0.0,
@@ -165,7 +169,7 @@ class WSNTracker:
             raise ValidationError(f"rssi_span must be positive, got {rssi_span}")
         if max_speed is not None and not (np.isfinite(max_speed) and max_speed > 0):
             raise ValidationError(f"max_speed must be positive or None, got {max_speed}")
-        if grid is not None and not isinstance(grid, OccupancyGrid):
+        if grid is not None and not isinstance(grid, (MapGrid, OccupancyGrid)):
             raise ValidationError("grid must be an OccupancyGrid or None")
         if bounds is not None:
             bounds = as_vector(bounds, 4, "bounds (x_min, y_min, x_max, y_max)")
@@ -201,6 +205,7 @@ class WSNTracker:
         self.q = float(q)
         self.max_speed = None if max_speed is None else float(max_speed)
         self.grid = grid
+        self._map: MapGrid | None = None if grid is None else as_map_grid(grid)
         self.bounds = bounds
         self.n_particles = int(n_particles)
         self.dim = 2 if motion == "random_walk" else 4
@@ -232,8 +237,8 @@ class WSNTracker:
         rng = np.random.default_rng(self._seed) if not isinstance(self._seed, np.random.Generator) else self._seed
         n = self.n_particles
         if mean is None:
-            if self.grid is not None:
-                pos = self.grid.sample_free(n, rng)
+            if self._map is not None:
+                pos = self._map.sample_free(n, rng)
             elif self.bounds is not None:
                 lo, hi = self.bounds[:2], self.bounds[2:]
                 pos = lo + rng.random((n, 2)) * (hi - lo)
@@ -246,7 +251,7 @@ class WSNTracker:
             pos = m + rng.standard_normal((n, 2)) @ L.T
             if self.grid is not None:
                 for _ in range(100):
-                    bad = self.grid.is_occupied(pos)
+                    bad = self._map.is_blocked(pos)
                     if not bad.any():
                         break
                     pos[bad] = m + rng.standard_normal((int(bad.sum()), 2)) @ L.T
@@ -274,9 +279,9 @@ class WSNTracker:
 
     # -------------------------------------------------------- prediction
     def _accept(self, old: Array, new: Array) -> np.ndarray:
-        if self.grid is None:
+        if self._map is None:
             return np.ones(old.shape[0], dtype=bool)
-        return ~self.grid.segment_blocked(old[:, :2], new[:, :2])
+        return ~self._map.segment_blocked(old[:, :2], new[:, :2])
 
     def predict(self, dt: float) -> int:
         """Move the particles over ``dt`` seconds; returns how many moves the map refused.

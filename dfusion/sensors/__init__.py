@@ -7,3 +7,4 @@ available. Add one import line per module below.
 """
 from . import camera  # noqa: F401  (sensor kind "camera")
 from . import wsn  # noqa: F401  (sensor kind "wsn_rssi")
+from . import robot  # noqa: F401  (sensor kinds "robot_mcl", "robot_icp", "robot_env_camera")
