@@ -8,7 +8,13 @@ processes use ``time.monotonic``, i.e. Linux's system-wide CLOCK_MONOTONIC):
 2. **Raw Zenoh ping-pong** (the floor): this process puts a payload of the
    same size as a dfusion message, a second process echoes it from its
    subscriber callback; one-way = round trip / 2. Same session settings as
-   dfusion (peer, loopback, express, DROP).
+   dfusion (peer, loopback, express, DROP), and the same pause between
+   messages as the per-hop measurement below: on a VM, a CPU idle for 10 ms
+   runs the same code several times slower than a busy one (measured here:
+   the in-process fusion work of a hop 5-7x, the raw one-way time 1.6x), so a
+   floor measured at another pace is not the same floor. Both are measured at
+   two paces: a busy link (a message every 3 ms) and an idle one (every 20 ms;
+   a ``dfusion run`` node sends every 500 ms by default).
 3. **dfusion per hop**: node ``a`` (this process) predicts, fuses a measurement,
    builds its message and sends it; node ``b`` (another process) wakes up,
    predicts to the sender's time if needed, fuses the message and reads its
@@ -52,6 +58,8 @@ MOTION = ConstantVelocity(2, 0.1)
 SENSOR = PositionSensor(2, 0.5)
 PRIOR = (0.0, np.zeros(4), np.eye(4))
 GOAL = 3.0
+#: (name, pause between messages in seconds) for the raw floor and the per-hop latency alike.
+PACES = (("busy", 0.003), ("idle", 0.020))
 
 
 def make_node(name: str, neighbors, window: int, fill: bool) -> FusionNode:
@@ -164,7 +172,7 @@ def message_sizes(windows) -> dict[int, int]:
     return out
 
 
-def raw_pingpong(size: int, n: int) -> dict:
+def raw_pingpong(size: int, n: int, pause: float) -> dict:
     net = f"bench{os.getpid()}"
     ea, eb = free_tcp_endpoints(2)
 
@@ -190,7 +198,7 @@ def raw_pingpong(size: int, n: int) -> dict:
                     continue
                 if i >= 20:
                     rtts.append(time.monotonic() - t0)
-                time.sleep(0.002)
+                time.sleep(pause)
             return stats_us(np.array(rtts) / 2)
         finally:
             z.close()
@@ -198,7 +206,7 @@ def raw_pingpong(size: int, n: int) -> dict:
     return with_children([{"role": "pong", "network": net, "listen": eb, "connect": [ea]}], body)
 
 
-def per_hop(W: int, n: int) -> dict:
+def per_hop(W: int, n: int, pause: float) -> dict:
     net = f"hop{os.getpid()}w{W}"
     ea, eb = free_tcp_endpoints(2)
     a = make_node("a", ["b"], W, fill=True)
@@ -218,7 +226,7 @@ def per_hop(W: int, n: int) -> dict:
                 t_put = time.monotonic()
                 tr.send("a", "b", data, t)
                 t0s[repr(t)], tsend[repr(t)] = t0, t_put
-                time.sleep(0.01)
+                time.sleep(pause)
             time.sleep(0.3)
             res = kids[0].finish()
         arr = res["arrivals"]
@@ -322,35 +330,39 @@ def main() -> int:
     print("1. message bytes against the window length (4-state target, one measurement per state)")
     print(table([[W, b, f"{b / W:.1f}"] for W, b in sizes.items()], ["window", "bytes", "bytes/state"]))
 
-    print("\n2-3. per hop: a measurement at a -> b's estimate, against the raw Zenoh one-way time (ping-pong / 2)")
-    rows, verdict, transport_ok = [], True, True
+    print("\n2-3. per hop: a measurement at a -> b's estimate, against the raw Zenoh one-way time (ping-pong / 2)\n"
+          "     measured at the same pace (pause between messages) for both")
+    rows, verdict, transport_ok = [], {}, True
     hops = {}
-    for W in windows:
-        raw = raw_pingpong(sizes[W], n)
-        hop = per_hop(W, n)
-        hops[W] = hop
-        ratio = hop["total"]["median"] / raw["median"]
-        ok = ratio <= GOAL
-        verdict &= ok
-        t_ratio = hop["transit"]["median"] / raw["median"]
-        transport_ok &= t_ratio <= GOAL
-        rows.append([W, hop["bytes"], f"{raw['median']:.0f}", f"{hop['total']['median']:.0f}",
-                     f"{hop['total']['p90']:.0f}", f"{hop['sender']['median']:.0f}",
-                     f"{hop['transit']['median']:.0f}", f"{hop['receiver']['median']:.0f}", f"{ratio:.2f}",
-                     "PASS" if ok else "FAIL", f"{t_ratio:.2f}", "PASS" if t_ratio <= GOAL else "FAIL"])
-    print(table(rows, ["window", "bytes", "raw 1-way us", "hop us", "hop p90", "sender", "transit", "receiver",
-                       "hop/raw", f"<= {GOAL:g}x", "transit/raw", f"<= {GOAL:g}x"]))
+    for pace, pause in PACES:
+        verdict[pace] = True
+        for W in windows:
+            raw = raw_pingpong(sizes[W], n, pause)
+            hop = per_hop(W, n, pause)
+            hops[pace, W] = hop
+            ratio = hop["total"]["median"] / raw["median"]
+            ok = ratio <= GOAL
+            verdict[pace] &= ok
+            t_ratio = hop["transit"]["median"] / raw["median"]
+            transport_ok &= t_ratio <= GOAL
+            rows.append([f"{pace} ({pause * 1e3:g} ms)", W, hop["bytes"], f"{raw['median']:.0f}",
+                         f"{hop['total']['median']:.0f}", f"{hop['total']['p90']:.0f}",
+                         f"{hop['sender']['median']:.0f}", f"{hop['transit']['median']:.0f}",
+                         f"{hop['receiver']['median']:.0f}", f"{ratio:.2f}", "PASS" if ok else "FAIL",
+                         f"{t_ratio:.2f}"])
+    print(table(rows, ["pace", "window", "bytes", "raw 1-way us", "hop us", "hop p90", "sender", "transit",
+                       "receiver", "hop/raw", f"<= {GOAL:g}x", "transit/raw"]))
     print("sender = predict + update + message_to (FusionNode); transit = put to the receiver's subscriber callback\n"
           "(ZenohTransport); receiver = callback to estimate: wake-up, predict, decode + receive (FusionNode)")
 
-    print("\n4. end to end along a 5-node chain (5 processes, event-driven relay)")
+    print("\n4. end to end along a 5-node chain (5 processes, event-driven relay, a message every 30 ms)")
     rows = []
     for W in windows:
         c = chain(W, n // 2)
         per = c["total"]["median"] / 4
         rows.append([W, f"{c['total']['median']:.0f}", f"{c['total']['p90']:.0f}", f"{per:.0f}",
-                     f"{hops[W]['total']['median']:.0f}", c["lost"]])
-    print(table(rows, ["window", "n1->n5 us", "p90", "per hop", "single hop (3.)", "lost"]))
+                     f"{hops['idle', W]['total']['median']:.0f}", c["lost"]])
+    print(table(rows, ["window", "n1->n5 us", "p90", "per hop", "single hop, idle (3.)", "lost"]))
 
     print("\n5. messages per second on one link (sender: predict+update+message_to+send; receiver: receive+fuse)")
     rows = []
@@ -358,7 +370,8 @@ def main() -> int:
         r = throughput(W, 1.0 if args.quick else 2.0)
         rows.append([W, f"{r['sent_per_s']:.0f}", f"{r['fused_per_s']:.0f}", f"{r['received']}/{r['sent']}"])
     print(table(rows, ["window", "sent/s", "fused/s", "received/sent"]))
-    print(f"\nper-hop goal (<= {GOAL:g}x raw one-way): {'PASS' if verdict else 'FAIL'}; transport part alone "
+    verdicts = ", ".join(f"{p} link {'PASS' if ok else 'FAIL'}" for p, ok in verdict.items())
+    print(f"\nper-hop goal (<= {GOAL:g}x raw one-way): {verdicts}; transport part alone "
           f"(transit <= {GOAL:g}x raw one-way): {'PASS' if transport_ok else 'FAIL'}; total {time.monotonic() - t_all:.0f} s")
     return 0
 

@@ -164,6 +164,7 @@ class FusionNode:
         self.sources: dict[str, SourceEstimate] = {}
         self._own: dict[int, _Info] = {}
         self._total: dict[int, _Info] = {}
+        self._ahead: set[int] = set()   # keys of _total newer than the newest state
         self._pruned_at = self.filter.oldest_time
         self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
 
@@ -190,12 +191,14 @@ class FusionNode:
             self._prune()
             return
         last = f.latest_time
-        pending = [e for e in self._total.values() if last + f.time_tol < e.t <= t + f.time_tol]
+        due = [k for k in self._ahead if self._total[k].t <= t + f.time_tol]
+        pending = [self._total[k] for k in due if self._total[k].t > last + f.time_tol]
         with f.transaction():
             f.predict(t, u)
             if pending:
                 pending.sort(key=lambda e: e.t)
                 f.add_information_batch([(e.t, e.info, e.vec) for e in pending], validate=False)
+        self._ahead.difference_update(due)
         self._prune()
 
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
@@ -271,13 +274,13 @@ class FusionNode:
         times = np.array([self._total[k].t for k in keys], dtype=float)
         infos = np.array([self._total[k].info for k in keys], dtype=float).reshape(-1, n, n)
         vecs = np.array([self._total[k].vec for k in keys], dtype=float).reshape(-1, n)
-        if self.fusion == "channel" and ch.received:
-            rows = [i for i, k in enumerate(keys) if k in ch.received]
-            if rows:
-                got = [ch.received[keys[i]] for i in rows]
+        if self.fusion == "channel" and len(ch):
+            found, pos = ch.lookup(np.array(keys, dtype=np.int64))
+            rows = np.flatnonzero(found)
+            if rows.size:
                 scale = np.abs(infos[rows]).max(axis=(1, 2))
-                infos[rows] -= np.array([e.info for e in got])
-                vecs[rows] -= np.array([e.vec for e in got])
+                infos[rows] -= ch.info[pos[rows]]
+                vecs[rows] -= ch.vec[pos[rows]]
                 infos[rows] = _clean_difference(infos[rows], scale)
         elif self.fusion == "naive":
             # rumour propagation: everything new since the last message, echo included
@@ -339,9 +342,10 @@ class FusionNode:
                 return 0
             inside = msg.times >= f.oldest_time - f.time_tol
             deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
-            updates, outside = {}, int(np.count_nonzero(~inside))
+            plan, outside = None, int(np.count_nonzero(~inside))
         else:
-            deltas, updates, outside = ch.plan(msg, f.oldest_time, f.time_tol)
+            plan = ch.plan(msg, f.oldest_time, f.time_tol)
+            deltas, outside = plan.deltas, plan.outside
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
         try:
@@ -352,11 +356,13 @@ class FusionNode:
         except DfusionError as exc:
             raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
         self.stats.duplicates += duplicate
-        ch.commit(msg, updates)
+        ch.commit(msg, plan)
         for t, dL, dy in deltas:
             key = time_key(t)
             e = self._total.get(key)
             self._total[key] = _Info(t, dL, dy) if e is None else _Info(e.t, e.info + dL, e.vec + dy)
+            if t > latest:
+                self._ahead.add(key)
         if outside:
             self.stats.blocks_outside_window += outside
             log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
