@@ -27,7 +27,8 @@ Accuracy on real data, when the data paths are given (``docs/robots.md``):
    over ``--mrclam-duration`` seconds (300; about 35 s): robot 1's RMSE per node, for the
    centralized references and dead reckoning, and each observer's self-localization RMSE.
 
-Only the accuracy tables:  ``--no-timing``.
+Only the accuracy tables:  ``--no-timing``. ``--strict``: exit status 1 when the MCL goal
+(erfc beam, 5,000 particles) or the ICP goal (point-to-line) is not met.
 """
 from __future__ import annotations
 
@@ -78,16 +79,20 @@ def main() -> int:
     ap.add_argument("--mrclam", type=Path, default=None, help="MRCLAM dataset dir: accuracy table of the MRCLAM example")
     ap.add_argument("--mrclam-duration", type=float, default=300.0)
     ap.add_argument("--no-timing", action="store_true", help="only the accuracy tables")
+    ap.add_argument("--strict", action="store_true", help="exit status 1 when a timing goal is not met")
     args = ap.parse_args()
     R = 5 if args.quick else args.repeats
     print(f"numpy {np.__version__}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    failed: list[str] = []
     if not args.no_timing:
-        timing(R)
+        failed = timing(R)
     if args.carmen:
         carmen_table(args.carmen)
     if args.mrclam:
         mrclam_table(args.mrclam, args.mrclam_duration)
-    return 0
+    if failed:
+        print("goals not met: " + "; ".join(failed))
+    return 1 if (args.strict and failed) else 0
 
 
 def carmen_table(log: Path) -> None:
@@ -122,7 +127,8 @@ def mrclam_table(root: Path, duration: float) -> None:
     rows += [["centralized (joint EKF)", f"{cv['centralized']['rmse']:.3f}", f"{od['centralized']['rmse']:.3f}"],
              ["centralized tracking (union, R_eff)", f"{cv['centralized_tracking']['rmse']:.3f}",
               f"{od['centralized_tracking']['rmse']:.3f}"],
-             ["dead reckoning (robot 1 odometry)", f"{cv['dead_reckoning']['1']['rmse']:.3f}", "-"]]
+             ["dead reckoning (robot 1 odometry)", f"{cv['dead_reckoning']['1']['rmse']:.3f}",
+              f"{od['dead_reckoning']['1']['rmse']:.3f}"]]
     t0, t1 = cv["span"]
     table(f"MRCLAM {root.name}: robot 1 position RMSE (m), {t0:.1f}-{t1:.1f} s "
           f"(runs {cv['runtime_s']:.0f} s and {od['runtime_s']:.0f} s)",
@@ -134,7 +140,9 @@ def mrclam_table(root: Path, duration: float) -> None:
                                                       "dead reckoning m"], rows)
 
 
-def timing(R: int) -> None:
+def timing(R: int) -> list[str]:
+    """Print the timing tables; return the goals not met."""
+    failed: list[str] = []
 
     grid = OccupancyGrid.rooms()  # 16 m x 10 m, 0.05 m cells
     laser = LaserConfig.uniform(181, math.pi, 12.0)
@@ -183,6 +191,8 @@ def timing(R: int) -> None:
             goal = ""
             if name == "erfc beam, table" and n == 5000:
                 goal = "PASS" if t <= 0.010 else "FAIL"
+                if goal == "FAIL":
+                    failed.append(f"MCL erfc beam 5,000 particles {t * 1e3:.1f} ms > 10 ms")
             rows.append([name, f"{n:,}", f"{t * 1e3:.2f}", goal])
             # split: motion / likelihood / resampling, measured on the same filter
             parts = m.particles
@@ -254,11 +264,14 @@ def timing(R: int) -> None:
                     [method, nearest, f"{trim:.1f}", f"{len(pts)}", f"{res.iterations}", f"{err * 100:.2f}",
                      f"{t * 1e3:.2f}", "PASS" if t <= 0.005 else "FAIL"]
                 )
+                if method == "point_to_line" and t > 0.005:  # the goal is stated for the method used
+                    failed.append(f"ICP {method} {nearest} trim {trim:.1f} {t * 1e3:.1f} ms > 5 ms")
     table(
         "ICP of a 360-beam scan against the map (initial error 11 cm, 3 deg; tolerance 1e-4)",
         ["method", "nearest", "trim", "points", "iterations", "error cm", "ms", "goal <= 5 ms"],
         icp_rows,
     )
+    return failed
 
 
 if __name__ == "__main__":

@@ -48,8 +48,8 @@ Protocol (scans in time order, the first ``--max-scans`` of them if given):
    has 5 cm cells) updates the
    EKF unless ICP fails or the chi-square gate (3 dof, 99.9 %) rejects it.
 
-Runtime: the full Intel log (910 scans: 455 in the map, 455 localized) takes about a
-minute (map about 20 s); no subsampling is needed. Output: a table and, with
+Runtime: the full Intel log (910 scans: 455 in the map, 455 localized) takes 3-10 s
+depending on the machine's load (map 1-2 s); no subsampling is needed. Output: a table and, with
 ``--json``, ``mcl.rmse``, ``mcl.heading_rmse``, ``scan_matching.rmse``,
 ``scan_matching.heading_rmse`` (m, rad) and more (``docs/robots.md`` has the results).
 """

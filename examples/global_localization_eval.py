@@ -186,23 +186,55 @@ def plot(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    from matplotlib.ticker import MaxNLocator
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.6))
+    names = list(results)
+    colors = {name: f"C{i}" for i, name in enumerate(names)}
+    e_all = np.concatenate([[t["error"] for t in r["tests"]] for r in results.values()])
+    e_lo = max(1e-3, 0.5 * float(np.min(e_all))) if e_all.size else 1e-3
+    e_hi = max(2.0 * FAIL_DISTANCE, 1.2 * float(np.max(e_all))) if e_all.size else 2.0 * FAIL_DISTANCE
     for name, r in results.items():
         per = r["success_rate_per_waypoint"]
         cum = np.cumsum(per) / np.arange(1, len(per) + 1)
-        ax[0].plot(np.arange(1, len(per) + 1), 100 * cum, marker="o", label=name)
+        ax[0].plot(np.arange(1, len(per) + 1), 100 * cum, marker="o", color=colors[name],
+                   label=f"{name} ({100 * r['success_rate']:.0f} %)")
+        # empirical CDF from 0 at the left edge to 1 at the largest error
         e = np.sort([t["error"] for t in r["tests"]])
-        ax[2].step(e, np.arange(1, e.size + 1) / e.size, where="post", label=name)
-    ax[0].set(xlabel="waypoint", ylabel="cumulative success rate (%)", ylim=(0, 105), title="robustness")
-    data = [[t["cld"] for t in r["tests"] if t["success"]] or [np.nan] for r in results.values()]
-    ax[1].boxplot(data, showmeans=True)
-    ax[1].set_xticks(range(1, len(results) + 1), list(results), rotation=10)
-    ax[1].set(ylabel="correct-localization distance (m)", title="efficiency (successful tests)")
-    ax[2].set(xscale="log", xlabel="absolute error after 10 m (m)", ylabel="CDF", title="accuracy")
+        x = np.concatenate([[e_lo], e, [e_hi]])
+        y = np.concatenate([[0.0], np.arange(1, e.size + 1) / e.size, [1.0]])
+        ax[2].step(x, y, where="post", color=colors[name], label=name)
+    ax[0].set(xlabel="waypoint", ylabel="cumulative success rate (%)", ylim=(-2, 105), title="robustness")
+    ax[0].xaxis.set_major_locator(MaxNLocator(integer=True))
+    # CLD of the successful tests: box plot and the individual tests (jittered)
+    rng = np.random.default_rng(0)
+    data, labels = [], []
+    for i, (name, r) in enumerate(results.items(), start=1):
+        cld = [t["cld"] for t in r["tests"] if t["success"]]
+        labels.append(f"{name}\n{len(cld)}/{len(r['tests'])} successful")
+        data.append(cld if cld else [np.nan])
+        if cld:
+            ax[1].plot(i + rng.uniform(-0.12, 0.12, len(cld)), cld, "o", ms=4, alpha=0.6, color=colors[name])
+        else:
+            ax[1].text(i, 0.5 * FAIL_DISTANCE, "no success", ha="center", va="center", color="0.4")
+    ax[1].boxplot(data, showmeans=True, showfliers=False, widths=0.5, medianprops={"color": "k"})
+    ax[1].axhline(FAIL_DISTANCE, color="k", lw=0.8, ls="--")
+    ax[1].text(0.55, FAIL_DISTANCE, f" fail beyond {FAIL_DISTANCE:g} m", va="bottom", fontsize=8)
+    ax[1].set_xticks(range(1, len(results) + 1), labels, fontsize=8)
+    ax[1].set(ylabel="correct-localization distance (m)", ylim=(0, 1.1 * FAIL_DISTANCE + 0.5),
+              xlim=(0.5, len(results) + 0.5), title="efficiency (successful tests)")
+    ax[2].set(xscale="log", xlabel="absolute position error after 10 m (m)", ylabel="fraction of tests (CDF)",
+              title="accuracy", xlim=(e_lo, e_hi), ylim=(0, 1.02))
     ax[2].axvline(FAIL_DISTANCE, color="k", lw=0.8, ls="--")
+    ax[2].axvline(POS_TOL, color="0.5", lw=0.8, ls=":")
+    ax[2].text(FAIL_DISTANCE, 0.03, f" {FAIL_DISTANCE:g} m", fontsize=8)
+    ax[2].text(POS_TOL, 0.03, f" {POS_TOL:g} m (correct)", fontsize=8, color="0.4")
     for a in (ax[0], ax[2]):
-        a.legend(fontsize=8)
+        a.legend(fontsize=8, loc="best")
         a.grid(alpha=0.3)
+    ax[1].grid(alpha=0.3, axis="y")
+    n_tests = {len(r["tests"]) for r in results.values()}
+    fig.suptitle(f"global localization, {'/'.join(map(str, sorted(n_tests)))} tests per configuration", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

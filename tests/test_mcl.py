@@ -75,7 +75,8 @@ def test_odometry_motion_model_moments_match_first_order_prediction():
     the covariance is ``G V G^T`` with ``G = dg/du``. Noise is small, so second-order
     terms are far below the statistical tolerance.
     """
-    model = OdometryMotionModel(0.002, 0.001, 0.003, 0.002)
+    a1, a2, a3, a4 = 0.002, 0.001, 0.003, 0.0015  # distinct: a swapped alpha would fail
+    model = OdometryMotionModel(a1, a2, a3, a4)
     x0 = np.array([1.0, -2.0, 0.4])
     o0, o1 = np.array([0.3, 0.1, -0.2]), np.array([1.1, 0.6, 0.5])
     # independent reference: the decomposition of Table 5.6 written out here
@@ -83,9 +84,9 @@ def test_odometry_motion_model_moments_match_first_order_prediction():
     rot1 = math.atan2(dy, dx) - o0[2]
     trans = math.hypot(dx, dy)
     rot2 = o1[2] - o0[2] - rot1
-    v1 = 0.002 * rot1**2 + 0.001 * trans**2
-    vt = 0.003 * trans**2 + 0.002 * (rot1**2 + rot2**2)
-    v2 = 0.002 * rot2**2 + 0.001 * trans**2
+    v1 = a1 * rot1**2 + a2 * trans**2
+    vt = a3 * trans**2 + a4 * (rot1**2 + rot2**2)
+    v2 = a1 * rot2**2 + a2 * trans**2
     h = x0[2] + rot1
     mean1 = np.array([x0[0] + trans * math.cos(h), x0[1] + trans * math.sin(h), x0[2] + rot1 + rot2])
     G = np.array(

@@ -113,7 +113,8 @@ def example_runs(tmp_path_factory):
     procs = {}
     for model in ("cv", "odometry"):
         js = out / f"{model}.json"
-        procs[model] = (subprocess.Popen([sys.executable, str(EXAMPLE), str(SLICE), "--target-model", model,
+        flag = [] if model == "odometry" else ["--target-model", model]  # odometry: the default
+        procs[model] = (subprocess.Popen([sys.executable, str(EXAMPLE), str(SLICE), *flag,
                                           "--json", str(js)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                          text=True, cwd=ROOT), js)
     res = {}
@@ -146,10 +147,14 @@ def test_example_cv_target(example_runs):
 
 def test_example_odometry_target(example_runs):
     r = example_runs["odometry"]
+    assert r["target_model"] == "odometry" and r["eval_points"] == 359  # the default model
     # measured on the slice: nodes 0.216-0.228 m, joint EKF 0.184, union 0.204
     for o, v in r["nodes"].items():
         assert v["rmse"] < 0.27, (o, v)
+        # far better than robot 1's dead reckoning, close to both centralized references
         assert v["rmse"] < 0.5 * r["dead_reckoning"]["1"]["rmse"]
         assert abs(v["rmse"] - r["centralized_tracking"]["rmse"]) < 0.05
+        assert abs(v["rmse"] - r["centralized"]["rmse"]) < 0.06
+        assert v["gap_to_centralized_tracking"] < 0.1
     assert r["centralized"]["rmse"] < 0.23
     assert r["centralized_tracking"]["rmse"] < 0.25

@@ -38,6 +38,7 @@ Pitfalls handled (documented for the Intel Research Lab log in
 from __future__ import annotations
 
 import gzip
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,8 @@ from typing import Literal
 import numpy as np
 
 from ..errors import ValidationError
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["LaserScan", "CarmenLog", "read_carmen", "beam_angles"]
 
@@ -222,4 +225,8 @@ def read_carmen(
         order = np.argsort(t_s, kind="stable")
         log.scans = [log.scans[i] for i in order]
     log.odom_t, log.odom, log.odom_vel = t_o, o, v
+    logger.info(
+        "%s: %d scans, %d odometry poses (%d scan-pose copies dropped), backward time steps %s, unknown messages %s",
+        path, len(log.scans), t_o.size, log.dropped_odom_copies, log.backward_steps, log.unknown or "none",
+    )
     return log

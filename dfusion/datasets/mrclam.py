@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import gzip
 import io
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,8 @@ import numpy as np
 
 from ..errors import ValidationError
 from ..models.base import wrap_angle
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "RobotLog",
@@ -218,6 +221,8 @@ def read_mrclam(
         ds.robots[n] = RobotLog(
             n, gt_t, gt_p, od_t, od_v, me_t[ok], subj[ok], me_v[ok, 1].copy(), me_v[ok, 2].copy(), unknown
         )
+        if unknown:
+            logger.info("%s: robot %d: dropped %d measurement rows with unknown barcodes", root, n, unknown)
     return ds
 
 

@@ -115,6 +115,7 @@ Output: :meth:`MonteCarloLocalization.estimate` -- the Gaussian summary of the w
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -137,6 +138,8 @@ from ..linalg import as_vector
 from ..maps.grid import OccupancyGrid
 from ..maps.raycast import RayCastTable, cast_rays
 from ..models.base import Array, wrap_angle
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "LaserConfig",
@@ -841,6 +844,7 @@ class MonteCarloLocalization:
                 D = se2_between(o_t, self._odom_at_time)
                 eval_poses = se2_compose(self._particles, se2_inverse(D))
                 late = True
+                logger.debug("late scan at %.3f s applied at its own time (filter time %.3f s)", t_eff, self._time)
         else:
             eval_poses = self._particles
         b = self._beams
@@ -966,6 +970,8 @@ class MonteCarloLocalization:
         self._fresh = fresh if n_inj else None
         self.stats["resamples"] += 1
         self.stats["injected"] += n_inj
+        if n_inj:
+            logger.debug("recovery: %d of %d particles drawn uniformly over the free space", n_inj, new.shape[0])
 
     def _kld_count(self, cand: Array) -> int:
         """Number of leading candidates KLD sampling keeps."""
