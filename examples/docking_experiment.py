@@ -397,18 +397,22 @@ def plot(out: Path, case: Case, truth, runs, grid) -> None:
         ax.plot(e[:, 0], e[:, 1], st, lw=1, label=m)
     ax.plot(*case.target[:2], "r*", ms=10, label="target")
     ax.set_title(case.name)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    # below the map: inside it the legend hides the start of the drive
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=3, frameon=False)
     sw = runs["MCL + SM, switching"]
     t = np.arange(len(sw.rho))
     ax = axes[1]
     ax.plot(t, sw.rho, "C2-", label="similarity rate")
-    ax.axhline(0.75, color="k", ls="--", lw=0.8)
-    ax.axhline(0.65, color="k", ls=":", lw=0.8)
+    ax.axhline(0.75, color="k", ls="--", lw=0.8, label="upper bound 0.75 (to precise)")
+    ax.axhline(0.65, color="k", ls=":", lw=0.8, label="lower bound 0.65 (to coarse)")
     ax.fill_between(t, 0, 1, where=np.array(sw.stage) == "high", color="C2", alpha=0.15, label="precise active")
     ax.set_ylim(0, 1)
     ax.set_xlabel("step")
+    ax.set_ylabel("similarity rate")
     ax.set_title("Fig. 12(a) (simulated): similarity rate and stage")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left")
     ax = axes[2]
     dist = np.hypot(*(truth[:, :2] - np.array(case.target[:2])).T)
     for m, st in (("SA-MCL (coarse only)", "C0--"), ("SM (precise only)", "C1:"), ("MCL + SM, switching", "C2-"),

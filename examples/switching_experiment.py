@@ -453,8 +453,8 @@ def main(argv=None) -> int:
         node_run,
         replay(rec, BlendedTransitionPolicy(GreedySwitchingPolicy(P_sel), duration=1.0), srcs,
                f"greedy P = {P_sel:.2f} + 1 s blend"),
-        replay(rec, FusionFloorPolicy(0.0), srcs, "information fusion of all healthy sources (R > 0)"),
-        replay(rec, FusionFloorPolicy(0.6), srcs, "fusion above a floor (R > 0.6)"),
+        replay(rec, FusionFloorPolicy(0.0), srcs, "information fusion of all healthy sources (R > 0; switches: changes of the fused set)"),
+        replay(rec, FusionFloorPolicy(0.6), srcs, "fusion above a floor (R > 0.6; switches: changes of the fused set)"),
     ]
     for r in rows[:3]:
         r.switches = None
