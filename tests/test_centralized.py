@@ -11,6 +11,8 @@ import math
 import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from dfusion.errors import (
     NonFiniteError,
@@ -614,3 +616,28 @@ def test_constructor_validation():
     x, P = filt.estimate()
     assert np.array_equal(x, good_mean) and np.array_equal(P, good_cov)
     assert len(filt) == 0 and filt.history().means.shape == (0, 4)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), per_sensor=st.integers(1, 8), queries=st.lists(st.booleans(), min_size=24, max_size=24))
+def test_property_any_arrival_order_with_interleaved_estimates_equals_time_order(seed, per_sensor, queries):
+    """Random arrival order, estimates asked for between arrivals (so late arrivals force
+    re-processing from checkpoints): every intermediate and the final estimate equal the
+    time-ordered filterpy KalmanFilter on the measurements that have arrived so far."""
+    meas, prior = make_scenario(seed=seed % 1000, per_sensor=per_sensor)
+    order = np.random.default_rng(seed).permutation(len(meas))
+    filt = cv_filter(prior)
+    arrived = []
+    for i, k in enumerate(order):
+        filt.add(*meas[k])
+        arrived.append(meas[k])
+        if queries[i % len(queries)]:
+            ordered = sorted(arrived, key=lambda m: m[0])
+            x_ref, P_ref, _ = kf_reference(ordered, 0.0, prior)
+            x, P = filt.estimate()
+            assert_rel(x, x_ref)
+            assert_rel(P, P_ref)
+    x_ref, P_ref, _ = kf_reference(sorted(meas, key=lambda m: m[0]), 0.0, prior)
+    x, P = filt.estimate()
+    assert_rel(x, x_ref)
+    assert_rel(P, P_ref)

@@ -366,3 +366,60 @@ def test_property_any_arrival_order_equals_time_order(seed, n_meas, max_delay, w
     m, P = f.estimate()
     assert_close_rel(m, kf.x.ravel(), 1e-9)
     assert_close_rel(P, kf.P, 1e-9)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_window_estimates_equal_rts_smoother_with_late_out_of_order_measurements(seed):
+    """estimate(t) for every window time, measurements arriving late, shuffled, at
+    irregular times (states inserted between grid states), against filterpy's RTS."""
+    grid, meas, arrival = scenario(seed, n_meas=40, max_delay=1.0)
+    std = 0.5
+    sensor = PositionSensor(dim=2, std=std)
+    f = make_filter(2, window=400)
+    pending = sorted(range(len(meas)), key=lambda i: arrival[i])
+    assert any(arrival[a] > arrival[b] and meas[a][0] < meas[b][0] for a, b in zip(pending[1:], pending))
+    j = 0
+    for t in grid:
+        f.predict(t)
+        while j < len(pending) and arrival[pending[j]] <= t:
+            f.update(meas[pending[j]][0], meas[pending[j]][1], sensor)
+            j += 1
+    for i in pending[j:]:
+        f.update(meas[i][0], meas[i][1], sensor)
+    kf, ts, Xs, Ps, Fs, Qs = kalman_reference(0.0, np.zeros(4), np.eye(4) * 4, meas, grid[-1], 2, std, grid)
+    xs, ps, _, _ = kf.rts_smoother(Xs.reshape(len(Xs), 4, 1), Ps, Fs, Qs)
+    assert len(f.times) == len(ts)
+    np.testing.assert_allclose(f.times, ts, rtol=0, atol=1e-9)
+    for k, t in enumerate(f.times):
+        m, P = f.estimate(t)
+        assert_close_rel(m, xs[k].ravel(), 1e-8)
+        assert_close_rel(P, ps[k], 1e-8)
+
+
+def test_rejected_input_on_a_window_that_still_holds_the_first_state():
+    """A time before the first state, a predict that does not advance, an estimate
+    ahead of the newest state: refused, nothing changes."""
+    f = make_filter(2, window=50)
+    s = PositionSensor(2, 0.5)
+    for k in range(1, 4):
+        f.predict(0.5 * k)
+        f.update(0.5 * k, [k, 1.0], s)
+    assert f.oldest_time == 0.0 and f.marginalized == 0
+    snap = snapshot(f)
+    est = f.estimate()
+    calls = [
+        (lambda: f.update(-0.25, [1.0, 1.0], s), TimeError),
+        (lambda: f.add_information(-1.0, np.eye(4), np.zeros(4)), TimeError),
+        (lambda: f.predict(1.5), TimeError),
+        (lambda: f.predict(0.7), TimeError),
+        (lambda: f.estimate(1.6), TimeError),
+        (lambda: f.estimate(-0.1), TimeError),
+        (lambda: f.update(1.0, [1.0, 1.0], BadSensor([[1.0, 0.0], [0.0, 0.0]])), NotPositiveDefiniteError),
+    ]
+    for call, exc in calls:
+        with pytest.raises(exc):
+            call()
+        assert_unchanged(f, snap)
+        m, P = f.estimate()
+        np.testing.assert_array_equal(m, est[0])
+        np.testing.assert_array_equal(P, est[1])

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import networkx as nx
 import numpy as np
 import pytest
 
@@ -33,14 +34,34 @@ def small(**over):
     return d
 
 
+def is_chain(g: nx.Graph) -> bool:
+    return nx.is_tree(g) and g.number_of_nodes() >= 3 and max(dict(g.degree).values()) == 2
+
+
+def is_star(g: nx.Graph) -> bool:
+    n = g.number_of_nodes()
+    return nx.is_tree(g) and n >= 4 and max(dict(g.degree).values()) == n - 1
+
+
+def is_deeper_tree(g: nx.Graph) -> bool:
+    """Neither a chain nor a star: branches and a diameter of at least 3 hops."""
+    return nx.is_tree(g) and not is_chain(g) and not is_star(g) and nx.diameter(g) >= 3
+
+
 def test_at_least_three_shipped_scenarios_load():
     assert len(SHIPPED) >= 3
-    kinds = set()
-    for path in SHIPPED:
-        sc = load_scenario(path)
+    scenarios = {path.name: load_scenario(path) for path in SHIPPED}
+    for sc in scenarios.values():
         assert sc.graph.number_of_nodes() == len(sc.nodes)
-        kinds.add(max(dict(sc.graph.degree).values()))
-    assert any(sc.outages() for sc in map(load_scenario, SHIPPED))
+        assert nx.is_tree(sc.graph)
+    # the issue's three shapes: a chain, a star, a deeper tree with an outage
+    assert any(is_chain(sc.graph) for sc in scenarios.values())
+    assert any(is_star(sc.graph) for sc in scenarios.values())
+    assert any(is_deeper_tree(sc.graph) and sc.outages() for sc in scenarios.values())
+    assert is_chain(scenarios["chain3.scenario.toml"].graph)
+    assert is_star(scenarios["star5.scenario.toml"].graph)
+    assert is_deeper_tree(scenarios["tree7-outage.scenario.toml"].graph)
+    assert scenarios["tree7-outage.scenario.toml"].outages()
 
 
 @pytest.mark.parametrize(
@@ -121,6 +142,35 @@ def test_simulate_json_has_the_documented_keys_and_converges(tmp_path):
     assert data["messages"] > 0 and data["bytes"] > data["messages"]
     assert data["seed"] == 3 and data["steps"] == 251
     assert png.stat().st_size > 10_000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the figures are those of the run, recomputed here with numpy (deterministic for a seed)
+    res = run_scenario(load_scenario(ROOT / "topologies" / "chain3.scenario.toml", seed=3, duration=25.0))
+
+    def rmse_ref(mean):
+        return float(np.sqrt(np.mean(np.sum((mean[:, :2] - res.truth[:, :2]) ** 2, axis=1))))
+
+    def anees_ref(mean, cov):
+        e = mean - res.truth
+        return float(np.mean([ek @ np.linalg.solve(Pk, ek) for ek, Pk in zip(e, cov)]))
+
+    assert data["centralized"]["rmse"] == pytest.approx(rmse_ref(res.central_mean), rel=1e-9)
+    assert data["centralized"]["anees"] == pytest.approx(anees_ref(res.central_mean, res.central_cov), rel=1e-9)
+    for name, v in data["nodes"].items():
+        assert v["rmse"] == pytest.approx(rmse_ref(res.node_mean[name]), rel=1e-9)
+        assert v["anees"] == pytest.approx(anees_ref(res.node_mean[name], res.node_cov[name]), rel=1e-9)
+    assert data["messages"] == sum(v["messages"] for v in data["nodes"].values())
+    assert data["bytes"] == sum(v["bytes"] for v in data["nodes"].values())
+    assert isinstance(data["messages"], int) and isinstance(data["bytes"], int)
+
+
+def test_simulate_prints_the_table(capsys):
+    code = main(["simulate", str(ROOT / "topologies" / "star5.scenario.toml"), "--duration", "5", "-q"])
+    assert code == 0
+    out = capsys.readouterr().out
+    header = out.splitlines()[0].split()
+    assert header[:2] == ["node", "RMSE"] and "ANEES" in header and "gap" in header and "bytes" in header
+    for name in ("h", "s1", "s2", "s3", "s4", "centralized"):
+        assert any(line.split()[:1] == [name] for line in out.splitlines()), name
+    assert "messages" in out and "bytes" in out
 
 
 def test_naive_selectable_in_scenario_and_on_the_command_line():
@@ -129,6 +179,19 @@ def test_naive_selectable_in_scenario_and_on_the_command_line():
     res = run_scenario(sc)
     assert all(v["final_gap"] > 1e-6 for v in res.metrics["nodes"].values())
     assert load_scenario(small(), fusion="naive").fusion == "naive"
+    # the channel filter on the same world converges; naive fusion does not
+    exact = run_scenario(load_scenario(small()))
+    assert all(v["final_gap"] < 1e-9 for v in exact.metrics["nodes"].values())
+
+
+def test_naive_selectable_with_the_cli_flag(tmp_path):
+    out = tmp_path / "naive.json"
+    code = main(["simulate", str(ROOT / "topologies" / "chain3.scenario.toml"), "--fusion", "naive",
+                 "--duration", "10", "--json", str(out), "-q"])
+    assert code == 0
+    data = json.loads(out.read_text())
+    assert data["fusion"] == "naive"
+    assert all(v["final_gap"] > 1e-6 for v in data["nodes"].values())   # rumour propagation
 
 
 def test_cli_reports_errors_cleanly(tmp_path, capsys):
