@@ -157,3 +157,35 @@ def test_every_switching_policy_name_builds_in_both_paths(tmp_path, policy, expe
     sc = load_scenario(write(tmp_path, policy))
     assert isinstance(build_nodes(sc)["cam"].policy, cls)
     assert isinstance(NodeProcess(sc, "cam", start=0.0).node.policy, cls)
+
+
+def test_simulate_records_the_policy_output_and_scores_it(tmp_path):
+    """``run_scenario`` records ``node.output()`` of a node with a switching policy; the
+    JSON figures of that output match a direct computation from the recorded series."""
+    from dfusion.sim.runner import build_nodes, run_scenario
+    from dfusion.sim.scenario import load_scenario
+
+    sc = load_scenario(write(tmp_path))
+    res = run_scenario(sc)
+    assert set(res.outputs) == {"cam"}                    # relay: plain fusion, nothing recorded
+    o = res.outputs["cam"]
+    src = np.array(o.source)
+    assert {"fused", "camera"} <= set(src)                # fused before the first detection, then the camera
+    fused = src == "fused"
+    np.testing.assert_array_equal(o.mean[fused], res.node_mean["cam"][fused])
+    assert np.any(np.abs(o.mean[~fused] - res.node_mean["cam"][~fused]).max(axis=1) > 0)
+    m = res.metrics["nodes"]["cam"]["output"]
+    err = o.mean[:, :2] - res.truth[:, :2]
+    assert m["rmse"] == pytest.approx(np.sqrt(np.mean(np.sum(err**2, axis=1))), rel=1e-12)
+    assert m["switches"] == int(np.count_nonzero(src[1:] != src[:-1])) >= 1
+    assert sum(m["sources"].values()) == pytest.approx(1.0)
+    assert m["policy"] == "greedy"
+    assert "output" not in res.metrics["nodes"]["relay"]
+    assert "policy outputs" in res.table() and "cam: policy greedy" in res.table()
+    # every build gets its own policy (a policy remembers its current source)
+    a, b = build_nodes(sc), build_nodes(sc)
+    assert a["cam"].policy is not b["cam"].policy and a["cam"].policy is not sc.nodes["cam"].policy
+
+    # with plain fusion nothing extra is recorded
+    res_f = run_scenario(load_scenario(write(tmp_path, '"fusion"')))
+    assert res_f.outputs == {} and "output" not in res_f.metrics["nodes"]["cam"]

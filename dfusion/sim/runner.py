@@ -9,7 +9,9 @@ Every step ``t = k dt``:
 3. messages that have arrived by ``t`` are received;
 4. a node whose send period has elapsed sends a message to each neighbour;
 5. node estimates and the centralized estimate (all measurements taken by
-   ``t``, no delay) are recorded.
+   ``t``, no delay) are recorded; for a node whose policy is not plain fusion
+   (a switching policy, DESIGN.md sec. 7) its output (:meth:`FusionNode.output`,
+   the source the policy chose) is recorded too.
 
 At the end every message in flight is delivered, late measurements are fused,
 and ``diameter + 1`` lossless rounds are exchanged ("once the last messages are
@@ -18,6 +20,7 @@ centralized one.
 """
 from __future__ import annotations
 
+import copy
 import json
 import logging
 from dataclasses import dataclass, field
@@ -29,6 +32,7 @@ import numpy as np
 from ..errors import MessageError, OutsideWindowError
 from ..estimation.centralized import CentralizedEKF
 from ..fusion.node import FusionNode
+from ..fusion.policy import InformationFusionPolicy
 from ..linalg import Array
 from .metrics import nees, rmse
 from .network import SimulatedNetwork
@@ -37,6 +41,31 @@ from .scenario import FRONT_ENDS, Scenario
 from .world import World, simulate_world
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class NodeOutput:
+    """What a node's policy output over a run (:meth:`FusionNode.output` per step).
+
+    Attributes
+    ----------
+    policy : str
+        The policy's name.
+    mean, cov : (K, n), (K, n, n)
+        The chosen estimate per step.
+    source : list of str
+        The name of the chosen source per step (``"fused"``: the node's own fusion).
+    """
+
+    policy: str
+    mean: Array
+    cov: Array
+    source: list[str]
+
+
+def records_output(node: FusionNode) -> bool:
+    """Whether a node's output is recorded: its policy is not plain information fusion."""
+    return type(node.policy) is not InformationFusionPolicy
 
 
 @dataclass
@@ -49,6 +78,8 @@ class SimulationResult:
     truth : (K, n)
     central_mean, central_cov : (K, n), (K, n, n)
     node_mean, node_cov : dict name -> (K, n), (K, n, n)
+    outputs : dict name -> NodeOutput
+        The policy output of the nodes whose policy is not plain fusion.
     metrics : dict
         The figures printed and written to JSON (see :meth:`to_json`).
     """
@@ -62,6 +93,7 @@ class SimulationResult:
     node_mean: dict[str, Array]
     node_cov: dict[str, Array]
     metrics: dict[str, Any] = field(default_factory=dict)
+    outputs: dict[str, NodeOutput] = field(default_factory=dict)
 
     def to_json(self) -> str:
         return json.dumps(self.metrics, indent=2, sort_keys=True)
@@ -84,6 +116,14 @@ class SimulationResult:
                      f"ANEES 95% interval for one run [{lo:.3f}, {hi:.3f}] (time-correlated: indicative)")
         lines.append(f"messages {m['messages']} ({m['messages_delivered']} delivered, {m['messages_dropped']} lost), "
                      f"bytes {m['bytes']}, measurements {m['measurements']} ({m['measurements_refused']} refused: older than the window)")
+        outs = {name: v["output"] for name, v in m["nodes"].items() if "output" in v}
+        if outs:
+            lines.append("")
+            lines.append("policy outputs (node.output(): the source each node's policy chose)")
+            for name, o in outs.items():
+                share = ", ".join(f"{src} {frac:.0%}" for src, frac in o["sources"].items())
+                lines.append(f"  {name}: policy {o['policy']}, RMSE {o['rmse']:.4f}, ANEES {o['anees']:.3f}, "
+                             f"switches {o['switches']}; {share}")
         return "\n".join(lines)
 
 
@@ -108,7 +148,8 @@ def build_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, 
             horizon=sc.horizon,
             prior=prior,
             fusion=sc.fusion,
-            policy=sc.nodes[name].policy,
+            # a policy keeps state (the current source): each node built gets its own copy
+            policy=copy.deepcopy(sc.nodes[name].policy),
             network_key=network_key,
             epoch=i + 1,
         )
@@ -148,6 +189,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     node_mean = {nm: np.empty((K, n)) for nm in names}
     node_cov = {nm: np.empty((K, n, n)) for nm in names}
     c_mean, c_cov = np.empty((K, n)), np.empty((K, n, n))
+    outputs = {nm: NodeOutput(nodes[nm].policy.name, np.empty((K, n)), np.empty((K, n, n)), [""] * K)
+               for nm in names if records_output(nodes[nm])}
     by_arrival = sorted(world.measurements, key=lambda m: (m.arrival, m.t, m.node))
     by_time = world.measurements  # already in time order
     next_send = {nm: sc.nodes[nm].send_period for nm in names}
@@ -157,6 +200,9 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     def record(k: int) -> None:
         for nm in names:
             node_mean[nm][k], node_cov[nm][k] = nodes[nm].estimate()
+        for nm, o in outputs.items():
+            chosen = nodes[nm].output()
+            o.mean[k], o.cov[k], o.source[k] = chosen.mean, chosen.cov, chosen.name
         c_mean[k], c_cov[k] = central.estimate(times[k])
 
     record(0)
@@ -207,7 +253,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     T = float(times[-1])
     c_final, _ = central.estimate(T)
 
-    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov)
+    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs)
     result.metrics = compute_metrics(sc, result, nodes, c_final, net, len(world.measurements), refused)
     return result
 
@@ -258,6 +304,9 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
             "bytes": node.stats.bytes_sent,
             "rejected": node.stats.messages_rejected,
         }
+        o = res.outputs.get(nm)
+        if o is not None:
+            out["nodes"][nm]["output"] = output_metrics(o, res.truth, axes, resid)
     total = net.stats.total
     out["messages"] = int(sum(v["messages"] for v in out["nodes"].values()))
     out["bytes"] = int(sum(v["bytes"] for v in out["nodes"].values()))
@@ -266,3 +315,16 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
     out["measurements"] = n_meas
     out["measurements_refused"] = refused
     return out
+
+
+def output_metrics(o: NodeOutput, truth: Array, axes: int, resid=None) -> dict[str, Any]:
+    """Figures of a node's policy output: RMSE and ANEES against the truth, the number of
+    switches (changes of the chosen source between steps) and each source's share of steps."""
+    names, counts = np.unique(np.array(o.source), return_counts=True)
+    return {
+        "policy": o.policy,
+        "rmse": rmse(o.mean, truth, axes),
+        "anees": float(np.mean(nees(o.mean, o.cov, truth, resid))),
+        "switches": int(sum(a != b for a, b in zip(o.source, o.source[1:]))),
+        "sources": {str(nm): float(c / len(o.source)) for nm, c in zip(names, counts)},
+    }
