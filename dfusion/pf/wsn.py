@@ -58,6 +58,26 @@ __all__ = ["WSNTracker", "project_psd_information", "MOTIONS"]
 
 MOTIONS = ("random_walk", "constant_velocity")
 
+#: Largest ``rows x receivers x 4`` of one matrix product in :meth:`WSNTracker.log_likelihood`.
+#: OpenBLAS runs a GEMM multithreaded above ``4 x 65536`` multiply-adds; on a machine whose cores
+#: are busy (several node processes, other jobs) the threads wait for each other and one
+#: ``(20000 x 4) @ (4 x 12)`` product took 15 ms instead of 0.08 ms (benchmarks/nodes.py).
+#: Blocks below the threshold keep every product single-threaded.
+_GEMM_BLOCK = 1 << 18
+
+
+def _rows_matmul(a: Array, b: Array) -> Array:
+    """``a @ b`` for a tall ``a`` (N x k) and a small ``b`` (k x m), in row blocks below ``_GEMM_BLOCK``."""
+    n, k = a.shape
+    m = b.shape[1]
+    step = max(1, _GEMM_BLOCK // max(1, k * m))
+    if n <= step:
+        return a @ b
+    out = np.empty((n, m))
+    for s in range(0, n, step):
+        np.matmul(a[s:s + step], b, out=out[s:s + step])
+    return out
+
 
 def project_psd_information(Omega: ArrayLike, eta: ArrayLike, rtol: float = 1e-9) -> tuple[Array, Array, int]:
     """Project an information pair onto the positive semi-definite cone.
@@ -303,7 +323,7 @@ class WSNTracker:
                 L = np.linalg.cholesky(ConstantVelocity(2, self.q).Q(dt))
                 new = x.copy()
                 new[:, :2] += dt * x[:, 2:]
-                new += pf.rng.standard_normal((n, 4)) @ L.T
+                new += _rows_matmul(pf.rng.standard_normal((n, 4)), L.T)
                 if self.max_speed is not None:
                     sp = np.hypot(new[:, 2], new[:, 3])
                     over = sp > self.max_speed
@@ -346,7 +366,7 @@ class WSNTracker:
         np.multiply(PT[0], PT[0], out=PT[2])
         PT[2] += np.square(PT[1], out=PT[3])
         PT[3] = 1.0
-        d2 = PT.T @ self._G[:, j]
+        d2 = _rows_matmul(PT.T, self._G[:, j])   # row blocks: see _GEMM_BLOCK
         if self._clamp:  # some receiver can be closer than d_min (else d^2 >= dz^2 >= d_min^2)
             np.maximum(d2, self._dmin2[j], out=d2)
         L = np.log(d2, out=d2)
