@@ -68,7 +68,9 @@ class Status:
 
     ``phase`` is ``"ready"`` (waiting for the start), ``"run"`` (step ``k`` at
     scenario time ``t``), ``"final"`` (after the final phase: the final
-    estimate) or ``"stopped"`` (stopped by a signal).
+    estimate) or ``"stopped"`` (stopped by a signal). ``output`` is the node's policy
+    output (:meth:`~dfusion.fusion.node.FusionNode.output`) when its policy is not plain
+    fusion: ``(source name, mean, cov)``; ``None`` otherwise.
     """
 
     node: str
@@ -81,6 +83,7 @@ class Status:
     started: float = 0.0
     stats: dict[str, int] = field(default_factory=dict)
     lost: list[float] = field(default_factory=list)
+    output: tuple[str, np.ndarray, np.ndarray] | None = None
 
     def encode(self, key: bytes | None = None) -> bytes:
         body = msgpack.packb(
@@ -91,6 +94,9 @@ class Status:
                 "cov": None if self.cov is None else np.ascontiguousarray(self.cov, "<f8").tobytes(),
                 "stats": {k: int(v) for k, v in self.stats.items()},
                 "lost": [float(x) for x in self.lost],
+                "output": None if self.output is None else [
+                    self.output[0], np.ascontiguousarray(self.output[1], "<f8").tobytes(),
+                    np.ascontiguousarray(self.output[2], "<f8").tobytes()],
             },
             use_bin_type=True,
         )
@@ -112,8 +118,13 @@ class Status:
             cov = None
             if d["cov"] is not None:
                 cov = np.frombuffer(d["cov"], "<f8").copy().reshape(len(mean), len(mean))
+            output = None
+            if d.get("output") is not None:
+                name, om, oc = d["output"]
+                om = np.frombuffer(om, "<f8").copy()
+                output = (str(name), om, np.frombuffer(oc, "<f8").copy().reshape(len(om), len(om)))
             return cls(str(d["node"]), int(d["epoch"]), str(d["phase"]), int(d["k"]), float(d["t"]), mean, cov,
-                       float(d["started"]), dict(d["stats"]), list(d["lost"]))
+                       float(d["started"]), dict(d["stats"]), list(d["lost"]), output)
         except MessageError:
             raise
         except Exception as exc:
@@ -125,11 +136,15 @@ class Status:
             "started": self.started, "stats": self.stats, "lost": self.lost,
             "mean": None if self.mean is None else self.mean.tolist(),
             "cov": None if self.cov is None else self.cov.tolist(),
+            "output": None if self.output is None else [self.output[0], self.output[1].tolist(),
+                                                        self.output[2].tolist()],
         }
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Status:
         mean = None if d.get("mean") is None else np.asarray(d["mean"], float)
         cov = None if d.get("cov") is None else np.asarray(d["cov"], float)
+        out = d.get("output")
+        output = None if out is None else (str(out[0]), np.asarray(out[1], float), np.asarray(out[2], float))
         return cls(d["node"], int(d["epoch"]), d["phase"], int(d["k"]), float(d["t"]), mean, cov,
-                   float(d.get("started", 0.0)), dict(d.get("stats", {})), list(d.get("lost", [])))
+                   float(d.get("started", 0.0)), dict(d.get("stats", {})), list(d.get("lost", [])), output)

@@ -54,6 +54,10 @@ class NodeRecord:
     stats: dict[int, dict[str, int]] = field(default_factory=dict)   # last counters per epoch
     alive: bool = False
     losses: int = 0
+    #: Policy output per step (only for nodes whose policy is not plain fusion), and its source.
+    out_mean: np.ndarray | None = None
+    out_cov: np.ndarray | None = None
+    out_source: list[str] | None = None
 
 
 class Monitor:
@@ -132,6 +136,11 @@ class Monitor:
             rec.ready = True
         elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
             rec.mean[st.k], rec.cov[st.k], rec.have[st.k] = st.mean, st.cov, True
+            if st.output is not None:
+                if rec.out_mean is None:
+                    rec.out_mean, rec.out_cov = np.full_like(rec.mean, np.nan), np.full_like(rec.cov, np.nan)
+                    rec.out_source = [""] * len(rec.have)
+                rec.out_source[st.k], rec.out_mean[st.k], rec.out_cov[st.k] = st.output
             rec.last_k = max(rec.last_k, st.k) if st.phase == "run" else st.k
             if st.phase == "final":
                 rec.final = st
@@ -214,6 +223,25 @@ def _filled(rec: NodeRecord, sc: Scenario) -> tuple[np.ndarray, np.ndarray, int]
     return mean, cov, int(np.count_nonzero(~have[1:]))
 
 
+def _filled_output(rec: NodeRecord, sc: Scenario, mean: np.ndarray, cov: np.ndarray):
+    """The policy output on the whole grid (``None`` if the node published none): steps
+    without a publication hold the previous output; before the first, the node's estimate."""
+    from ..sim.runner import NodeOutput
+
+    if rec.out_mean is None:
+        return None
+    spec_policy = sc.nodes[rec.name].policy
+    out = NodeOutput(getattr(spec_policy, "name", "policy"), rec.out_mean.copy(), rec.out_cov.copy(),
+                     list(rec.out_source))
+    for k in range(len(out.source)):
+        if not out.source[k]:
+            if k == 0 or not out.source[k - 1]:
+                out.mean[k], out.cov[k], out.source[k] = mean[k], cov[k], "fused"
+            else:
+                out.mean[k], out.cov[k], out.source[k] = out.mean[k - 1], out.cov[k - 1], out.source[k - 1]
+    return out
+
+
 def build_result(
     sc: Scenario,
     records: dict[str, NodeRecord],
@@ -237,11 +265,14 @@ def build_result(
     K = sc.steps + 1
     times = np.round(sc.dt * np.arange(K), 9)
     truth = np.array([world.truth(t) for t in times])
-    node_mean, node_cov, views, run_nodes = {}, {}, {}, {}
+    node_mean, node_cov, views, run_nodes, outputs = {}, {}, {}, {}, {}
     delivered = sent = refused = 0
     for name in sorted(records):
         rec = records[name]
         node_mean[name], node_cov[name], gaps = _filled(rec, sc)
+        out = _filled_output(rec, sc, node_mean[name], node_cov[name])
+        if out is not None:
+            outputs[name] = out
         fin = finals.get(name)
         final_mean = fin.mean if fin is not None and fin.mean is not None else node_mean[name][-1]
         per_epoch = list(rec.stats.values())
@@ -269,7 +300,7 @@ def build_result(
             "liveliness_losses": rec.losses,
             "max_lag_wall_s": max((s.get("max_lag_ms", 0) for s in per_epoch), default=0) / 1000,
         }
-    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov)
+    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs)
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)

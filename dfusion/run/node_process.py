@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import DfusionError, MessageError, OutsideWindowError
 from ..fusion.node import FusionNode
-from ..sim.runner import build_front_end
+from ..sim.runner import build_front_end, records_output
 from ..sim.scenario import Scenario, load_scenario
 from ..transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
 from .common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
@@ -385,8 +385,12 @@ class NodeProcess:
         else:
             mean, cov = self.node.estimate()
             t = float(self.times[k])
+        output = None
+        if mean is not None and records_output(self.node):
+            chosen = self.node.output()
+            output = (chosen.name, chosen.mean, chosen.cov)
         st = Status(self.name, self.node.epoch, phase, k, t if math.isfinite(t) else 0.0, mean, cov,
-                    self.t_started, self.stats(), list(self.lost) if phase == "final" else [])
+                    self.t_started, self.stats(), list(self.lost) if phase == "final" else [], output)
         try:
             import zenoh
 
