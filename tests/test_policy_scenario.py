@@ -226,3 +226,28 @@ def test_dfusion_run_reports_the_policy_output_like_simulate(tmp_path, capsys):
     # real timing differs from the simulated links, so the path differs a little, not the choice
     assert abs(o["sources"]["camera"] - r["sources"]["camera"]) < 0.2
     assert "policy outputs" in printed
+
+
+def test_policies_named_in_a_plain_topology_file(tmp_path):
+    """Topology files (names and links only) can name a policy per node too."""
+    from dfusion import FusionNode
+    from dfusion.errors import ScenarioError
+    from dfusion.models import ConstantVelocity
+    from dfusion.sim.scenario import node_policies
+    from dfusion.switching import GreedySwitchingPolicy, HysteresisSwitchingPolicy
+    from dfusion.topology import load_topology
+
+    path = tmp_path / "t.toml"
+    path.write_text('[[nodes]]\nname = "robot"\npolicy = { kind = "hysteresis", upper = 0.8, lower = 0.6 }\n'
+                    '[[nodes]]\nname = "cam"\npolicy = "greedy"\n[[nodes]]\nname = "hub"\n'
+                    '[[links]]\nbetween = ["robot", "hub"]\n[[links]]\nbetween = ["cam", "hub"]\n')
+    pol = node_policies(load_topology(path))
+    assert set(pol) == {"robot", "cam"}
+    assert isinstance(pol["robot"], HysteresisSwitchingPolicy) and isinstance(pol["cam"], GreedySwitchingPolicy)
+    node = FusionNode("robot", ["hub"], ConstantVelocity(2, 0.1), window=10,
+                      prior=(0.0, np.zeros(4), np.eye(4)), policy=pol["robot"])
+    assert node.policy is pol["robot"]
+    path.write_text('[[nodes]]\nname = "a"\npolicy = "nonsense"\n[[nodes]]\nname = "b"\n'
+                    '[[links]]\nbetween = ["a", "b"]\n')
+    with pytest.raises(ScenarioError, match=r"t\.toml.*node 'a'\.policy.*unknown policy 'nonsense'"):
+        node_policies(load_topology(path))

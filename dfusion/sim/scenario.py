@@ -202,6 +202,30 @@ def _policy(src: str, where: str, value: Any) -> Any:
         return POLICY_KINDS[name](params)
     except (DfusionError, TypeError) as exc:
         raise _fail(src, where, str(exc)) from None
+def build_policy(value: Any, where: str = "policy", source: str = "<policy>") -> Any:
+    """The policy object a ``policy`` value of a scenario or topology file describes.
+
+    ``value`` is a registered name (``"fusion"``, ``"greedy"``, ``"hysteresis"``,
+    ``"blend"``, ``"fusion_floor"``, or one added with :func:`register_policy`) or a table
+    ``{kind = "name", ...parameters}``; ``None`` gives ``None`` (the node's default,
+    information fusion). Raises :class:`ScenarioError` naming ``source`` and ``where`` otherwise.
+    """
+    from .. import switching  # noqa: F401  (registers the switching policies)
+
+    return _policy(source, where, value)
+
+
+def node_policies(graph: nx.Graph) -> dict[str, Any]:
+    """The policy of every node of a topology whose node table names one (``policy = ...``).
+
+    For topology files (:func:`dfusion.topology.load_topology`), which keep the value as
+    a node attribute: ``FusionNode(name, ..., policy=node_policies(g).get(name))``.
+    """
+    source = graph.graph.get("source", "<topology>")
+    return {name: build_policy(attrs["policy"], f"node {name!r}.policy", source)
+            for name, attrs in graph.nodes(data=True) if attrs.get("policy") is not None}
+
+
 _LINK_KEYS = {"between", "quality", "latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay", "outages"}
 
 
