@@ -24,7 +24,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/estimation.py --quick
 	$(VENV)/bin/python benchmarks/network.py --quick
-	$(VENV)/bin/python benchmarks/nodes.py
+	$(VENV)/bin/python benchmarks/nodes.py --quick
 	$(VENV)/bin/python benchmarks/localizers.py --quick
 	$(VENV)/bin/python benchmarks/transport.py
 	$(VENV)/bin/python benchmarks/switching.py --quick
