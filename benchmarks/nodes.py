@@ -10,7 +10,8 @@ Usage::
    (from the slice in tests/data/ble_rssi). One *step* is what a node does for one
    round of readings: predict over dt = 0.5 s (random walk, q = 0.5 m^2/s, every
    move checked against the map), weight with 12 RSSI readings, resample when
-   ESS < N/2. Readings are simulated from the path-loss model along a walk in an
+   ESS < N/2; the 5,000-particle step also with the radio-map likelihood
+   (tests/data/ble_rssi/radio_map.npz). Readings are simulated from the path-loss model along a walk in an
    aisle. Reported: median and 90th percentile per step (best median of
    ``--repeats`` runs), and the predict / update split. Goal: a step at most 3 ms
    at 5,000 particles.
@@ -52,7 +53,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from dfusion.datasets import BLERSSIDataset, PathLossCalibration
 from dfusion.estimation.eif import ExtendedInformationFilter
 from dfusion.fusion.node import FusionNode
-from dfusion.pf import WSNTracker
+from dfusion.pf import RadioMap, WSNTracker
 from dfusion.sensors.camera import CameraFrontEnd
 from dfusion.sim.scenario import load_scenario
 
@@ -73,7 +74,7 @@ def _walk(n: int, dt: float) -> np.ndarray:
     return np.column_stack([x, np.full(n, 8.5)])
 
 
-def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True) -> dict:
+def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True, radio_map: bool = False) -> dict:
     ds = BLERSSIDataset(SLICE)
     cal = PathLossCalibration.from_json(json.loads((SLICE / "path_loss.json").read_text()), ds.receiver_macs)
     sensors = cal.sensors(ds.receiver_positions)
@@ -82,9 +83,11 @@ def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True)
     truth = _walk(steps + 20, dt)
     rng = np.random.default_rng(0)
     readings = np.array([[s.h(p)[0] for s in sensors] for p in truth]) + rng.standard_normal((len(truth), 12)) * cal.std
+    rmap = RadioMap.from_npz(SLICE / "radio_map.npz") if radio_map else None
     best = None
     for rep in range(repeats):
-        t = WSNTracker(sensors, n_particles, q=0.5, grid=grid, bounds=None if with_map else ds.limits, seed=rep)
+        t = WSNTracker(sensors, n_particles, q=0.5, grid=grid, bounds=None if with_map else ds.limits, seed=rep,
+                       radio_map=rmap)
         t.initialize(mean=truth[0], cov=np.eye(2))
         for k in range(20):  # warm-up (allocations, caches)
             t.step(dt, readings[k])
@@ -97,7 +100,8 @@ def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True)
             c = time.perf_counter()
             tp[k], tu[k] = b - a, c - b
         tot = tp + tu
-        res = {"particles": n_particles, "map": with_map, "median_ms": 1e3 * np.median(tot),
+        res = {"particles": n_particles, "map": with_map, "model": "radio map" if radio_map else "path loss",
+               "median_ms": 1e3 * np.median(tot),
                "p90_ms": 1e3 * np.percentile(tot, 90), "predict_ms": 1e3 * np.median(tp),
                "update_ms": 1e3 * np.median(tu), "resamples": t.pf.n_resamples,
                "error_m": float(np.linalg.norm(t.estimate() - truth[19 + steps]))}
@@ -109,16 +113,19 @@ def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True)
 def timing_table(steps: int, repeats: int) -> tuple[str, bool]:
     rows = [bench_wsn(n, steps, repeats, True) for n in (1000, 5000, 20000)]
     rows.append(bench_wsn(GOAL_N, steps, repeats, False))
-    head = f"{'particles':>9s} {'map':>4s} {'step med':>9s} {'step p90':>9s} {'predict':>8s} {'update':>8s}"
+    rows.append(bench_wsn(GOAL_N, steps, repeats, True, radio_map=True))
+    head = f"{'particles':>9s} {'map':>4s} {'model':>10s} {'step med':>9s} {'step p90':>9s} {'predict':>8s} {'update':>8s}"
     lines = ["WSN particle filter, 12 receivers, one step = predict(0.5 s) + update(12 readings) + resampling",
              head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['particles']:9d} {'yes' if r['map'] else 'no':>4s} {r['median_ms']:7.2f}ms "
+        lines.append(f"{r['particles']:9d} {'yes' if r['map'] else 'no':>4s} {r['model']:>10s} {r['median_ms']:7.2f}ms "
                      f"{r['p90_ms']:7.2f}ms {r['predict_ms']:6.2f}ms {r['update_ms']:6.2f}ms")
-    goal = next(r for r in rows if r["particles"] == GOAL_N and r["map"])
-    ok = goal["median_ms"] <= GOAL_MS
-    lines.append(f"goal: step <= {GOAL_MS} ms at {GOAL_N} particles (with map): "
-                 f"{goal['median_ms']:.2f} ms -> {'PASS' if ok else 'FAIL'}")
+    ok = True
+    for goal in (r for r in rows if r["particles"] == GOAL_N and r["map"]):
+        ok_r = goal["median_ms"] <= GOAL_MS
+        ok &= ok_r
+        lines.append(f"goal: step <= {GOAL_MS} ms at {GOAL_N} particles (with map, {goal['model']}): "
+                     f"{goal['median_ms']:.2f} ms -> {'PASS' if ok_r else 'FAIL'}")
     return "\n".join(lines), ok
 
 

@@ -17,9 +17,13 @@ the same run and at the same instants, a causal weighted-centroid baseline
 (RSSI averaged over the last ``--window`` s per receiver, weights
 ``10^(rssi/10)``). Both are compared with the ground truth of every row.
 
-Path-loss calibration (never from the track being evaluated):
-``--path-loss FILE`` if given; otherwise a per-receiver fit on the *other*
-tracks in ``DIR/trk`` (leave-one-track-out); otherwise ``DIR/path_loss.json``.
+Measurement model (``--model``): ``radio-map`` (default) is the per-receiver
+log-distance fit plus a kernel-smoothed map of its residuals over the floor, with a
+spatial spread (dfusion.pf.radio_map; docs/wsn.md sec. 3); ``path-loss`` is the
+log-distance fit alone. Calibration is never taken from the track being evaluated:
+``--path-loss FILE`` / ``--radio-map FILE`` if given (refused if the file lists the
+track); otherwise fitted on the *other* tracks in ``DIR/trk`` (leave-one-track-out);
+otherwise ``DIR/path_loss.json`` / ``DIR/radio_map.npz``.
 """
 from __future__ import annotations
 
@@ -40,18 +44,25 @@ from dfusion.datasets import (
     run_tracker,
     weighted_centroid,
 )
+from dfusion.datasets.ble_rssi import calibrate_radio_map
 from dfusion.errors import DfusionError
-from dfusion.pf import WSNTracker
+from dfusion.models import RSSISensor
+from dfusion.pf import RadioMap, WSNTracker
 
 #: Defaults of the tracker (see docs/wsn.md for how they were chosen).
-DEFAULTS = dict(particles=5000, motion="random_walk", q=0.5, grid_cell=0.2, window=2.0, seed=0)
+DEFAULTS = dict(particles=5000, motion="random_walk", q=0.5, grid_cell=0.2, window=2.0, seed=0,
+                model="radio-map", map_bandwidth=1.0, map_prior_weight=0.05)
+MODELS = ("radio-map", "path-loss")
 
 
 def calibration_for(ds: BLERSSIDataset, track_name: str, path_loss: Path | None,
                     cache: dict | None = None, per_receiver: bool = True) -> PathLossCalibration:
     """Path-loss calibration that does not use ``track_name`` (see the module docstring)."""
     if path_loss is not None:
-        return PathLossCalibration.from_json(json.loads(Path(path_loss).read_text()), ds.receiver_macs)
+        cal = PathLossCalibration.from_json(json.loads(Path(path_loss).read_text()), ds.receiver_macs)
+        if track_name in cal.tracks:
+            raise DfusionError(f"{path_loss} was fitted on {track_name} itself; refusing an in-sample calibration")
+        return cal
     others = [n for n in ds.track_names() if n != track_name]
     if others:
         cache = {} if cache is None else cache
@@ -67,16 +78,55 @@ def calibration_for(ds: BLERSSIDataset, track_name: str, path_loss: Path | None,
                        f"no {stored}; pass --path-loss FILE")
 
 
+def radio_map_for(ds: BLERSSIDataset, track_name: str, radio_map: Path | None, cache: dict | None = None,
+                  bandwidth: float = DEFAULTS["map_bandwidth"],
+                  prior_weight: float = DEFAULTS["map_prior_weight"], spatial_std: bool = True) -> RadioMap:
+    """Radio map that does not use ``track_name``: ``radio_map`` FILE (.npz), else fitted on the other
+    tracks in ``DIR/trk`` (leave-one-track-out), else ``DIR/radio_map.npz``; refused if its
+    provenance lists ``track_name``."""
+    if radio_map is not None:
+        rmap, src = RadioMap.from_npz(radio_map), Path(radio_map)
+    else:
+        others = [n for n in ds.track_names() if n != track_name]
+        if others:
+            cache = {} if cache is None else cache
+            tracks = [cache.setdefault(n, ds.load_track(n)) for n in others]
+            return calibrate_radio_map(tracks, ds.receiver_positions, ds.receiver_macs, limits=ds.limits,
+                                       bandwidth=bandwidth, prior_weight=prior_weight, spatial_std=spatial_std,
+                                       exclude=track_name)[0]
+        src = ds.root / "radio_map.npz"
+        if not src.is_file():
+            raise DfusionError(f"no radio-map calibration for {track_name}: {ds.root / 'trk'} holds no other "
+                               f"track and there "
+                               f"is no {src}; pass --radio-map FILE or --model path-loss")
+        rmap = RadioMap.from_npz(src)
+    if track_name in rmap.tracks:
+        raise DfusionError(f"{src} was learnt from {track_name} itself; refusing an in-sample calibration")
+    return rmap
+
+
 def evaluate_track(ds: BLERSSIDataset, track_file: str | Path, *, particles: int = DEFAULTS["particles"],
                    motion: str = DEFAULTS["motion"], q: float = DEFAULTS["q"],
                    grid_cell: float | None = DEFAULTS["grid_cell"], window: float = DEFAULTS["window"],
                    seed: int = DEFAULTS["seed"], path_loss: Path | None = None, cache: dict | None = None,
-                   per_receiver: bool = True, **tracker_kw) -> dict:
+                   per_receiver: bool = True, model: str = DEFAULTS["model"], radio_map: Path | None = None,
+                   map_bandwidth: float = DEFAULTS["map_bandwidth"],
+                   map_prior_weight: float = DEFAULTS["map_prior_weight"], map_spatial_std: bool = True,
+                   **tracker_kw) -> dict:
     """Run the tracker and the baseline on one track; returns metrics and the per-row errors."""
+    if model not in MODELS:
+        raise DfusionError(f"model must be one of {MODELS}, got {model!r}")
     track = ds.load_track(track_file)
-    cal = calibration_for(ds, track.name, path_loss, cache, per_receiver)
+    if model == "radio-map":
+        rmap = radio_map_for(ds, track.name, radio_map, cache, map_bandwidth, map_prior_weight, map_spatial_std)
+        # The map holds the whole measurement model; the sensor only places the receivers.
+        sensors, cal_tracks = RSSISensor(ds.receiver_positions, -60.0, 2.0, 5.0), rmap.tracks
+        tracker_kw["radio_map"] = rmap
+    else:
+        cal = calibration_for(ds, track.name, path_loss, cache, per_receiver)
+        sensors, cal_tracks = cal.sensors(ds.receiver_positions), cal.tracks
     grid = ds.load_grid(grid_cell) if grid_cell else None
-    tracker = WSNTracker(cal.sensors(ds.receiver_positions), particles, motion=motion, q=q, grid=grid,
+    tracker = WSNTracker(sensors, particles, motion=motion, q=q, grid=grid,
                          bounds=None if grid is not None else ds.limits, seed=seed, **tracker_kw)
     t0 = time.perf_counter()
     est = run_tracker(track, tracker)
@@ -100,7 +150,8 @@ def evaluate_track(ds: BLERSSIDataset, track_file: str | Path, *, particles: int
         "ms_per_packet": 1e3 * elapsed / len(track),
         "moves_refused": tracker.n_refused,
         "steps_all_refused": tracker.n_all_refused,
-        "calibration_tracks": cal.tracks,
+        "model": model,
+        "calibration_tracks": cal_tracks,
         "_errors": err,
         "_baseline_errors": berr,
     }
@@ -150,6 +201,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--path-loss", type=Path, help="path-loss calibration JSON (see --save-calibration)")
     ap.add_argument("--shared-path-loss", action="store_true",
                     help="fit one (p0, exponent, std) for all receivers instead of one per receiver")
+    ap.add_argument("--model", choices=MODELS, default=DEFAULTS["model"],
+                    help="measurement model: log-distance fit plus a learnt residual radio map (default), "
+                         "or the log-distance path-loss fit alone")
+    ap.add_argument("--radio-map", type=Path, help="radio map .npz (see --save-radio-map)")
+    ap.add_argument("--map-bandwidth", type=float, default=DEFAULTS["map_bandwidth"],
+                    help="radio map: kernel bandwidth (m)")
+    ap.add_argument("--map-prior-weight", type=float, default=DEFAULTS["map_prior_weight"],
+                    help="radio map: weight of the path-loss prior, in training packets per 0.2 m cell")
+    ap.add_argument("--map-constant-std", action="store_true",
+                    help="radio map: each receiver's path-loss residual std everywhere (not a spatial std)")
+    ap.add_argument("--save-radio-map", type=Path,
+                    help="write the radio map learnt from every track except TRACK_FILE's, then exit")
     ap.add_argument("--save-calibration", type=Path,
                     help="write the calibration fitted on every track except TRACK_FILE's, then exit")
     args = ap.parse_args(argv)
@@ -168,18 +231,32 @@ def main(argv: list[str] | None = None) -> int:
             args.save_calibration.write_text(json.dumps(cal.to_json(), indent=2) + "\n")
             print(f"calibration from {cal.tracks} written to {args.save_calibration}")
             return 0
+        if args.save_radio_map:
+            name = ds.load_track(args.track_file).name if args.track_file else None
+            tracks = [ds.load_track(n) for n in ds.track_names() if n != name]
+            rmap, _ = calibrate_radio_map(tracks, ds.receiver_positions, ds.receiver_macs, limits=ds.limits,
+                                          bandwidth=args.map_bandwidth, prior_weight=args.map_prior_weight,
+                                          spatial_std=not args.map_constant_std, exclude=name)
+            rmap.to_npz(args.save_radio_map)
+            print(f"radio map from {rmap.tracks} written to {args.save_radio_map}")
+            return 0
         files = ds.track_paths() if args.all else [Path(args.track_file)]
         kw = dict(particles=args.particles, motion=args.motion, q=args.q, max_speed=args.max_speed,
                   grid_cell=None if args.no_map else args.grid_cell, window=args.window, seed=args.seed,
                   path_loss=args.path_loss, outlier_prob=args.outlier_prob,
-                  per_receiver=not args.shared_path_loss)
+                  per_receiver=not args.shared_path_loss, model=args.model, radio_map=args.radio_map,
+                  map_bandwidth=args.map_bandwidth, map_prior_weight=args.map_prior_weight,
+                  map_spatial_std=not args.map_constant_std)
         cache: dict = {}
         results = [evaluate_track(ds, f, cache=cache, **kw) for f in files]
     except (DfusionError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     rows = results + ([pooled(results)] if len(results) > 1 else [])
-    print(f"WSN particle filter ({args.particles} particles, {args.motion}, q={args.q}, "
+    model = args.model if args.model == "path-loss" else (
+        f"radio-map b={args.map_bandwidth} m w0={args.map_prior_weight}"
+        + (" const-std" if args.map_constant_std else ""))
+    print(f"WSN particle filter ({args.particles} particles, {args.motion}, q={args.q}, {model}, "
           f"map={'none' if args.no_map else f'{args.grid_cell} m grid'}) vs weighted centroid "
           f"(10^(rssi/10), {args.window} s window); errors in m, every packet row")
     print(format_table(rows))

@@ -23,8 +23,10 @@ from dfusion.datasets import (
     read_track,
     weighted_centroid,
 )
+from dfusion.datasets.ble_rssi import calibrate_radio_map
 from dfusion.errors import ValidationError
-from dfusion.models import fit_path_loss
+from dfusion.models import RSSISensor, fit_path_loss
+from dfusion.pf import RadioMap, WSNTracker, fit_radio_map, kernel_residual_map
 
 ROOT = Path(__file__).resolve().parent.parent
 SLICE = ROOT / "tests" / "data" / "ble_rssi"
@@ -157,6 +159,7 @@ def test_example_beats_the_baseline_on_the_slice(tmp_path):
     res = json.loads(out.read_text())
     for key in ("rmse", "median_error", "baseline_rmse"):
         assert np.isfinite(res[key]) and res[key] > 0
+    assert res["model"] == "radio-map"  # the default, from the shipped radio_map.npz
     assert res["calibration_tracks"] and "straight_03" not in res["calibration_tracks"]
     assert res["rmse"] < res["baseline_rmse"]
     assert res["rmse"] < 0.9 * res["baseline_rmse"]
@@ -167,8 +170,153 @@ def test_example_refuses_to_run_without_an_out_of_sample_calibration(tmp_path):
     d = tmp_path / "ds"
     shutil.copytree(SLICE, d)
     (d / "path_loss.json").unlink()
-    proc = subprocess.run([sys.executable, str(EXAMPLE), str(d / "trk" / TRACK.name)],
-                          capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2 and "calibration" in proc.stderr
+    (d / "radio_map.npz").unlink()
+    for model in ("radio-map", "path-loss"):
+        proc = subprocess.run([sys.executable, str(EXAMPLE), str(d / "trk" / TRACK.name), "--model", model],
+                              capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and "calibration" in proc.stderr
     proc = subprocess.run([sys.executable, str(EXAMPLE), "--all"], capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0  # no dataset directory given
+
+
+# ----------------------------------------------------------------------------- radio map
+
+
+def _synthetic_training(rng, n=600):
+    """Two receivers, points along two crossing aisles, residual = smooth bump + noise."""
+    t = rng.uniform(0, 1, n)
+    pts = np.where((np.arange(n) % 2 == 0)[:, None], np.column_stack([1 + 8 * t, 4 + 0.1 * rng.standard_normal(n)]),
+                   np.column_stack([5 + 0.1 * rng.standard_normal(n), 0.5 + 7 * t]))
+    j = rng.integers(0, 2, n)
+    bump = 6.0 * np.exp(-((pts[:, 0] - 4) ** 2 + (pts[:, 1] - 4) ** 2) / 4.0) * np.where(j == 0, 1.0, -1.0)
+    return pts, j, bump + rng.standard_normal(n) * np.where(j == 0, 2.0, 3.0)
+
+
+def _base(j, xy):
+    rec = np.array([[2.0, 2.0], [8.0, 6.0]])
+    d = np.hypot(xy[:, 0] - rec[j, 0], xy[:, 1] - rec[j, 1])
+    return -55.0 - 20.0 * np.log10(np.maximum(d, 0.5))
+
+
+def test_radio_map_lookup_equals_the_direct_kernel_formula():
+    rng = np.random.default_rng(3)
+    pts, j, res = _synthetic_training(rng)
+    z = np.array([_base(jj, p[None])[0] for jj, p in zip(j, pts)]) + res
+    s0 = np.array([4.0, 5.0])
+    kw = dict(cell=0.2, bandwidth=1.0, prior_weight=0.05)
+    rm = fit_radio_map(pts, j, z, _base, s0, origin=(0.0, 0.0), shape=(51, 46), tracks=["a"], **kw)
+    q = rng.uniform([0.5, 0.5], [9.5, 8.5], (400, 2))
+    # 1 m or more from the receivers, where the log-distance term is smooth at the 0.2 m scale
+    q = q[(np.hypot(q[:, 0] - 2, q[:, 1] - 2) > 1) & (np.hypot(q[:, 0] - 8, q[:, 1] - 6) > 1)]
+    for r in range(2):
+        sel = j == r
+        m_dir, s_dir = kernel_residual_map(q, pts[sel], res[sel], s0[r], **kw)
+        mean, std = rm.lookup(q, [r])
+        # binning moves a point by at most 0.14 m (1/7 of the bandwidth), bilinear look-up at 0.2 m
+        np.testing.assert_allclose(mean[:, 0], _base(r, q) + m_dir, atol=0.3)
+        np.testing.assert_allclose(std[:, 0], s_dir, atol=0.3)
+        assert np.max(np.abs(m_dir)) > 3.0  # the bump is learnt, not a trivial zero map
+    # far from every training point: back to the base model
+    far = np.array([[0.2, 8.8], [9.8, 8.8]])
+    mean, std = rm.lookup(far, [0, 1])
+    np.testing.assert_allclose(mean, np.column_stack([_base(0, far), _base(1, far)]), atol=0.05)
+    np.testing.assert_allclose(std, np.tile(s0, (2, 1)), atol=0.05)
+
+
+def test_radio_map_log_likelihood_against_a_gaussian():
+    rng = np.random.default_rng(4)
+    pts, j, res = _synthetic_training(rng)
+    z = np.array([_base(jj, p[None])[0] for jj, p in zip(j, pts)]) + res
+    rm = fit_radio_map(pts, j, z, _base, np.array([4.0, 5.0]), origin=(0.0, 0.0), cell=0.2, shape=(51, 46))
+    zr, jr = np.array([-70.0, -63.0, -80.0]), np.array([0, 1, 0])
+    # at nodes the bilinear look-up is exact: the Gaussian log-density (up to a constant)
+    nodes = np.column_stack([0.2 * rng.integers(0, 51, 50), 0.2 * rng.integers(0, 46, 50)])
+    ix, iy = np.rint(nodes / 0.2).astype(int).T
+    M, S = rm.mean[jr][:, ix, iy].T, rm.std[jr][:, ix, iy].T
+    ref = (-0.5 * ((zr - M) / S) ** 2 - np.log(S)).sum(axis=1)
+    np.testing.assert_allclose(rm.log_likelihood(zr, jr, nodes), ref, rtol=1e-10, atol=1e-9)
+    for s in (1.0, 1.7):
+        np.testing.assert_allclose(rm.log_likelihood(zr, jr, nodes, std_scale=s),
+                                   (-0.5 * ((zr - M) / (s * S)) ** 2 - np.log(S)).sum(axis=1), rtol=1e-10)
+    # between nodes: close to the Gaussian with interpolated mean and std
+    q = rng.uniform([0.5, 0.5], [9.5, 8.5], (200, 2))
+    M, S = rm.lookup(q, jr)
+    ref = (-0.5 * ((zr - M) / S) ** 2 - np.log(S)).sum(axis=1)
+    np.testing.assert_allclose(rm.log_likelihood(zr, jr, q), ref, rtol=0.01, atol=0.05)
+
+
+def test_tracker_with_a_plain_path_loss_map_matches_the_annulus(ds):
+    cal = PathLossCalibration.from_json(json.loads((SLICE / "path_loss.json").read_text()), ds.receiver_macs)
+    pos = ds.receiver_positions
+    # bandwidth 0: the map is the log-distance model sampled on the 0.2 m nodes
+    rm = fit_radio_map(np.zeros((0, 2)), np.zeros(0, int), np.zeros(0), lambda j, xy: cal.mean_rssi(j, xy, pos),
+                       cal.std, origin=(0, 0), cell=0.2, shape=(105, 90), bandwidth=0.0)
+    a = WSNTracker(cal.sensors(pos), 3000, bounds=ds.limits, seed=1)
+    b = WSNTracker(RSSISensor(pos, -60.0, 2.0, 5.0), 3000, bounds=ds.limits, seed=1, radio_map=rm)
+    a.initialize()
+    b.initialize()
+    x = a.particles
+    x = x[np.min(np.hypot(x[:, None, 0] - pos[:, 0], x[:, None, 1] - pos[:, 1]), axis=1) > 0.5]
+    z, jr = np.array([-75.0, -62.0, -88.0]), np.array([3, 7, 11])
+    la = a.log_likelihood(z, jr, particles=x)
+    lb = b.log_likelihood(z, jr, particles=x) + np.log(cal.std[jr]).sum()
+    assert np.ptp(la) > 20  # informative readings
+    np.testing.assert_allclose(lb, la, atol=0.05 * np.ptp(la))
+    np.testing.assert_allclose(np.exp(lb - lb.max()), np.exp(la - la.max()), atol=0.02)
+
+
+def test_radio_map_npz_round_trip(tmp_path):
+    rng = np.random.default_rng(5)
+    rm = RadioMap((0.0, 0.2), 0.2, rng.normal(-70, 8, (3, 6, 5)), rng.uniform(2, 7, (3, 6, 5)), ["x", "y"])
+    rm.to_npz(tmp_path / "m.npz")
+    back = RadioMap.from_npz(tmp_path / "m.npz")
+    np.testing.assert_allclose(back.mean, rm.mean, atol=0.0051)
+    np.testing.assert_allclose(back.std, rm.std, atol=0.0051)
+    np.testing.assert_allclose(back.origin, rm.origin)
+    assert back.tracks == ["x", "y"] and back.cell == 0.2
+
+
+def test_radio_map_calibration_never_sees_the_evaluated_track(tmp_path, ds, monkeypatch):
+    tr = ds.load_track("straight_03")
+    with pytest.raises(ValidationError, match="evaluated track"):
+        calibrate_radio_map([tr], ds.receiver_positions, ds.receiver_macs, limits=ds.limits, exclude="straight_03")
+    # a dataset with two tracks: the map for one is learnt from the other only
+    d = tmp_path / "ds"
+    shutil.copytree(SLICE, d)
+    rows = TRACK.read_text().splitlines()
+    (d / "trk" / "mirror_all_sensors.mbd").write_text("\n".join(rows[::2]) + "\n")
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("ble_example", EXAMPLE)
+    ex = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ex)
+    seen: list[list[str]] = []
+    real = ex.calibrate_radio_map
+
+    def spy(tracks, *a, **kw):
+        seen.append([t.name for t in tracks])
+        return real(tracks, *a, **kw)
+
+    monkeypatch.setattr(ex, "calibrate_radio_map", spy)
+    dd = BLERSSIDataset(d)
+    res = ex.evaluate_track(dd, d / "trk" / TRACK.name, particles=300)
+    assert seen == [["mirror"]] and res["calibration_tracks"] == ["mirror"]
+    res = ex.evaluate_track(dd, d / "trk" / "mirror_all_sensors.mbd", particles=300)
+    assert seen[-1] == ["straight_03"]
+    # the shipped map and a map file listing the evaluated track
+    shipped = RadioMap.from_npz(SLICE / "radio_map.npz")
+    assert len(shipped.tracks) == 4 and "straight_03" not in shipped.tracks
+    bad = tmp_path / "bad.npz"
+    RadioMap(shipped.origin, shipped.cell, shipped.mean, shipped.std, ["straight_03"]).to_npz(bad)
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(TRACK), "--radio-map", str(bad)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "in-sample" in proc.stderr
+
+
+def test_example_path_loss_model_beats_the_baseline_on_the_slice(tmp_path):
+    out = tmp_path / "res.json"
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(TRACK), "--particles", "2000", "--model", "path-loss",
+                           "--json", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(out.read_text())
+    assert res["model"] == "path-loss" and "straight_03" not in res["calibration_tracks"]
+    assert res["rmse"] < 0.9 * res["baseline_rmse"]

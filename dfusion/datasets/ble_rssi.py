@@ -34,11 +34,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import ValidationError
 from ..linalg import Array
 from ..models.measurement import RSSISensor, fit_path_loss
 from ..pf.occupancy import OccupancyGrid
+from ..pf.radio_map import RadioMap, fit_radio_map
 
 __all__ = [
     "BLERSSIDataset",
@@ -49,6 +51,7 @@ __all__ = [
     "find_dataset_root",
     "PathLossCalibration",
     "calibrate_path_loss",
+    "calibrate_radio_map",
     "weighted_centroid",
     "run_tracker",
     "error_stats",
@@ -291,6 +294,13 @@ class PathLossCalibration:
         return [RSSISensor(pos[j], self.p0[j], self.exponent[j], self.std[j], d0=self.d0, height=self.height)
                 for j in range(len(self.macs))]
 
+    def mean_rssi(self, j: int, xy: ArrayLike, receiver_positions: ArrayLike) -> Array:
+        """Log-distance mean RSSI of receiver ``j`` for a tag at ``xy`` (N, 2), at the calibration height."""
+        r = np.asarray(receiver_positions, dtype=float)[j]
+        q = np.asarray(xy, dtype=float).reshape(-1, 2)
+        d = np.sqrt((q[:, 0] - r[0]) ** 2 + (q[:, 1] - r[1]) ** 2 + (self.height - r[2]) ** 2)
+        return self.p0[j] - 10.0 * self.exponent[j] * np.log10(np.maximum(d, 0.01) / self.d0)
+
     def to_json(self) -> dict:
         return {
             "model": "rssi = p0 - 10 exponent log10(d / d0) + N(0, std^2), d = 3-D distance (m)",
@@ -346,6 +356,38 @@ def calibrate_path_loss(tracks: list[Track], receiver_positions: Array, macs: li
         p0, n, s = np.full(m, p0_), np.full(m, n_), np.full(m, s_)
     return PathLossCalibration(list(macs), p0, n, s, float(d0), float(truth[:, 2].mean()), counts,
                                [t.name for t in tracks])
+
+
+def calibrate_radio_map(tracks: list[Track], receiver_positions: Array, macs: list[str], *,
+                        limits: ArrayLike, cell: float = 0.2, bandwidth: float = 1.0, prior_weight: float = 1.0,
+                        spatial_std: bool = True, path_loss: PathLossCalibration | None = None,
+                        exclude: str | None = None) -> tuple[RadioMap, PathLossCalibration]:
+    """Per-receiver log-distance fit plus a kernel-smoothed residual map (:func:`dfusion.pf.fit_radio_map`).
+
+    The nodes are ``(0, 0) + cell (ix, iy)`` up to the first multiple of ``cell`` at or beyond
+    ``limits = [x_min, y_min, x_max, y_max]`` (the layout of the dataset's ``.occ`` grids).
+    ``path_loss`` defaults to :func:`calibrate_path_loss` on the same tracks. ``exclude``: the
+    name of the track to be evaluated; a :class:`ValidationError` is raised if it is among
+    ``tracks`` (or among the tracks of ``path_loss``), so that the map can never be learnt
+    from the track it is then used on. Returns the map and the path-loss fit under it.
+    """
+    if not tracks:
+        raise ValidationError("calibrate_radio_map needs at least one track")
+    names = [t.name for t in tracks]
+    if exclude is not None and (exclude in names or (path_loss is not None and exclude in path_loss.tracks)):
+        raise ValidationError(f"calibration data include the evaluated track {exclude!r} (leave-one-track-out)")
+    pos = np.asarray(receiver_positions, dtype=float)
+    cal = path_loss if path_loss is not None else calibrate_path_loss(tracks, pos, macs)
+    lim = np.asarray(limits, dtype=float).reshape(4)
+    origin = np.floor(lim[:2] / cell) * cell
+    shape = tuple(int(v) for v in np.ceil((lim[2:] - origin) / cell - 1e-9).astype(int) + 1)
+    truth = np.vstack([t.truth for t in tracks])
+    rmap = fit_radio_map(truth[:, :2], np.concatenate([t.receiver for t in tracks]),
+                         np.concatenate([t.rssi for t in tracks]),
+                         lambda j, xy: cal.mean_rssi(j, xy, pos), cal.std, origin=origin, cell=cell,
+                         shape=shape, bandwidth=bandwidth, prior_weight=prior_weight, spatial_std=spatial_std,
+                         tracks=sorted(set(names) | set(cal.tracks)))
+    return rmap, cal
 
 
 def weighted_centroid(track: Track, receiver_positions: Array, window: float = 2.0,

@@ -11,6 +11,7 @@ from .particle_filter import (
     systematic_resample,
     weighted_mean_cov,
 )
+from .radio_map import RadioMap, fit_radio_map, kernel_residual_map
 from .wsn import WSNTracker, project_psd_information
 
 __all__ = [
@@ -25,5 +26,8 @@ __all__ = [
     "weighted_mean_cov",
     "OccupancyGrid",
     "WSNTracker",
+    "RadioMap",
+    "fit_radio_map",
+    "kernel_residual_map",
     "project_psd_information",
 ]

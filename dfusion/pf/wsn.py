@@ -31,7 +31,10 @@ centred on the distance ``d0_j 10^((p0_j - z_j) / (10 n_j))`` and wider the
 farther out it lies. Readings of one update are independent; missing readings
 (NaN) contribute nothing. ``std_scale`` multiplies every ``sigma_j``: values
 above 1 temper the likelihood, which accounts for shadowing that is correlated
-in time (successive packets are not independent measurements).
+in time (successive packets are not independent measurements). With a
+:class:`~dfusion.pf.radio_map.RadioMap` (``radio_map=``) the mean and standard
+deviation of each reading are the map's at the particle instead (learnt
+log-distance-plus-residual model; docs/wsn.md sec. 3).
 
 **Information contribution (DESIGN.md sec. 4).** The Gaussian fit of the
 posterior minus the Gaussian fit of the prediction, in information form,
@@ -52,6 +55,7 @@ from ..models.measurement import RSSISensor
 from ..models.motion import ConstantVelocity
 from ..maps.grid import OccupancyGrid as MapGrid
 from .occupancy import OccupancyGrid, as_map_grid
+from .radio_map import RadioMap
 from .particle_filter import ParticleDepletionError, ParticleFilter, weighted_mean_cov
 
 __all__ = ["WSNTracker", "project_psd_information", "MOTIONS"]
@@ -151,6 +155,12 @@ class WSNTracker:
         With ``outlier_prob = eps > 0`` each reading's likelihood becomes
         ``(1 - eps) N(z; mu, sigma^2) + eps / rssi_span`` (a uniform floor over a
         span of ``rssi_span`` dB); 0 (default) keeps the pure Gaussian annulus.
+    radio_map : RadioMap or None
+        If given, the likelihood of a reading of receiver ``j`` is the Gaussian with the
+        map's mean and standard deviation at the particle (bilinear look-up,
+        :meth:`RadioMap.log_likelihood`) instead of the log-distance annulus; the
+        sensors then only give the receivers' positions. ``std_scale`` still applies;
+        ``outlier_prob`` must be 0.
     seed : int, Generator or None
         Seed of the filter's random generator.
     resampling, ess_threshold, roughening
@@ -170,6 +180,7 @@ class WSNTracker:
         std_scale: float = 1.0,
         outlier_prob: float = 0.0,
         rssi_span: float = 60.0,
+        radio_map: RadioMap | None = None,
         seed: int | np.random.Generator | None = None,
         resampling: str = "systematic",
         ess_threshold: float = 0.5,
@@ -197,6 +208,12 @@ class WSNTracker:
                 raise ValidationError(f"bounds must have x_max > x_min and y_max > y_min, got {bounds}")
         p = _sensor_arrays(sensors)
         self.n_receivers = p["p0"].shape[0]
+        if radio_map is not None:
+            if not isinstance(radio_map, RadioMap) or radio_map.n_receivers != self.n_receivers:
+                raise ValidationError(f"radio_map must be a RadioMap with {self.n_receivers} receivers")
+            if outlier_prob > 0:
+                raise ValidationError("outlier_prob is not supported with a radio_map")
+        self.radio_map = radio_map
         self.receivers = np.column_stack([p["rxy"], p["rz"]])
         self._dz2 = (p["height"] - p["rz"]) ** 2
         self._dmin2 = p["dmin"] ** 2
@@ -357,6 +374,8 @@ class WSNTracker:
             raise ShapeError(f"particles must have shape (N, >= 2), got {x.shape}")
         if j.size == 0:
             return np.zeros(x.shape[0])
+        if self.radio_map is not None:
+            return self.radio_map.log_likelihood(z, j, x[:, :2], self.std_scale)
         # Squared 3-D distances by expansion, as one matmul:
         # [x, y, x^2 + y^2, 1] @ [-2 a_j, -2 b_j, 1, a_j^2 + b_j^2 + dz_j^2]
         # (built transposed: row-wise writes into an (N, 4) array are slow in numpy)
