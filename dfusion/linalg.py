@@ -6,6 +6,8 @@ inverse itself is the result (a covariance from an information matrix).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -142,6 +144,6 @@ def as_time(t: object, name: str = "time") -> float:
         tf = float(t)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         raise TimeError(f"{name} must be a number, got {t!r}") from None
-    if not np.isfinite(tf):
+    if not math.isfinite(tf):
         raise TimeError(f"{name} must be finite, got {t!r}")
     return tf

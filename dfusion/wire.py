@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 from functools import lru_cache
 from dataclasses import dataclass
 
@@ -62,6 +63,9 @@ TIME_RESOLUTION = 1e-9
 #: refused because replacing them later would cancel every other digit.
 MAX_ABS_INFO = 1e12
 MAX_ABS_VEC = 1e18
+#: Relative margin of the diagonal-dominance shortcut of ``_not_psd`` (covers the rounding
+#: of a row sum of up to ``MAX_STATE_DIM`` terms with room to spare).
+_DOMINANCE_RTOL = 1e-9
 
 _F8 = np.dtype("<f8")
 
@@ -135,13 +139,49 @@ def _field(d: dict, name: str, types: type | tuple) -> object:
     return v
 
 
-def _floats(buf: bytes, count: int, name: str) -> Array:
+def _floats(buf: bytes, count: int, name: str) -> tuple[Array, float]:
+    """``count`` little-endian float64 from ``buf`` (a writable copy) and their largest ``|x|``.
+
+    One reduction serves the finiteness check and, later, the magnitude limits:
+    the maximum of ``|x|`` is NaN or inf exactly when some number is.
+    """
     if len(buf) != 8 * count:
         raise MessageError(f"field {name!r} has {len(buf)} bytes, expected {8 * count}")
-    a = np.frombuffer(buf, dtype=_F8).astype(np.float64)  # a writable copy
-    if not np.all(np.isfinite(a)):
+    a = np.frombuffer(buf, dtype=_F8).astype(np.float64)
+    amax = float(np.abs(a).max()) if count else 0.0
+    if not math.isfinite(amax):
         raise MessageError(f"field {name!r} contains NaN or inf")
-    return a
+    return a, amax
+
+
+def _check_times(times: Array, start: float, sent_at: float, tmax: float) -> None:
+    """Checks 15-18 of docs/wire-format.md on finite ``times`` (``tmax = max|times|``).
+
+    Distinct, increasing nanosecond keys imply strictly increasing times (rounding
+    is monotone), so one test covers both in the usual case; when it fails, the
+    checks run one by one to report the first failure in the documented order.
+    """
+    m = times.shape[0]
+    in_range = tmax <= MAX_ABS_TIME   # times / TIME_RESOLUTION cannot overflow
+    ordered = m < 2 or (in_range and bool((np.diff(np.round(times / TIME_RESOLUTION)) > 0).all()))
+    if not ordered and np.any(np.diff(times) <= 0):
+        raise MessageError("state times are not strictly increasing")
+    if not in_range or abs(start) > MAX_ABS_TIME or abs(sent_at) > MAX_ABS_TIME:
+        raise MessageError(f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
+    if not ordered:
+        raise MessageError(f"two state times are closer than {TIME_RESOLUTION:g} s")
+    if m and times[0] < start:
+        raise MessageError("a state time precedes the window start")
+
+
+@lru_cache(maxsize=16)
+def _unpack_index(n: int) -> Array:
+    """For each entry ``(i, j)`` of an ``n x n`` block (row-major), its index in the packed upper triangle."""
+    idx = np.zeros((n, n), dtype=np.intp)
+    iu = _triu(n)
+    idx[iu] = np.arange(iu[0].size)
+    idx[iu[1], iu[0]] = idx[iu]
+    return idx.reshape(-1)
 
 
 def decode(data: bytes, key: bytes | None = None) -> InfoMessage:
@@ -173,36 +213,26 @@ def decode(data: bytes, key: bytes | None = None) -> InfoMessage:
         raise MessageError("negative sequence number or epoch")
     start = float(_field(d, "start", (int, float)))
     sent_at = float(_field(d, "sent_at", (int, float)))
-    if not (np.isfinite(start) and np.isfinite(sent_at)):
+    if not (math.isfinite(start) and math.isfinite(sent_at)):
         raise MessageError("non-finite start or sent_at")
     tb = _field(d, "times", bytes)
     if len(tb) % 8:
         raise MessageError("field 'times' is not a whole number of float64")
     m = len(tb) // 8
-    times = _floats(tb, m, "times")
-    if m and np.any(np.diff(times) <= 0):
-        raise MessageError("state times are not strictly increasing")
-    if abs(start) > MAX_ABS_TIME or abs(sent_at) > MAX_ABS_TIME or (m and np.abs(times).max() > MAX_ABS_TIME):
-        raise MessageError(f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
-    if m and np.any(np.diff(np.round(times / TIME_RESOLUTION)) <= 0):
-        raise MessageError(f"two state times are closer than {TIME_RESOLUTION:g} s")
-    if m and times[0] < start:
-        raise MessageError("a state time precedes the window start")
+    times, tmax = _floats(tb, m, "times")
+    _check_times(times, start, sent_at, tmax)
     k = n * (n + 1) // 2
-    packed = _floats(_field(d, "info", bytes), m * k, "info").reshape(m, k)
-    vec = _floats(_field(d, "vec", bytes), m * n, "vec").reshape(m, n)
-    if m and np.abs(packed).max() > MAX_ABS_INFO:
+    packed, info_max = _floats(_field(d, "info", bytes), m * k, "info")
+    vec, vec_max = _floats(_field(d, "vec", bytes), m * n, "vec")
+    if info_max > MAX_ABS_INFO:
         raise MessageError(f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
-    if m and np.abs(vec).max() > MAX_ABS_VEC:
+    if vec_max > MAX_ABS_VEC:
         raise MessageError(f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
-    iu = _triu(n)
-    info = np.zeros((m, n, n))
-    info[:, iu[0], iu[1]] = packed
-    info[:, iu[1], iu[0]] = packed
+    info = packed.reshape(m, k)[:, _unpack_index(n)].reshape(m, n, n)
     bad = _not_psd(info)
     if bad is not None:
         raise MessageError(f"information block at t={times[bad]} is not positive semi-definite")
-    return InfoMessage(src, dst, int(epoch), int(seq), start, sent_at, times, info, vec)
+    return InfoMessage(src, dst, int(epoch), int(seq), start, sent_at, times, info, vec.reshape(m, n))
 
 
 def _not_psd(info: Array) -> int | None:
@@ -215,9 +245,27 @@ def _not_psd(info: Array) -> int | None:
     smallest eigenvalue must be at least ``-PSD_SCALED_ATOL``. One huge diagonal
     entry therefore cannot hide a negative eigenvalue elsewhere, and a rank-one
     block with a tiny diagonal entry is still accepted.
+
+    Blocks that are diagonally dominant with a non-negative diagonal (with a margin
+    for the rounding of the row sums) are positive semi-definite by Gershgorin's
+    theorem, so is their scaled block, and the scaled test could only return a
+    smallest eigenvalue of order ``-1e-13``: they are accepted without computing
+    it (diagonal blocks, such as position measurements, are the common case).
+    The decision is the same as testing every block.
     """
     if not len(info):
         return None
+    rows = np.abs(info).sum(axis=2)
+    d = np.diagonal(info, axis1=1, axis2=2)
+    unsure = np.flatnonzero(((2.0 * d - (1.0 + _DOMINANCE_RTOL) * rows) < 0).any(axis=1))
+    if not unsure.size:
+        return None
+    bad = _not_psd_scaled(info[unsure])
+    return None if bad is None else int(unsure[bad])
+
+
+def _not_psd_scaled(info: Array) -> int | None:
+    """The scaled eigenvalue test of :func:`_not_psd` on every block of ``info``."""
     d = np.diagonal(info, axis1=1, axis2=2)
     floor = PSD_RTOL * np.abs(info).max(axis=(1, 2))
     s = 1.0 / np.sqrt(np.maximum(d, 0.0) + np.where(floor > 0, floor, 1.0)[:, None])

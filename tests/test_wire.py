@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 from dfusion.errors import DfusionError, MessageError
 from dfusion.wire import MAX_ABS_INFO, MAX_ABS_TIME, MAX_ABS_VEC, MAX_MESSAGE_BYTES, MAX_STATE_DIM, PSD_RTOL, VERSION, InfoMessage, decode, encode
+from dfusion import wire
 
 KEY = b"network-key-for-tests"
 FIELDS = ("src", "dst", "epoch", "seq", "n", "start", "sent_at", "times", "info", "vec")
@@ -595,3 +596,44 @@ def test_worked_example_of_the_docs():
     assert bytes.fromhex(shown[0].replace("\n", "")) == encode(msg)
     assert "ea 29 1a bf 50 cd 70 64 67 75 57 77 31 f6 50 4c" in text
     assert encode(msg, b"secret")[0x92:0xa2].hex(" ") == "ea 29 1a bf 50 cd 70 64 67 75 57 77 31 f6 50 4c"
+
+
+def _not_psd_reference(info: np.ndarray) -> int | None:
+    """The scaled eigenvalue test of ``wire._not_psd`` on every block, no shortcut."""
+    if not len(info):
+        return None
+    d = np.diagonal(info, axis1=1, axis2=2)
+    floor = wire.PSD_RTOL * np.abs(info).max(axis=(1, 2))
+    s = 1.0 / np.sqrt(np.maximum(d, 0.0) + np.where(floor > 0, floor, 1.0)[:, None])
+    bad = np.linalg.eigvalsh(info * s[:, :, None] * s[:, None, :])[:, 0] < -wire.PSD_SCALED_ATOL
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def test_psd_shortcut_decides_like_the_full_test() -> None:
+    """The diagonal-dominance shortcut of ``_not_psd`` never changes a decision."""
+    rng = np.random.default_rng(7)
+    decisions = set()
+    for _ in range(3000):
+        n, m = int(rng.integers(1, 6)), int(rng.integers(1, 5))
+        kind = int(rng.integers(4))
+        if kind == 0:   # diagonal, some entries zero or slightly negative
+            info = np.zeros((m, n, n))
+            for b in range(m):
+                info[b][np.diag_indices(n)] = rng.choice([0.0, 4.0, -1e-7, -1e-5, 1e-12], n)
+        elif kind == 1:   # diagonally dominant up to a relative margin around zero
+            A = rng.normal(size=(m, n, n))
+            info = 0.5 * (A + A.transpose(0, 2, 1))
+            off = np.abs(info).sum(axis=2) - np.abs(np.diagonal(info, axis1=1, axis2=2))
+            margin = rng.choice([-1e-3, -1e-8, 0.0, 1e-12, 1e-3], (m, n))
+            info[:, np.arange(n), np.arange(n)] = off * (1.0 + margin)
+        elif kind == 2:   # rank-deficient with a negative eigenvalue near the tolerance
+            v = rng.normal(size=(m, n, 1))
+            info = v @ v.transpose(0, 2, 1) - 10.0 ** rng.uniform(-9, -4) * np.eye(n)
+        else:   # random symmetric, scaled over many orders of magnitude
+            A = rng.normal(size=(m, n, n))
+            info = (A @ A.transpose(0, 2, 1) - rng.uniform(0, 2) * np.eye(n)) * 10.0 ** rng.uniform(-10, 10)
+        info = 0.5 * (info + info.transpose(0, 2, 1))
+        expected = _not_psd_reference(info)
+        assert wire._not_psd(info) == expected
+        decisions.add(expected is None)
+    assert decisions == {True, False}

@@ -322,8 +322,12 @@ class DelayedStateEIF:
         self._times.insert(a + 1, tf)
         return a + 1
 
-    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
-        """Fuse measurement ``z`` of ``sensor`` taken at time ``t`` (any time in the window)."""
+    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> tuple[Array, Array]:
+        """Fuse measurement ``z`` of ``sensor`` taken at time ``t`` (any time in the window).
+
+        Returns the single-state information ``(H^T R^-1 H, H^T R^-1 (z - h + H mu))``
+        added to the state at ``t`` (see :func:`measurement_information`).
+        """
         self._require_init()
         tf = as_time(t)
         if tf < self._times[0] - self.time_tol or tf > self._times[-1] + self.time_tol:
@@ -334,10 +338,13 @@ class DelayedStateEIF:
             raise ShapeError(f"{sensor!r} is not a measurement model")
         with self._transaction():
             k = self.ensure_state(tf)
+            if k is None:   # inserted, then marginalized at once by the horizon
+                raise OutsideWindowError(f"time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]")
             x_lin = np.zeros(self.n) if sensor.is_linear else self._mean_at(k)
             Lam, y = measurement_information(sensor, z, x_lin)
             self._traj.add_information(k, Lam, y)
             self._enforce_window()
+        return Lam, y
 
     def add_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> None:
         """Add a factor on the single state at ``t``: ``Omega[t,t] += info_matrix``.
@@ -371,6 +378,7 @@ class DelayedStateEIF:
             if validate:
                 Lam = as_matrix(Lam, (self.n, self.n), "information matrix")
                 check_psd(Lam, "information matrix")
+                Lam = symmetrize(Lam)
                 y = as_vector(y, self.n, "information vector")
             checked.append((tf, Lam, y))
         with self._transaction():
@@ -382,7 +390,8 @@ class DelayedStateEIF:
                             f"time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
                         )
                     k = self._insert(tf)
-                self._traj.add_information(k, symmetrize(Lam), y)
+                # validated matrices are symmetrized above; the others are symmetric by contract
+                self._traj.add_information(k, Lam, y)
             self._enforce_window()
 
     def linearization_point(self, t: float) -> Array:

@@ -126,6 +126,7 @@ class TrajectoryInformation:
         self.y: list[Array] = [np.zeros(self.n)]
         self.factors: list[MotionFactor] = []  # factors[k] links x_k and x_{k+1}
         self._cache: list[_Filtered] = []
+        self._diag = np.diag_indices(self.n)
 
     def __len__(self) -> int:
         return len(self.L)
@@ -208,9 +209,10 @@ class TrajectoryInformation:
         Lk, yk = self.L[k], self.y[k]
         if not Lk.any() and not yk.any():
             return _Filtered(mp, Pp, mp, Pp)
-        M = np.eye(self.n) + Pp @ Lk
+        M = Pp @ Lk
+        M[self._diag] += 1.0   # I + P^- L
         try:
-            X = np.linalg.solve(M, np.column_stack((Pp, mp + Pp @ yk)))
+            X = np.linalg.solve(M, np.concatenate((Pp, (mp + Pp @ yk)[:, None]), axis=1))
         except np.linalg.LinAlgError:
             raise NotPositiveDefiniteError(f"the information of window state {k} is singular") from None
         P = symmetrize(X[:, :-1])

@@ -86,6 +86,11 @@ def time_keys(times: Array) -> np.ndarray:
     return np.rint(np.asarray(times, dtype=float) * 1e9).astype(np.int64)
 
 
+def _nonzero(info: Array, vec: Array) -> np.ndarray:
+    """Per block: does ``(info[i], vec[i])`` carry any information (a non-zero entry)?"""
+    return info.any(axis=(1, 2)) | vec.any(axis=1)
+
+
 class ChannelFilter:
     """Information shared with neighbour ``remote`` over one link (held by ``local``).
 
@@ -151,9 +156,9 @@ class ChannelFilter:
     def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For sorted-or-not ``keys``: ``(found, index)``, ``index[found]`` locating them in :attr:`keys`."""
         pos = np.searchsorted(self.keys, keys)
-        found = pos < self.keys.size
-        found[found] = self.keys[pos[found]] == keys[found]
-        return found, pos
+        if not self.keys.size:
+            return np.zeros(pos.shape, dtype=bool), pos
+        return self.keys.take(pos, mode="clip") == keys, pos
 
     def plan(self, msg: InfoMessage, oldest: float, time_tol: float) -> Plan:
         """What receiving ``msg`` changes, without changing anything.
@@ -167,40 +172,48 @@ class ChannelFilter:
         ``outside`` and ignored.
         """
         new_epoch = msg.epoch != self.epoch
-        mkeys = time_keys(msg.times)
-        nonzero = msg.info.any(axis=(1, 2)) | msg.vec.any(axis=1)
-        in_window = msg.times >= oldest - time_tol
-        outside = int(np.count_nonzero(nonzero & ~in_window))
-        found, pos = self.lookup(mkeys)
-        fresh = in_window & ~found & nonzero
-        replace = in_window & found
-        if replace.any() and not new_epoch:
-            replace[replace] = self.seqs[pos[replace]] < msg.seq
-        deltas: list[tuple[float, Array, Array]] = []
-        times = msg.times
-        for i in np.flatnonzero(fresh):
-            deltas.append((float(times[i]), msg.info[i], msg.vec[i]))
-        ri = np.flatnonzero(replace)
+        times, info, vec = msg.times, msg.info, msg.vec
+        nonzero = _nonzero(info, vec)
+        mkeys = time_keys(times)
+        found_all, pos_all = self.lookup(mkeys)
+        found, pos = found_all, pos_all
+        # times increase: the blocks inside the receiver's window are a suffix
+        first = int(times.searchsorted(oldest - time_tol))
+        outside = int(np.count_nonzero(nonzero[:first])) if first else 0
+        if first:
+            times, info, vec, nonzero = times[first:], info[first:], vec[first:], nonzero[first:]
+            mkeys, found, pos = mkeys[first:], found[first:], pos[first:]
+        fresh = nonzero & ~found
+        if new_epoch or not self.keys.size:
+            replace = found
+        else:
+            replace = found & (self.seqs.take(pos, mode="clip") < msg.seq)
+        deltas: list[tuple[float, Array, Array]] = [
+            (t, info[i], vec[i]) for i, t in zip(fresh.nonzero()[0].tolist(), times[fresh].tolist())
+        ]
+        ri = replace.nonzero()[0]
         if ri.size:
             oi = pos[ri]
-            dL = msg.info[ri] - self.info[oi]
-            dy = msg.vec[ri] - self.vec[oi]
-            changed = dL.any(axis=(1, 2)) | dy.any(axis=1)
-            for j in np.flatnonzero(changed):
+            dL = info[ri] - self.info[oi]
+            dy = vec[ri] - self.vec[oi]
+            for j in _nonzero(dL, dy).nonzero()[0].tolist():
                 deltas.append((float(times[ri[j]]), dL[j], dy[j]))
         store = fresh | replace
         # times the sender still holds but sent nothing for: its information there is now zero
         drop = np.zeros(0, dtype=np.int64)
         if self.keys.size:
-            in_msg = np.zeros(self.keys.size, dtype=bool)
-            in_msg[pos[found]] = True
-            gone = ~in_msg & (self.times >= msg.start - time_tol)
+            gone = self.times >= msg.start - time_tol
+            gone[pos_all[found_all]] = False
             if not new_epoch:
                 gone &= self.seqs < msg.seq
-            for i in np.flatnonzero(gone):
-                deltas.append((float(self.times[i]), -self.info[i], -self.vec[i]))
-            drop = self.keys[gone]
-        return Plan(deltas, mkeys[store], times[store], msg.info[store], msg.vec[store], drop, outside)
+            gi = gone.nonzero()[0]
+            if gi.size:
+                for i in gi.tolist():
+                    deltas.append((float(self.times[i]), -self.info[i], -self.vec[i]))
+                drop = self.keys[gi]
+        if store.all():
+            return Plan(deltas, mkeys, times, info, vec, drop, outside)
+        return Plan(deltas, mkeys[store], times[store], info[store], vec[store], drop, outside)
 
     def commit(self, msg: InfoMessage, plan: Plan | None) -> None:
         """Store what :meth:`plan` decided (``None``: only note that ``msg`` arrived)."""
@@ -216,16 +229,29 @@ class ChannelFilter:
         n = msg.vec.shape[1]
         if self.info is None:
             self.info, self.vec = np.zeros((0, n, n)), np.zeros((0, n))
-        keep = ~np.isin(self.keys, plan.drop) if plan.drop.size else np.ones(self.keys.size, dtype=bool)
-        if plan.keys.size:
-            keep &= ~np.isin(self.keys, plan.keys)
+        seqs = np.full(plan.keys.size, msg.seq, dtype=np.int64)
+        keep = self._kept(plan)
+        if not keep.any():
+            # the usual case: the message replaces every stored entry
+            self.keys, self.times, self.seqs = plan.keys, plan.times, seqs
+            self.info, self.vec = plan.info, plan.vec
+            return
         keys = np.concatenate([self.keys[keep], plan.keys])
         order = np.argsort(keys, kind="stable")
         self.keys = keys[order]
         self.times = np.concatenate([self.times[keep], plan.times])[order]
-        self.seqs = np.concatenate([self.seqs[keep], np.full(plan.keys.size, msg.seq, dtype=np.int64)])[order]
+        self.seqs = np.concatenate([self.seqs[keep], seqs])[order]
         self.info = np.concatenate([self.info[keep], plan.info])[order]
         self.vec = np.concatenate([self.vec[keep], plan.vec])[order]
+
+    def _kept(self, plan: Plan) -> np.ndarray:
+        """Mask of the stored entries that ``plan`` neither replaces nor drops."""
+        keep = np.ones(self.keys.size, dtype=bool)
+        for keys in (plan.drop, plan.keys):
+            if keys.size and self.keys.size:
+                found, pos = self.lookup(keys)
+                keep[pos[found]] = False
+        return keep
 
     def prune(self, oldest_key: int) -> None:
         """Forget entries of states older than the window (already in the base)."""

@@ -29,11 +29,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..errors import DfusionError, MessageError, OutsideWindowError, ValidationError
-from ..estimation.delayed_state import DelayedStateEIF, measurement_information
+from ..estimation.delayed_state import DelayedStateEIF
 from ..linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from ..models.base import MeasurementModel, MotionModel
 from ..wire import InfoMessage, decode, encode
-from .channel import ChannelFilter, time_key
+from .channel import ChannelFilter, time_key, time_keys
 from .policy import InformationFusionPolicy, Policy, SourceEstimate
 
 log = logging.getLogger(__name__)
@@ -59,6 +59,109 @@ class _Info:
     t: float
     info: Array
     vec: Array
+
+
+class _Blocks:
+    """Single-state information per state time, as arrays sorted by time key.
+
+    The node's own and total information (see the module docstring). Kept as
+    arrays, like :class:`ChannelFilter`, so that a message is built with a few
+    array operations instead of one Python step per state time. The entries live
+    in ``[lo, hi)`` of buffers with spare room at the end: the usual changes
+    (a new newest time, pruning the oldest) then copy nothing. The buffers are
+    owned by the store and added to in place; what it hands out is a view to
+    read at once (:attr:`keys` ...) or a copy.
+    """
+
+    def __init__(self, n: int) -> None:
+        self._set(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, n, n)), np.zeros((0, n)))
+
+    def _set(self, keys: np.ndarray, times: Array, info: Array, vec: Array) -> None:
+        """Hold these entries (sorted by key) in new buffers with room to grow."""
+        size = keys.shape[0]
+        cap = max(8, 2 * size)
+        self._keys = np.zeros(cap, dtype=np.int64)
+        self._times = np.zeros(cap)
+        self._info = np.zeros((cap,) + info.shape[1:])
+        self._vec = np.zeros((cap,) + vec.shape[1:])
+        self._keys[:size], self._times[:size], self._info[:size], self._vec[:size] = keys, times, info, vec
+        self._lo, self._hi = 0, size
+
+    @property
+    def keys(self) -> np.ndarray:
+        return self._keys[self._lo:self._hi]
+
+    @property
+    def times(self) -> Array:
+        return self._times[self._lo:self._hi]
+
+    @property
+    def info(self) -> Array:
+        return self._info[self._lo:self._hi]
+
+    @property
+    def vec(self) -> Array:
+        return self._vec[self._lo:self._hi]
+
+    def __len__(self) -> int:
+        return self._hi - self._lo
+
+    def items(self) -> list[tuple[int, _Info]]:
+        """``(time key, _Info)`` pairs, oldest first (copies, for inspection)."""
+        info, vec = self.info, self.vec
+        return [(k, _Info(t, info[i].copy(), vec[i].copy()))
+                for i, (k, t) in enumerate(zip(self.keys.tolist(), self.times.tolist()))]
+
+    def add(self, t: float, info: Array, vec: Array) -> None:
+        """Add ``(info, vec)`` at state time ``t`` (a new entry if there is none)."""
+        key = time_key(t)
+        keys = self.keys
+        i = int(keys.searchsorted(key))
+        j = self._lo + i
+        if i < keys.size and keys[i] == key:
+            self._info[j] += info
+            self._vec[j] += vec
+        elif j == self._hi and j < self._keys.size:
+            self._keys[j], self._times[j], self._info[j], self._vec[j] = key, t, info, vec
+            self._hi += 1
+        else:
+            self._set(*(np.concatenate((a[:i], np.asarray(row, dtype=a.dtype)[None], a[i:]))
+                        for a, row in ((keys, key), (self.times, t), (self.info, info), (self.vec, vec))))
+
+    def add_many(self, entries: Sequence[tuple[float, Array, Array]]) -> None:
+        """Add every ``(t, info, vec)`` of ``entries`` (distinct times)."""
+        if len(entries) < 4:
+            for t, info, vec in entries:
+                self.add(t, info, vec)
+            return
+        times = np.array([e[0] for e in entries], dtype=float)
+        keys = time_keys(times)
+        info = np.array([e[1] for e in entries], dtype=float)
+        vec = np.array([e[2] for e in entries], dtype=float)
+        pos = np.searchsorted(self.keys, keys)
+        found = self.keys.take(pos, mode="clip") == keys if len(self) else np.zeros(keys.size, dtype=bool)
+        if found.any():
+            self._info[self._lo + pos[found]] += info[found]
+            self._vec[self._lo + pos[found]] += vec[found]
+        new = ~found
+        if new.any():
+            keys = np.concatenate([self.keys, keys[new]])
+            order = np.argsort(keys, kind="stable")
+            self._set(keys[order], np.concatenate([self.times, times[new]])[order],
+                      np.concatenate([self.info, info[new]])[order], np.concatenate([self.vec, vec[new]])[order])
+
+    def prune(self, cutoff: int) -> None:
+        """Forget the entries whose key is below ``cutoff``."""
+        self._lo += int(self.keys.searchsorted(cutoff))
+
+    def between(self, lo: float, hi: float) -> list[tuple[float, Array, Array]]:
+        """Entries with ``lo < t <= hi``, oldest first (copies)."""
+        times = self.times
+        if not times.size or times[-1] <= lo:
+            return []
+        a, b = np.searchsorted(times, (lo, hi), side="right").tolist()
+        info, vec = self.info, self.vec
+        return [(float(times[i]), info[i].copy(), vec[i].copy()) for i in range(a, b)]
 
 
 #: Differences ``T(t) - M(t)`` smaller than this, relative to ``T(t)``, are rounding noise.
@@ -162,9 +265,8 @@ class FusionNode:
         self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j) for j in nbrs}
         self.stats = NodeStats()
         self.sources: dict[str, SourceEstimate] = {}
-        self._own: dict[int, _Info] = {}
-        self._total: dict[int, _Info] = {}
-        self._ahead: set[int] = set()   # keys of _total newer than the newest state
+        self._own = _Blocks(self.filter.n)
+        self._total = _Blocks(self.filter.n)   # entries newer than the newest state wait for predict
         self._pruned_at = self.filter.oldest_time
         self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
 
@@ -190,15 +292,13 @@ class FusionNode:
             f.ensure_state(t)
             self._prune()
             return
-        last = f.latest_time
-        due = [k for k in self._ahead if self._total[k].t <= t + f.time_tol]
-        pending = [self._total[k] for k in due if self._total[k].t > last + f.time_tol]
-        with f.transaction():
+        pending = self._total.between(f.latest_time + f.time_tol, t + f.time_tol)
+        if pending:
+            with f.transaction():
+                f.predict(t, u)
+                f.add_information_batch(pending, validate=False)
+        else:
             f.predict(t, u)
-            if pending:
-                pending.sort(key=lambda e: e.t)
-                f.add_information_batch([(e.t, e.info, e.vec) for e in pending], validate=False)
-        self._ahead.difference_update(due)
         self._prune()
 
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
@@ -209,11 +309,7 @@ class FusionNode:
             raise OutsideWindowError(
                 f"measurement time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
             )
-        with f.transaction():
-            f.ensure_state(t)
-            x_lin = np.zeros(f.n) if sensor.is_linear else f.linearization_point(t)
-            Lam, y = measurement_information(sensor, z, x_lin)
-            f.add_information_batch([(t, Lam, y)], validate=False)
+        Lam, y = f.update(t, z, sensor)
         self._add_own(t, Lam, y)
         self._prune()
 
@@ -244,10 +340,8 @@ class FusionNode:
         self._prune()
 
     def _add_own(self, t: float, Lam: Array, y: Array) -> None:
-        key = time_key(t)
-        for store in (self._own, self._total):
-            e = store.get(key)
-            store[key] = _Info(t, Lam, y) if e is None else _Info(e.t, e.info + Lam, e.vec + y)
+        self._own.add(t, Lam, y)
+        self._total.add(t, Lam, y)
 
     def estimate(self, t: float | None = None) -> tuple[Array, Array]:
         """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""
@@ -270,12 +364,10 @@ class FusionNode:
         if ch is None:
             raise ValidationError(f"{neighbor!r} is not a neighbour of {self.name!r}")
         n = self.filter.n
-        keys = sorted(self._total)
-        times = np.array([self._total[k].t for k in keys], dtype=float)
-        infos = np.array([self._total[k].info for k in keys], dtype=float).reshape(-1, n, n)
-        vecs = np.array([self._total[k].vec for k in keys], dtype=float).reshape(-1, n)
+        tot = self._total
+        keys, times, infos, vecs = tot.keys, tot.times, tot.info.copy(), tot.vec.copy()
         if self.fusion == "channel" and len(ch):
-            found, pos = ch.lookup(np.array(keys, dtype=np.int64))
+            found, pos = ch.lookup(keys)
             rows = np.flatnonzero(found)
             if rows.size:
                 scale = np.abs(infos[rows]).max(axis=(1, 2))
@@ -285,14 +377,15 @@ class FusionNode:
         elif self.fusion == "naive":
             # rumour propagation: everything new since the last message, echo included
             sent = self._naive_sent.setdefault(neighbor, {})
-            for i, k in enumerate(keys):
+            for i, k in enumerate(keys.tolist()):
                 prev = sent.get(k)
                 sent[k] = (infos[i].copy(), vecs[i].copy())
                 if prev is not None:
                     infos[i] -= prev[0]
                     vecs[i] -= prev[1]
         keep = infos.any(axis=(1, 2)) | vecs.any(axis=1)
-        times, infos, vecs = times[keep], infos[keep], vecs[keep]
+        if not keep.all():
+            times, infos, vecs = times[keep], infos[keep], vecs[keep]
         msg = InfoMessage(
             src=self.name,
             dst=neighbor,
@@ -357,12 +450,7 @@ class FusionNode:
             raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
         self.stats.duplicates += duplicate
         ch.commit(msg, plan)
-        for t, dL, dy in deltas:
-            key = time_key(t)
-            e = self._total.get(key)
-            self._total[key] = _Info(t, dL, dy) if e is None else _Info(e.t, e.info + dL, e.vec + dy)
-            if t > latest:
-                self._ahead.add(key)
+        self._total.add_many(deltas)
         if outside:
             self.stats.blocks_outside_window += outside
             log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
@@ -376,12 +464,11 @@ class FusionNode:
             return
         self._pruned_at = oldest
         cutoff = time_key(oldest) - 1
-        for store in (self._own, self._total):
-            for key in [k for k in store if k < cutoff]:
-                del store[key]
+        self._own.prune(cutoff)
+        self._total.prune(cutoff)
         for ch in self.channels.values():
             ch.prune(cutoff)
 
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""
-        return [(e.t, e.info, e.vec) for _, e in sorted(self._own.items())]
+        return [(e.t, e.info, e.vec) for _, e in self._own.items()]
