@@ -91,6 +91,18 @@ def _nonzero(info: Array, vec: Array) -> np.ndarray:
     return info.any(axis=(1, 2)) | vec.any(axis=1)
 
 
+def find_keys(stored: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Join ``keys`` (any order) against the increasing array ``stored``.
+
+    Returns ``(found, pos)``: ``found[i]`` whether ``keys[i]`` is stored, and then
+    ``stored[pos[i]] == keys[i]`` (elsewhere ``pos[i]`` is where it would be inserted).
+    """
+    pos = np.searchsorted(stored, keys)
+    if not stored.size:
+        return np.zeros(pos.shape, dtype=bool), pos
+    return stored.take(pos, mode="clip") == keys, pos
+
+
 class ChannelFilter:
     """Information shared with neighbour ``remote`` over one link (held by ``local``).
 
@@ -154,11 +166,8 @@ class ChannelFilter:
         return None
 
     def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For sorted-or-not ``keys``: ``(found, index)``, ``index[found]`` locating them in :attr:`keys`."""
-        pos = np.searchsorted(self.keys, keys)
-        if not self.keys.size:
-            return np.zeros(pos.shape, dtype=bool), pos
-        return self.keys.take(pos, mode="clip") == keys, pos
+        """:func:`find_keys` of ``keys`` among the stored entries."""
+        return find_keys(self.keys, keys)
 
     def plan(self, msg: InfoMessage, oldest: float, time_tol: float) -> Plan:
         """What receiving ``msg`` changes, without changing anything.

@@ -33,7 +33,7 @@ from ..estimation.delayed_state import DelayedStateEIF
 from ..linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from ..models.base import MeasurementModel, MotionModel
 from ..wire import InfoMessage, decode, encode
-from .channel import ChannelFilter, time_key, time_keys
+from .channel import ChannelFilter, find_keys, time_key, time_keys
 from .policy import InformationFusionPolicy, Policy, SourceEstimate
 
 log = logging.getLogger(__name__)
@@ -138,8 +138,7 @@ class _Blocks:
         keys = time_keys(times)
         info = np.array([e[1] for e in entries], dtype=float)
         vec = np.array([e[2] for e in entries], dtype=float)
-        pos = np.searchsorted(self.keys, keys)
-        found = self.keys.take(pos, mode="clip") == keys if len(self) else np.zeros(keys.size, dtype=bool)
+        found, pos = find_keys(self.keys, keys)
         if found.any():
             self._info[self._lo + pos[found]] += info[found]
             self._vec[self._lo + pos[found]] += vec[found]

@@ -235,7 +235,7 @@ def _filled_output(rec: NodeRecord, sc: Scenario, mean: np.ndarray, cov: np.ndar
                      list(rec.out_source))
     for k in range(len(out.source)):
         if not out.source[k]:
-            if k == 0 or not out.source[k - 1]:
+            if k == 0:   # later gaps find step k - 1 already filled
                 out.mean[k], out.cov[k], out.source[k] = mean[k], cov[k], "fused"
             else:
                 out.mean[k], out.cov[k], out.source[k] = out.mean[k - 1], out.cov[k - 1], out.source[k - 1]
