@@ -86,12 +86,44 @@ def measurement_information(
     :class:`NonFiniteError` or :class:`NotPositiveDefiniteError` on bad input.
     """
     zv = as_vector(z, sensor.dim_z, "measurement z")
+    if sensor.is_linear and not x_lin.any():
+        return _linear_information(sensor, zv, x_lin)
     W = _whitener(sensor.R, sensor.dim_z)
     H = as_matrix(sensor.H(x_lin), (sensor.dim_z, x_lin.shape[0]), "measurement Jacobian H")
     innov = sensor.residual(zv, sensor.h(x_lin)) + H @ x_lin
     innov = as_vector(innov, sensor.dim_z, "innovation")
     AH, Ar = W @ H, W @ innov  # C^-1 H, C^-1 r
     return symmetrize(AH.T @ AH), AH.T @ Ar
+
+
+_LINEAR: dict[tuple, tuple[Array, Array, Array]] = {}
+
+
+def _linear_information(sensor: MeasurementModel, zv: Array, x0: Array) -> tuple[Array, Array]:
+    """:func:`measurement_information` of a linear sensor at ``x_lin = 0``.
+
+    ``W = C^-1``, ``C^-1 H`` and ``Lam = H^T R^-1 H`` do not depend on ``z``: they are
+    computed (and validated) once per exact ``(R, H)`` and cached; ``y`` is computed
+    as in the general case, ``(C^-1 H)^T (C^-1 (z - h(0)))``. The returned ``Lam`` is
+    read-only (shared by every measurement of that sensor).
+    """
+    R = np.asarray(sensor.R, dtype=np.float64)
+    H = np.asarray(sensor.H(x0), dtype=np.float64)
+    key = (R.tobytes(), R.shape, H.tobytes(), H.shape)
+    cached = _LINEAR.get(key)
+    if cached is None:
+        W = _whitener(R, sensor.dim_z)
+        H = as_matrix(H, (sensor.dim_z, x0.shape[0]), "measurement Jacobian H")
+        AH = W @ H
+        Lam = symmetrize(AH.T @ AH)
+        Lam.flags.writeable = False
+        if len(_LINEAR) > 1024:
+            _LINEAR.clear()
+        cached = _LINEAR[key] = (W, AH, Lam)
+    W, AH, Lam = cached
+    innov = sensor.residual(zv, sensor.h(x0))
+    innov = as_vector(innov, sensor.dim_z, "innovation")
+    return Lam, AH.T @ (W @ innov)
 
 
 def _checked_square(a: ArrayLike, n: int, name: str, spd: bool = False) -> Array:

@@ -51,9 +51,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import lapack
 
 from ..errors import NotPositiveDefiniteError
 from ..linalg import Array, symmetrize
+
+# LAPACK called directly: the same routines as numpy.linalg.solve / cholesky without
+# their per-call Python checks, which cost more than the arithmetic on 4 x 4 blocks.
+_gesv = lapack.dgesv
+_potrf = lapack.dpotrf
 
 
 @dataclass(frozen=True)
@@ -81,10 +87,11 @@ class MotionFactor:
 
 
 def _chol(S: Array, what: str) -> Array:
-    try:
-        return np.linalg.cholesky(S)
-    except np.linalg.LinAlgError:
-        raise NotPositiveDefiniteError(f"{what} is not positive definite") from None
+    """Lower Cholesky factor of ``S`` (LAPACK ``dpotrf``); :class:`NotPositiveDefiniteError` otherwise."""
+    C, info = _potrf(S, lower=1, clean=1)
+    if info != 0 or not np.isfinite(C).all():
+        raise NotPositiveDefiniteError(f"{what} is not positive definite")
+    return C
 
 
 def _inv_from_chol(C: Array) -> Array:
@@ -114,6 +121,10 @@ class TrajectoryInformation:
 
     All mutators replace arrays instead of writing into them, so a shallow copy
     (:meth:`snapshot`) is a complete, cheap checkpoint.
+
+    When a single-state factor of ``x_k`` changes, the prediction ``N(mu^-_k, P^-_k)``
+    stays valid (it depends on the states before ``x_k`` only): it is kept aside
+    (``_kept``, always for state ``len(_cache)``) and reused by the next forward pass.
     """
 
     def __init__(self, mean: Array, cov: Array) -> None:
@@ -126,6 +137,7 @@ class TrajectoryInformation:
         self.y: list[Array] = [np.zeros(self.n)]
         self.factors: list[MotionFactor] = []  # factors[k] links x_k and x_{k+1}
         self._cache: list[_Filtered] = []
+        self._kept: _Filtered | None = None   # prediction of state len(_cache), if still valid
         self._diag = np.diag_indices(self.n)
 
     def __len__(self) -> int:
@@ -134,23 +146,32 @@ class TrajectoryInformation:
     # ---------------------------------------------------------------- checkpoint
     def snapshot(self) -> tuple:
         """A checkpoint of the whole state (O(m) references, no array copies)."""
-        return (self.base, list(self.L), list(self.y), list(self.factors), list(self._cache))
+        return (self.base, list(self.L), list(self.y), list(self.factors), list(self._cache), self._kept)
 
     def restore(self, snap: tuple) -> None:
         """Return to a checkpoint taken by :meth:`snapshot`."""
-        base, L, y, f, c = snap
+        base, L, y, f, c, kept = snap
         self.base, self.L, self.y, self.factors, self._cache = base, list(L), list(y), list(f), list(c)
+        self._kept = kept
 
     # ---------------------------------------------------------------- mutation
     def _invalidate(self, k: int) -> None:
+        """Forget the filtered terms of states ``k ..`` and their predictions."""
         if k < len(self._cache):
             del self._cache[k:]
+            self._kept = None
+        elif k == len(self._cache):
+            self._kept = None
 
     def add_information(self, k: int, Lam: Array, y: Array) -> None:
         """Add a single-state factor: ``Omega[k,k] += Lam``, ``eta[k] += y``."""
         self.L[k] = symmetrize(self.L[k] + Lam)
         self.y[k] = self.y[k] + y
-        self._invalidate(k)
+        cache = self._cache
+        if k < len(cache):
+            # x_k's prediction does not depend on its own single-state factor: keep it
+            self._kept = cache[k] if k > 0 else None
+            del cache[k:]
 
     def append(self, factor: MotionFactor) -> None:
         """Append a newest state linked to the current newest one by ``factor``."""
@@ -181,6 +202,7 @@ class TrajectoryInformation:
         del self.L[0], self.y[0], self.factors[0], self._cache[0]
         c0 = self._cache[0]
         self._cache[0] = _Filtered(c0.mean, c0.cov)
+        # _kept (if any) is the prediction of state len(_cache), which moved down with it
 
     # ---------------------------------------------------------------- queries
     def _forward(self, upto: int) -> None:
@@ -190,6 +212,11 @@ class TrajectoryInformation:
         while k < upto:
             if k == 0:
                 cache.append(self._filtered(0, self.base[0], self.base[1]))
+            elif self._kept is not None:
+                kept, self._kept = self._kept, None
+                entry = self._filtered(k, kept.pred_mean, kept.pred_cov)
+                entry._pred_chol = kept._pred_chol
+                cache.append(entry)
             else:
                 prev = cache[k - 1]
                 f = self.factors[k - 1]
@@ -209,15 +236,20 @@ class TrajectoryInformation:
         Lk, yk = self.L[k], self.y[k]
         if not Lk.any() and not yk.any():
             return _Filtered(mp, Pp, mp, Pp)
+        n = self.n
         M = Pp @ Lk
         M[self._diag] += 1.0   # I + P^- L
-        try:
-            X = np.linalg.solve(M, np.concatenate((Pp, (mp + Pp @ yk)[:, None]), axis=1))
-        except np.linalg.LinAlgError:
-            raise NotPositiveDefiniteError(f"the information of window state {k} is singular") from None
-        P = symmetrize(X[:, :-1])
-        _chol(P, f"the covariance of window state {k}")   # the information must stay positive definite
-        return _Filtered(X[:, -1], P, mp, Pp)
+        rhs = np.empty((n, n + 1))
+        rhs[:, :n] = Pp
+        rhs[:, n] = mp + Pp @ yk
+        X, info = _gesv(M, rhs, overwrite_a=1, overwrite_b=1)[2:]
+        if info != 0:
+            raise NotPositiveDefiniteError(f"the information of window state {k} is singular")
+        P = symmetrize(X[:, :n])
+        # the information must stay positive definite
+        if _potrf(P, lower=1, clean=0)[1] != 0:
+            raise NotPositiveDefiniteError(f"the covariance of window state {k} is not positive definite")
+        return _Filtered(X[:, n].copy(), P, mp, Pp)
 
     def latest(self) -> tuple[Array, Array]:
         """Mean and covariance of the newest state (the filtered estimate)."""

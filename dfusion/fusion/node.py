@@ -172,13 +172,18 @@ def _clean_difference(diff: Array, scale: Array) -> Array:
 
     The exact difference is positive semi-definite (it is a sum of measurement
     information). Computed in floating point it carries errors of order
-    ``eps * |T(t)|``: blocks below ``ROUNDING_RTOL * |T(t)|`` become exactly
+    ``eps * |T(t)|``: entries below ``ROUNDING_RTOL * |T(t)|`` become exactly
     zero, and rounding-level negative eigenvalues are clipped to zero.
+
+    Blocks that are then diagonally dominant with a non-negative diagonal are
+    positive semi-definite (Gershgorin) and are kept without an eigenvalue
+    decomposition (diagonal blocks, such as position measurements, are the usual case).
     """
     out = diff.copy()
-    tiny = np.abs(diff).max(axis=(1, 2)) <= ROUNDING_RTOL * scale
-    out[tiny] = 0.0
-    rest = ~tiny
+    out[np.abs(out) <= (ROUNDING_RTOL * scale)[:, None, None]] = 0.0
+    d = np.diagonal(out, axis1=1, axis2=2)
+    dominant = ((2.0 * d - np.abs(out).sum(axis=2)) >= 0.0).all(axis=1)
+    rest = ~dominant
     if rest.any():
         w, V = np.linalg.eigh(out[rest])
         neg = w.min(axis=1) < 0
