@@ -17,13 +17,23 @@ the same run and at the same instants, a causal weighted-centroid baseline
 (RSSI averaged over the last ``--window`` s per receiver, weights
 ``10^(rssi/10)``). Both are compared with the ground truth of every row.
 
-Measurement model (``--model``): ``radio-map`` (default) is the per-receiver
-log-distance fit plus a kernel-smoothed map of its residuals over the floor, with a
-spatial spread (dfusion.pf.radio_map; docs/wsn.md sec. 3); ``path-loss`` is the
-log-distance fit alone. Calibration is never taken from the track being evaluated:
+Measurement model (``--model``): ``radio-map`` (default) is a per-receiver
+log-distance fit with azimuthal harmonics (a directional gain) plus a kernel-smoothed map
+of its residuals over the floor, with a spatial spread and a split-normal (left-skewed)
+noise law (dfusion.pf.radio_map; docs/wsn.md sec. 3); ``path-loss`` is the log-distance
+fit alone. Calibration is never taken from the track being evaluated:
 ``--path-loss FILE`` / ``--radio-map FILE`` if given (refused if the file lists the
 track); otherwise fitted on the *other* tracks in ``DIR/trk`` (leave-one-track-out);
 otherwise ``DIR/path_loss.json`` / ``DIR/radio_map.npz``.
+
+Radio-map settings (harmonic order and ridge, kernel bandwidth, prior weight) that are
+not given on the command line are chosen for each evaluated track from a grid
+(``dfusion.datasets.ble_rssi.MAP_SETTINGS_GRID``) by leave-one-track-out predictive
+density *among its calibration tracks* (each calibration track predicted by a map of the
+others); the noise law is fitted to those held-out residuals. The evaluated track takes
+no part in either, so the reported errors are those of a nested leave-one-track-out
+evaluation. With a single calibration track there is nothing to cross-validate: the
+settings then default to ``SINGLE_TRACK_MAP`` with Gaussian noise.
 """
 from __future__ import annotations
 
@@ -44,15 +54,20 @@ from dfusion.datasets import (
     run_tracker,
     weighted_centroid,
 )
-from dfusion.datasets.ble_rssi import calibrate_radio_map
+from dfusion.datasets.ble_rssi import MAP_SETTINGS_GRID, calibrate_radio_map, select_radio_map_settings
 from dfusion.errors import DfusionError
 from dfusion.models import RSSISensor
 from dfusion.pf import RadioMap, WSNTracker
 
-#: Defaults of the tracker (see docs/wsn.md for how they were chosen).
+#: Defaults of the tracker (see docs/wsn.md for how they were chosen). A radio-map setting of
+#: None is chosen per evaluated track from MAP_SETTINGS_GRID (see the module docstring).
 DEFAULTS = dict(particles=5000, motion="random_walk", q=0.5, grid_cell=0.2, window=2.0, seed=0,
-                model="radio-map", map_bandwidth=1.0, map_prior_weight=0.05)
+                model="radio-map", map_order=None, map_ridge=None, map_bandwidth=None, map_prior_weight=None,
+                map_noise="split-normal")
+#: Radio-map settings when only one calibration track is available (no cross-validation possible).
+SINGLE_TRACK_MAP = dict(order=0, ridge=100.0, bandwidth=1.0, prior_weight=0.05)
 MODELS = ("radio-map", "path-loss")
+MAP_KEYS = ("order", "ridge", "bandwidth", "prior_weight")
 
 
 def calibration_for(ds: BLERSSIDataset, track_name: str, path_loss: Path | None,
@@ -78,12 +93,20 @@ def calibration_for(ds: BLERSSIDataset, track_name: str, path_loss: Path | None,
                        f"no {stored}; pass --path-loss FILE")
 
 
-def radio_map_for(ds: BLERSSIDataset, track_name: str, radio_map: Path | None, cache: dict | None = None,
-                  bandwidth: float = DEFAULTS["map_bandwidth"],
-                  prior_weight: float = DEFAULTS["map_prior_weight"], spatial_std: bool = True) -> RadioMap:
+def radio_map_for(ds: BLERSSIDataset, track_name: str | None, radio_map: Path | None, cache: dict | None = None,
+                  settings: dict | None = None, noise: str = DEFAULTS["map_noise"],
+                  spatial_std: bool = True) -> RadioMap:
     """Radio map that does not use ``track_name``: ``radio_map`` FILE (.npz), else fitted on the other
     tracks in ``DIR/trk`` (leave-one-track-out), else ``DIR/radio_map.npz``; refused if its
-    provenance lists ``track_name``."""
+    provenance lists ``track_name`` (None: no track is evaluated, every track may be used).
+
+    ``settings`` maps ``order``, ``ridge``, ``bandwidth``, ``prior_weight`` to a value, or to None
+    (or leaves them out) to choose them from :data:`MAP_SETTINGS_GRID` by leave-one-track-out
+    predictive density among the calibration tracks (:func:`select_radio_map_settings`).
+    ``noise``: ``"split-normal"`` (fitted to held-out residuals of the calibration tracks) or
+    ``"gaussian"``. The chosen settings are recorded in ``RadioMap.settings``.
+    """
+    settings = {k: v for k, v in (settings or {}).items() if v is not None}
     if radio_map is not None:
         rmap, src = RadioMap.from_npz(radio_map), Path(radio_map)
     else:
@@ -91,9 +114,20 @@ def radio_map_for(ds: BLERSSIDataset, track_name: str, radio_map: Path | None, c
         if others:
             cache = {} if cache is None else cache
             tracks = [cache.setdefault(n, ds.load_track(n)) for n in others]
-            return calibrate_radio_map(tracks, ds.receiver_positions, ds.receiver_macs, limits=ds.limits,
-                                       bandwidth=bandwidth, prior_weight=prior_weight, spatial_std=spatial_std,
-                                       exclude=track_name)[0]
+            kw = dict(limits=ds.limits, spatial_std=spatial_std, exclude=track_name)
+            if len(tracks) >= 2:
+                grid = {k: (settings[k],) if k in settings else MAP_SETTINGS_GRID[k] for k in MAP_KEYS}
+                best, table = select_radio_map_settings(tracks, ds.receiver_positions, ds.receiver_macs,
+                                                        grid=grid, noise=noise, **kw)
+                chosen, law = {k: best[k] for k in MAP_KEYS}, best["noise"]
+                how = "selected" if len(table) > 1 else "given"
+            else:  # one calibration track: no held-out data to choose settings or fit the noise law
+                chosen, law, how = {k: settings.get(k, v) for k, v in SINGLE_TRACK_MAP.items()}, None, "single-track"
+            rmap = calibrate_radio_map(tracks, ds.receiver_positions, ds.receiver_macs, order=chosen["order"],
+                                       ridge=chosen["ridge"], bandwidth=chosen["bandwidth"],
+                                       prior_weight=chosen["prior_weight"], noise=law, **kw)[0]
+            rmap.settings["how"] = how
+            return rmap
         src = ds.root / "radio_map.npz"
         if not src.is_file():
             raise DfusionError(f"no radio-map calibration for {track_name}: {ds.root / 'trk'} holds no other "
@@ -102,6 +136,7 @@ def radio_map_for(ds: BLERSSIDataset, track_name: str, radio_map: Path | None, c
         rmap = RadioMap.from_npz(src)
     if track_name in rmap.tracks:
         raise DfusionError(f"{src} was learnt from {track_name} itself; refusing an in-sample calibration")
+    rmap.settings["how"] = f"file {src.name}"
     return rmap
 
 
@@ -110,18 +145,27 @@ def evaluate_track(ds: BLERSSIDataset, track_file: str | Path, *, particles: int
                    grid_cell: float | None = DEFAULTS["grid_cell"], window: float = DEFAULTS["window"],
                    seed: int = DEFAULTS["seed"], path_loss: Path | None = None, cache: dict | None = None,
                    per_receiver: bool = True, model: str = DEFAULTS["model"], radio_map: Path | None = None,
-                   map_bandwidth: float = DEFAULTS["map_bandwidth"],
-                   map_prior_weight: float = DEFAULTS["map_prior_weight"], map_spatial_std: bool = True,
+                   map_order: int | None = DEFAULTS["map_order"], map_ridge: float | None = DEFAULTS["map_ridge"],
+                   map_bandwidth: float | None = DEFAULTS["map_bandwidth"],
+                   map_prior_weight: float | None = DEFAULTS["map_prior_weight"],
+                   map_noise: str = DEFAULTS["map_noise"], map_spatial_std: bool = True,
                    **tracker_kw) -> dict:
-    """Run the tracker and the baseline on one track; returns metrics and the per-row errors."""
+    """Run the tracker and the baseline on one track; returns metrics and the per-row errors.
+
+    ``map_*`` settings left at None are chosen on the calibration tracks (:func:`radio_map_for`).
+    """
     if model not in MODELS:
         raise DfusionError(f"model must be one of {MODELS}, got {model!r}")
     track = ds.load_track(track_file)
+    map_settings = None
     if model == "radio-map":
-        rmap = radio_map_for(ds, track.name, radio_map, cache, map_bandwidth, map_prior_weight, map_spatial_std)
+        rmap = radio_map_for(ds, track.name, radio_map, cache,
+                             dict(order=map_order, ridge=map_ridge, bandwidth=map_bandwidth,
+                                  prior_weight=map_prior_weight), map_noise, map_spatial_std)
         # The map holds the whole measurement model; the sensor only places the receivers.
         sensors, cal_tracks = RSSISensor(ds.receiver_positions, -60.0, 2.0, 5.0), rmap.tracks
         tracker_kw["radio_map"] = rmap
+        map_settings = dict(rmap.settings, noise=None if rmap.noise is None else list(rmap.noise))
     else:
         cal = calibration_for(ds, track.name, path_loss, cache, per_receiver)
         sensors, cal_tracks = cal.sensors(ds.receiver_positions), cal.tracks
@@ -151,6 +195,7 @@ def evaluate_track(ds: BLERSSIDataset, track_file: str | Path, *, particles: int
         "moves_refused": tracker.n_refused,
         "steps_all_refused": tracker.n_all_refused,
         "model": model,
+        "map_settings": map_settings,
         "calibration_tracks": cal_tracks,
         "_errors": err,
         "_baseline_errors": berr,
@@ -177,6 +222,22 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def format_map_settings(results: list[dict]) -> str:
+    """The radio-map settings each track was evaluated with."""
+    rows = [r for r in results if r.get("map_settings")]
+    if not rows:
+        return ""
+    head = f"{'track':30s} {'order':>5s} {'ridge':>6s} {'b (m)':>6s} {'w0':>5s} {'noise (mode, sl, sr)':>22s}  how"
+    lines = ["radio-map settings per track (chosen on its calibration tracks only):", head, "-" * len(head)]
+    for r in rows:
+        st = r["map_settings"]
+        law = "gaussian" if st.get("noise") is None else "split " + " ".join(f"{v:.2f}" for v in st["noise"])
+        cells = [f"{st[k]:g}" if isinstance(st.get(k), (int, float)) else "-" for k in MAP_KEYS]
+        lines.append(f"{r['track']:30s} {cells[0]:>5s} {cells[1]:>6s} {cells[2]:>6s} {cells[3]:>5s} {law:>22s}  "
+                     f"{st.get('how', '')}")
+    return "\n".join(lines)
+
+
 def public(r: dict) -> dict:
     return {k: v for k, v in r.items() if not k.startswith("_")}
 
@@ -195,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-speed", type=float, default=None, help="speed cap (constant velocity, m/s)")
     ap.add_argument("--grid-cell", type=float, default=DEFAULTS["grid_cell"], help="occupancy grid cell (m)")
     ap.add_argument("--no-map", action="store_true", help="no occupancy-grid constraint")
-    ap.add_argument("--outlier-prob", type=float, default=0.0, help="outlier floor of the RSSI likelihood")
+    ap.add_argument("--outlier-prob", type=float, default=0.0,
+                    help="outlier floor of the RSSI likelihood (weight of a uniform density over 60 dB)")
     ap.add_argument("--window", type=float, default=DEFAULTS["window"], help="baseline averaging window (s)")
     ap.add_argument("--seed", type=int, default=DEFAULTS["seed"])
     ap.add_argument("--path-loss", type=Path, help="path-loss calibration JSON (see --save-calibration)")
@@ -205,10 +267,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="measurement model: log-distance fit plus a learnt residual radio map (default), "
                          "or the log-distance path-loss fit alone")
     ap.add_argument("--radio-map", type=Path, help="radio map .npz (see --save-radio-map)")
+    grid = MAP_SETTINGS_GRID
+    ap.add_argument("--map-order", type=int, default=DEFAULTS["map_order"],
+                    help=f"radio map: azimuthal harmonics of the path loss (default: chosen from {grid['order']})")
+    ap.add_argument("--map-ridge", type=float, default=DEFAULTS["map_ridge"],
+                    help=f"radio map: ridge penalty of the harmonics (default: chosen from {grid['ridge']})")
     ap.add_argument("--map-bandwidth", type=float, default=DEFAULTS["map_bandwidth"],
-                    help="radio map: kernel bandwidth (m)")
+                    help=f"radio map: kernel bandwidth, m (default: chosen from {grid['bandwidth']})")
     ap.add_argument("--map-prior-weight", type=float, default=DEFAULTS["map_prior_weight"],
-                    help="radio map: weight of the path-loss prior, in training packets per 0.2 m cell")
+                    help="radio map: weight of the path-loss prior, in training packets per 0.2 m cell "
+                         f"(default: chosen from {grid['prior_weight']})")
+    ap.add_argument("--map-noise", choices=("split-normal", "gaussian"), default=DEFAULTS["map_noise"],
+                    help="radio map: law of the standardized residual (default split-normal, fitted to "
+                         "held-out residuals of the calibration tracks)")
     ap.add_argument("--map-constant-std", action="store_true",
                     help="radio map: each receiver's path-loss residual std everywhere (not a spatial std)")
     ap.add_argument("--save-radio-map", type=Path,
@@ -233,19 +304,20 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.save_radio_map:
             name = ds.load_track(args.track_file).name if args.track_file else None
-            tracks = [ds.load_track(n) for n in ds.track_names() if n != name]
-            rmap, _ = calibrate_radio_map(tracks, ds.receiver_positions, ds.receiver_macs, limits=ds.limits,
-                                          bandwidth=args.map_bandwidth, prior_weight=args.map_prior_weight,
-                                          spatial_std=not args.map_constant_std, exclude=name)
+            rmap = radio_map_for(ds, name, None, None, dict(order=args.map_order, ridge=args.map_ridge,
+                                                             bandwidth=args.map_bandwidth,
+                                                             prior_weight=args.map_prior_weight),
+                                 args.map_noise, not args.map_constant_std)
             rmap.to_npz(args.save_radio_map)
-            print(f"radio map from {rmap.tracks} written to {args.save_radio_map}")
+            print(f"radio map from {rmap.tracks} ({rmap.settings}) written to {args.save_radio_map}")
             return 0
         files = ds.track_paths() if args.all else [Path(args.track_file)]
         kw = dict(particles=args.particles, motion=args.motion, q=args.q, max_speed=args.max_speed,
                   grid_cell=None if args.no_map else args.grid_cell, window=args.window, seed=args.seed,
                   path_loss=args.path_loss, outlier_prob=args.outlier_prob,
                   per_receiver=not args.shared_path_loss, model=args.model, radio_map=args.radio_map,
-                  map_bandwidth=args.map_bandwidth, map_prior_weight=args.map_prior_weight,
+                  map_order=args.map_order, map_ridge=args.map_ridge, map_bandwidth=args.map_bandwidth,
+                  map_prior_weight=args.map_prior_weight, map_noise=args.map_noise,
                   map_spatial_std=not args.map_constant_std)
         cache: dict = {}
         results = [evaluate_track(ds, f, cache=cache, **kw) for f in files]
@@ -254,13 +326,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = results + ([pooled(results)] if len(results) > 1 else [])
     model = args.model if args.model == "path-loss" else (
-        f"radio-map b={args.map_bandwidth} m w0={args.map_prior_weight}"
-        + (" const-std" if args.map_constant_std else ""))
+        "radio-map" + (" const-std" if args.map_constant_std else ""))
     print(f"WSN particle filter ({args.particles} particles, {args.motion}, q={args.q}, {model}, "
           f"map={'none' if args.no_map else f'{args.grid_cell} m grid'}) vs weighted centroid "
           f"(10^(rssi/10), {args.window} s window); errors in m, every packet row")
     print(format_table(rows))
     print(f"time per packet: {np.mean([r['ms_per_packet'] for r in results]):.2f} ms")
+    if args.model == "radio-map":
+        print(format_map_settings(results))
     if args.json:
         out = public(rows[-1]) if len(results) == 1 else {**public(rows[-1]), "tracks": [public(r) for r in results]}
         out["config"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in kw.items()}

@@ -162,8 +162,9 @@ def test_example_beats_the_baseline_on_the_slice(tmp_path):
     assert res["model"] == "radio-map"  # the default, from the shipped radio_map.npz
     assert res["calibration_tracks"] and "straight_03" not in res["calibration_tracks"]
     assert res["rmse"] < res["baseline_rmse"]
-    assert res["rmse"] < 0.9 * res["baseline_rmse"]
-    assert res["median_error"] < 2.0
+    # the shipped split-normal directional map: 1.96-1.97 m against 3.31 m over seeds 0-2 (0.59-0.60)
+    assert res["rmse"] < 0.7 * res["baseline_rmse"]
+    assert res["median_error"] < 1.5
 
 
 def test_example_refuses_to_run_without_an_out_of_sample_calibration(tmp_path):
@@ -320,3 +321,162 @@ def test_example_path_loss_model_beats_the_baseline_on_the_slice(tmp_path):
     res = json.loads(out.read_text())
     assert res["model"] == "path-loss" and "straight_03" not in res["calibration_tracks"]
     assert res["rmse"] < 0.9 * res["baseline_rmse"]
+
+
+# ----------------------------------------------------------------------------- directional path loss, selection
+
+
+def _pieces(tr, k=3):
+    """``k`` interleaved sub-tracks of one track (every k-th row), as separate calibration tracks."""
+    from dfusion.datasets import Track
+    return [Track(f"{tr.name}_{i}", tr.t[i::k], tr.receiver[i::k], tr.rssi[i::k], tr.truth[i::k]) for i in range(k)]
+
+
+def _synthetic_tracks(ds, rng, n_tracks=3, rows=900):
+    """Tracks along random aisles of the slice's area whose RSSI has a strong azimuthal gain."""
+    from dfusion.datasets import Track
+    pos = ds.receiver_positions
+    out = []
+    for i in range(n_tracks):
+        a, b = rng.uniform([1, 1], [19, 16], (2, 2))
+        s = np.linspace(0, 1, rows)
+        xy = a + s[:, None] * (b - a) + rng.normal(0, 0.1, (rows, 2))
+        j = rng.integers(0, 12, rows)
+        d = np.sqrt(((xy - pos[j, :2]) ** 2).sum(1) + (1.8 - pos[j, 2]) ** 2)
+        phi = np.arctan2(xy[:, 1] - pos[j, 1], xy[:, 0] - pos[j, 0])
+        z = -60 - 20 * np.log10(d) + 6 * np.cos(phi + j) + 3 * np.sin(2 * phi) + rng.normal(0, 3, rows)
+        out.append(Track(f"syn{i}", np.arange(rows) * 0.04, j, z, np.column_stack([xy, np.full(rows, 1.8)])))
+    return out
+
+
+def test_directional_path_loss_calibration(ds):
+    from dfusion.pf.radio_map import fit_directional_path_loss, path_loss_design
+    tr = ds.load_track("straight_03")
+    pos = ds.receiver_positions
+    cal = calibrate_path_loss([tr], pos, ds.receiver_macs, order=2, ridge=50.0)
+    assert cal.order == 2 and cal.harmonics.shape == (12, 4) and cal.ridge == 50.0
+    j = 6
+    sel = tr.receiver == j
+    d = np.linalg.norm(tr.truth[sel] - pos[j], axis=1)
+    phi = np.arctan2(tr.truth[sel, 1] - pos[j, 1], tr.truth[sel, 0] - pos[j, 0])
+    p0, n, h, s = fit_directional_path_loss(d, phi, tr.rssi[sel], 2, 50.0)
+    np.testing.assert_allclose([cal.p0[j], cal.exponent[j], cal.std[j], *cal.harmonics[j]], [p0, n, s, *h])
+    # mean_rssi at the calibration height, by the formula
+    q = np.array([[3.0, 4.0], [15.0, 2.5]])
+    dq = np.sqrt(((q - pos[j, :2]) ** 2).sum(1) + (cal.height - pos[j, 2]) ** 2)
+    pq = np.arctan2(q[:, 1] - pos[j, 1], q[:, 0] - pos[j, 0])
+    ref = (p0 - 10 * n * np.log10(dq) + h[0] * np.cos(pq) + h[1] * np.sin(pq) + h[2] * np.cos(2 * pq)
+           + h[3] * np.sin(2 * pq))
+    np.testing.assert_allclose(cal.mean_rssi(j, q, pos), ref)
+    np.testing.assert_allclose(path_loss_design(dq, pq, 2)[:, 2:] @ h, ref - p0 + 10 * n * np.log10(dq))
+    back = PathLossCalibration.from_json(json.loads(json.dumps(cal.to_json())), ds.receiver_macs)
+    np.testing.assert_allclose(back.harmonics, cal.harmonics)
+    np.testing.assert_allclose(back.mean_rssi(j, q, pos), ref)
+    with pytest.raises(ValidationError, match="directional"):
+        cal.sensors(pos)  # an RSSISensor has no directional gain
+    with pytest.raises(ValidationError):
+        calibrate_path_loss([tr], pos, ds.receiver_macs, per_receiver=False, order=1)
+    # order 0 is unchanged: the plain fit_path_loss per receiver
+    cal0 = calibrate_path_loss([tr], pos, ds.receiver_macs)
+    assert cal0.order == 0 and "harmonics" not in json.dumps(cal0.to_json())
+    np.testing.assert_allclose([cal0.p0[j], cal0.exponent[j], cal0.std[j]], fit_path_loss(d, tr.rssi[sel]))
+
+
+def test_held_out_residuals_and_split_noise_calibration(ds):
+    from dfusion.datasets.ble_rssi import held_out_residuals, held_out_score
+    from dfusion.pf.radio_map import fit_split_normal, split_normal_logpdf
+    parts = _pieces(ds.load_track("straight_03"))
+    pos, macs = ds.receiver_positions, ds.receiver_macs
+    st = dict(order=1, ridge=30.0, bandwidth=0.8, prior_weight=0.1)
+    (u, S), = held_out_residuals(parts, pos, macs, limits=ds.limits, settings=[st])
+    # by hand: each piece predicted by the map of the two others
+    us, ss = [], []
+    for i, t in enumerate(parts):
+        rm, _ = calibrate_radio_map(parts[:i] + parts[i + 1:], pos, macs, limits=ds.limits, order=1, ridge=30.0,
+                                    bandwidth=0.8, prior_weight=0.1, exclude=t.name)
+        M, Sd = rm.lookup(t.truth[:, :2], np.arange(12))
+        k = np.arange(len(t))
+        us.append((t.rssi - M[k, t.receiver]) / Sd[k, t.receiver])
+        ss.append(Sd[k, t.receiver])
+    np.testing.assert_allclose(u, np.concatenate(us))
+    np.testing.assert_allclose(S, np.concatenate(ss))
+    # scores: mean held-out log-density per reading
+    sc, law = held_out_score(u, S, "split-normal")
+    assert law == pytest.approx(fit_split_normal(u))
+    assert sc == pytest.approx(np.mean(split_normal_logpdf(u, *law) - np.log(S)))
+    sg, none = held_out_score(u, S, "gaussian")
+    assert none is None and sg == pytest.approx(np.mean(stats_norm_logpdf(u) - np.log(S)))
+    assert sc > sg  # the residuals are skewed: the split normal predicts them better
+    # calibrate_radio_map(noise="split-normal") stores exactly that law
+    rm, cal = calibrate_radio_map(parts, pos, macs, limits=ds.limits, noise="split-normal", **st)
+    assert rm.noise == pytest.approx(law) and cal.order == 1
+    assert rm.settings["bandwidth"] == 0.8 and rm.settings["order"] == 1
+    with pytest.raises(ValidationError):
+        calibrate_radio_map(parts[:1], pos, macs, limits=ds.limits, noise="split-normal")
+    with pytest.raises(ValidationError):
+        calibrate_radio_map(parts, pos, macs, limits=ds.limits, noise="student")
+
+
+def stats_norm_logpdf(u):
+    from scipy.stats import norm
+    return norm.logpdf(u)
+
+
+def test_select_radio_map_settings(ds):
+    from dfusion.datasets.ble_rssi import held_out_residuals, held_out_score, select_radio_map_settings
+    rng = np.random.default_rng(12)
+    tracks = _synthetic_tracks(ds, rng)
+    pos, macs = ds.receiver_positions, ds.receiver_macs
+    grid = {"order": (0, 2), "ridge": (10.0,), "bandwidth": (1.0, 2.0), "prior_weight": (0.05,)}
+    best, table = select_radio_map_settings(tracks, pos, macs, limits=ds.limits, grid=grid)
+    assert len(table) == 4 and best["order"] == 2  # the data have a directional gain
+    # every score is the held-out score of its setting, and the best is the maximum
+    for st, sc in table:
+        (u, S), = held_out_residuals(tracks, pos, macs, limits=ds.limits, settings=[st])
+        assert sc == pytest.approx(held_out_score(u, S)[0])
+    assert best["score"] == max(sc for _, sc in table)
+    with pytest.raises(ValidationError, match="evaluated track"):
+        select_radio_map_settings(tracks, pos, macs, limits=ds.limits, grid=grid, exclude="syn1")
+    with pytest.raises(ValidationError):
+        select_radio_map_settings(tracks[:1], pos, macs, limits=ds.limits, grid=grid)
+
+
+def test_example_selects_map_settings_without_the_evaluated_track(tmp_path, ds, monkeypatch):
+    """With three tracks, each evaluation selects and calibrates on the two others only."""
+    d = tmp_path / "ds"
+    shutil.copytree(SLICE, d)
+    (d / "radio_map.npz").unlink()
+    rows = TRACK.read_text().splitlines()
+    (d / "trk" / "odd_all_sensors.mbd").write_text("\n".join(rows[1::2]) + "\n")
+    (d / "trk" / "third_all_sensors.mbd").write_text("\n".join(rows[::3]) + "\n")
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("ble_example", EXAMPLE)
+    ex = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ex)
+    seen: list[tuple[str, list[str]]] = []
+    real_sel, real_cal = ex.select_radio_map_settings, ex.calibrate_radio_map
+
+    def spy_sel(tracks, *a, **kw):
+        seen.append(("select", [t.name for t in tracks]))
+        return real_sel(tracks, *a, **kw)
+
+    def spy_cal(tracks, *a, **kw):
+        seen.append(("calibrate", [t.name for t in tracks]))
+        return real_cal(tracks, *a, **kw)
+
+    monkeypatch.setattr(ex, "select_radio_map_settings", spy_sel)
+    monkeypatch.setattr(ex, "calibrate_radio_map", spy_cal)
+    monkeypatch.setattr(ex, "MAP_SETTINGS_GRID", {"order": (0, 1), "ridge": (100.0,), "bandwidth": (1.0,),
+                                                  "prior_weight": (0.05, 0.2)})
+    dd = BLERSSIDataset(d)
+    res = ex.evaluate_track(dd, d / "trk" / TRACK.name, particles=300)
+    assert seen == [("select", ["odd", "third"]), ("calibrate", ["odd", "third"])]
+    st = res["map_settings"]
+    assert st["how"] == "selected" and st["order"] in (0, 1) and st["prior_weight"] in (0.05, 0.2)
+    assert len(st["noise"]) == 3 and res["calibration_tracks"] == ["odd", "third"]
+    # fixed settings: nothing to select, the noise law is still fitted out of sample
+    seen.clear()
+    res = ex.evaluate_track(dd, d / "trk" / "odd_all_sensors.mbd", particles=300, map_order=1, map_ridge=30.0,
+                            map_bandwidth=0.8, map_prior_weight=0.1)
+    assert [names for _, names in seen] == [["straight_03", "third"]] * 2
+    assert res["map_settings"]["how"] == "given" and res["map_settings"]["bandwidth"] == 0.8

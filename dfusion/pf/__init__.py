@@ -11,7 +11,16 @@ from .particle_filter import (
     systematic_resample,
     weighted_mean_cov,
 )
-from .radio_map import RadioMap, fit_radio_map, kernel_residual_map
+from .radio_map import (
+    RadioMap,
+    fit_directional_path_loss,
+    fit_radio_map,
+    fit_radio_maps,
+    fit_split_normal,
+    kernel_residual_map,
+    path_loss_design,
+    split_normal_logpdf,
+)
 from .wsn import WSNTracker, project_psd_information
 
 __all__ = [
@@ -29,5 +38,10 @@ __all__ = [
     "RadioMap",
     "fit_radio_map",
     "kernel_residual_map",
+    "fit_radio_maps",
+    "fit_directional_path_loss",
+    "path_loss_design",
+    "split_normal_logpdf",
+    "fit_split_normal",
     "project_psd_information",
 ]

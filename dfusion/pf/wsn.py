@@ -34,7 +34,10 @@ above 1 temper the likelihood, which accounts for shadowing that is correlated
 in time (successive packets are not independent measurements). With a
 :class:`~dfusion.pf.radio_map.RadioMap` (``radio_map=``) the mean and standard
 deviation of each reading are the map's at the particle instead (learnt
-log-distance-plus-residual model; docs/wsn.md sec. 3).
+log-distance-plus-residual model; docs/wsn.md sec. 3), and the reading's law is the
+map's noise law (Gaussian, or a left-skewed split normal,
+:func:`~dfusion.pf.radio_map.split_normal_logpdf`). With ``outlier_prob = eps > 0``
+each reading's density ``f`` (annulus or map) becomes ``(1 - eps) f + eps / rssi_span``.
 
 **Information contribution (DESIGN.md sec. 4).** The Gaussian fit of the
 posterior minus the Gaussian fit of the prediction, in information form,
@@ -153,14 +156,15 @@ class WSNTracker:
         Multiplies every receiver's noise standard deviation in the likelihood.
     outlier_prob, rssi_span : float
         With ``outlier_prob = eps > 0`` each reading's likelihood becomes
-        ``(1 - eps) N(z; mu, sigma^2) + eps / rssi_span`` (a uniform floor over a
-        span of ``rssi_span`` dB); 0 (default) keeps the pure Gaussian annulus.
+        ``(1 - eps) f(z) + eps / rssi_span`` (a uniform floor over a span of ``rssi_span`` dB),
+        ``f`` the annulus Gaussian ``N(z; mu, sigma^2)`` or the radio map's density;
+        0 (default) keeps the pure model.
     radio_map : RadioMap or None
-        If given, the likelihood of a reading of receiver ``j`` is the Gaussian with the
-        map's mean and standard deviation at the particle (bilinear look-up,
+        If given, the likelihood of a reading of receiver ``j`` is the map's density at the
+        particle (its mean and standard deviation by bilinear look-up and its noise law,
         :meth:`RadioMap.log_likelihood`) instead of the log-distance annulus; the
-        sensors then only give the receivers' positions. ``std_scale`` still applies;
-        ``outlier_prob`` must be 0.
+        sensors then only give the receivers' positions. ``std_scale`` and ``outlier_prob``
+        still apply.
     seed : int, Generator or None
         Seed of the filter's random generator.
     resampling, ess_threshold, roughening
@@ -211,8 +215,6 @@ class WSNTracker:
         if radio_map is not None:
             if not isinstance(radio_map, RadioMap) or radio_map.n_receivers != self.n_receivers:
                 raise ValidationError(f"radio_map must be a RadioMap with {self.n_receivers} receivers")
-            if outlier_prob > 0:
-                raise ValidationError("outlier_prob is not supported with a radio_map")
         self.radio_map = radio_map
         self.receivers = np.column_stack([p["rxy"], p["rz"]])
         self._dz2 = (p["height"] - p["rz"]) ** 2
@@ -375,7 +377,7 @@ class WSNTracker:
         if j.size == 0:
             return np.zeros(x.shape[0])
         if self.radio_map is not None:
-            return self.radio_map.log_likelihood(z, j, x[:, :2], self.std_scale)
+            return self.radio_map.log_likelihood(z, j, x[:, :2], self.std_scale, self.outlier_prob, self.rssi_span)
         # Squared 3-D distances by expansion, as one matmul:
         # [x, y, x^2 + y^2, 1] @ [-2 a_j, -2 b_j, 1, a_j^2 + b_j^2 + dz_j^2]
         # (built transposed: row-wise writes into an (N, 4) array are slow in numpy)
