@@ -86,7 +86,7 @@ def time_keys(times: Array) -> np.ndarray:
     return np.rint(np.asarray(times, dtype=float) * 1e9).astype(np.int64)
 
 
-def _nonzero(info: Array, vec: Array) -> np.ndarray:
+def nonzero_blocks(info: Array, vec: Array) -> np.ndarray:
     """Per block: does ``(info[i], vec[i])`` carry any information (a non-zero entry)?"""
     return info.any(axis=(1, 2)) | vec.any(axis=1)
 
@@ -182,7 +182,7 @@ class ChannelFilter:
         """
         new_epoch = msg.epoch != self.epoch
         times, info, vec = msg.times, msg.info, msg.vec
-        nonzero = _nonzero(info, vec)
+        nonzero = nonzero_blocks(info, vec)
         mkeys = time_keys(times)
         found_all, pos_all = self.lookup(mkeys)
         found, pos = found_all, pos_all
@@ -205,7 +205,7 @@ class ChannelFilter:
             oi = pos[ri]
             dL = info[ri] - self.info[oi]
             dy = vec[ri] - self.vec[oi]
-            for j in _nonzero(dL, dy).nonzero()[0].tolist():
+            for j in nonzero_blocks(dL, dy).nonzero()[0].tolist():
                 deltas.append((float(times[ri[j]]), dL[j], dy[j]))
         store = fresh | replace
         # times the sender still holds but sent nothing for: its information there is now zero

@@ -33,7 +33,7 @@ from ..estimation.delayed_state import DelayedStateEIF
 from ..linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from ..models.base import MeasurementModel, MotionModel
 from ..wire import InfoMessage, decode, encode
-from .channel import ChannelFilter, find_keys, time_key, time_keys
+from .channel import ChannelFilter, find_keys, nonzero_blocks, time_key, time_keys
 from .policy import InformationFusionPolicy, Policy, SourceEstimate
 
 log = logging.getLogger(__name__)
@@ -367,7 +367,6 @@ class FusionNode:
         ch = self.channels.get(neighbor)
         if ch is None:
             raise ValidationError(f"{neighbor!r} is not a neighbour of {self.name!r}")
-        n = self.filter.n
         tot = self._total
         keys, times, infos, vecs = tot.keys, tot.times, tot.info.copy(), tot.vec.copy()
         if self.fusion == "channel" and len(ch):
@@ -387,7 +386,7 @@ class FusionNode:
                 if prev is not None:
                     infos[i] -= prev[0]
                     vecs[i] -= prev[1]
-        keep = infos.any(axis=(1, 2)) | vecs.any(axis=1)
+        keep = nonzero_blocks(infos, vecs)
         if not keep.all():
             times, infos, vecs = times[keep], infos[keep], vecs[keep]
         msg = InfoMessage(
