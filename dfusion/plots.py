@@ -34,7 +34,7 @@ def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | No
             for a, b, t0, t1 in outages:
                 mine = name in (a, b)
                 ax.axvspan(t0, t1, color="tab:red", alpha=0.18 if mine else 0.07, lw=0)
-            ax.fill_between(t, -s, s, color="tab:blue", alpha=0.18, lw=0, label=f"node ±3σ")
+            ax.fill_between(t, -s, s, color="tab:blue", alpha=0.18, lw=0, label="node ±3σ")
             ax.plot(t, cs, color="k", lw=0.8, ls=":", label="centralized ±3σ")
             ax.plot(t, -cs, color="k", lw=0.8, ls=":")
             ax.plot(t, cm, color="k", lw=0.9, label="centralized EKF error")

@@ -28,7 +28,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dfusion import FusionNode
-from dfusion.errors import MessageError, NotPositiveDefiniteError
+from dfusion.errors import MessageError
 from dfusion.models import ConstantVelocity, PositionSensor
 from dfusion.wire import PSD_RTOL, PSD_SCALED_ATOL, InfoMessage, decode, encode
 

@@ -44,7 +44,7 @@ from ..errors import (
     TimeError,
     ValidationError,
 )
-from ..linalg import Array, as_time, as_spd, as_vector, cholesky, check_psd, symmetrize, as_matrix, spd_inverse
+from ..linalg import Array, as_time, as_spd, as_vector, cholesky, check_psd, symmetrize, as_matrix
 from ..models.base import MeasurementModel, MotionModel
 from .trajectory import MotionFactor, TrajectoryInformation
 
