@@ -28,7 +28,7 @@ def window_from_rule(graph, s: Schedule) -> int:
     return int(np.ceil(seconds / s.dt)) * per_step + 2
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     n=st.integers(2, 30),
     seed=st.integers(0, 2**31 - 1),
@@ -65,7 +65,7 @@ def test_marginalizing_windows_still_exact_under_the_rule(seed):
         assert rel_err(P, cov) < 1e-8
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(n=st.integers(2, 15), seed=st.integers(0, 2**31 - 1), window=st.integers(2, 8))
 def test_property_short_windows_are_never_over_confident(n, seed, window):
     graph = random_tree(n, seed)
