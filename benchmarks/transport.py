@@ -84,10 +84,9 @@ def child(cfg: dict) -> None:
     role = cfg["role"]
     if role == "pong":
         return _pong(cfg)
-    if role == "minimal":
-        return _minimal_sink(cfg)
     name, nbrs, W = cfg["name"], cfg["neighbors"], cfg["window"]
-    node = make_node(name, nbrs, W, fill=cfg.get("fill", False))
+    minimal = MinimalHop(W, seed=1) if role == "minimal" else None   # a sink that runs the minimal hop
+    node = None if minimal else make_node(name, nbrs, W, fill=cfg.get("fill", False))
     zc = ZenohConfig(listen=[cfg["listen"]], connect=cfg["connect"])
     with ZenohTransport(cfg["network"], {name: nbrs}, zc) as tr:
         print("ready", flush=True)   # the caller opens its own session after every child is ready
@@ -101,15 +100,19 @@ def child(cfg: dict) -> None:
             if not tr.wait(0.05):
                 continue
             for d in tr.receive(name):
-                if d.t_sent > node.latest_time + 1e-9:
-                    node.predict(d.t_sent)
-                changed = node.receive(d.data)
-                node.estimate()
+                if minimal:
+                    minimal.receive(d.data)
+                    changed = 1
+                else:
+                    if d.t_sent > node.latest_time + 1e-9:
+                        node.predict(d.t_sent)
+                    changed = node.receive(d.data)
+                    node.estimate()
                 t1 = time.monotonic()
                 count += 1
                 first = first or t1
                 last = t1
-                if role == "sink":
+                if role in ("sink", "minimal"):
                     out["arrivals"][repr(d.t_sent)] = (d.t_arrival, t1)
                 elif role == "relay" and changed:
                     for nb in nbrs:
@@ -137,7 +140,7 @@ class MinimalHop:
 
     def __init__(self, W: int, seed: int = 0) -> None:
         rng = np.random.default_rng(seed)
-        n = 4
+        self.n = n = 4
         self.total = rng.normal(size=(W, n, n))
         self.total_vec = rng.normal(size=(W, n))
         self.channel = rng.normal(size=(W, n, n))
@@ -159,25 +162,7 @@ class MinimalHop:
         info, vec = np.frombuffer(d["info"]), np.frombuffer(d["vec"])
         if not (np.isfinite(info).all() and np.isfinite(vec).all()):
             raise ValueError("non-finite")
-        return np.linalg.solve(self.P + np.eye(4), vec[-4:])
-
-
-def _minimal_sink(cfg: dict) -> None:
-    hop = MinimalHop(cfg["window"], seed=1)
-    zc = ZenohConfig(listen=[cfg["listen"]], connect=cfg["connect"])
-    with ZenohTransport(cfg["network"], {"b": ["a"]}, zc) as tr:
-        print("ready", flush=True)
-        out: dict = {"arrivals": {}}
-        stop = threading.Event()
-        threading.Thread(target=lambda: (sys.stdin.readline(), stop.set(), tr.wake()), daemon=True).start()
-        tr.quiet_loss = True
-        while not stop.is_set():
-            if not tr.wait(0.05):
-                continue
-            for d in tr.receive("b"):
-                hop.receive(d.data)
-                out["arrivals"][repr(d.t_sent)] = (d.t_arrival, time.monotonic())
-        print(json.dumps(out), flush=True)
+        return np.linalg.solve(self.P + np.eye(self.n), vec[-self.n:])
 
 
 class Child:
