@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import filterpy  # noqa: E402
 from filterpy.kalman import KalmanFilter  # noqa: E402
 
-from dfusion import DelayedStateEIF  # noqa: E402
+from dfusion.estimation import DelayedStateEIF  # noqa: E402
 from dfusion.models import ConstantVelocity, PositionSensor  # noqa: E402
 
 DT = 0.1

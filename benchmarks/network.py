@@ -21,9 +21,9 @@ import time
 import networkx as nx
 import numpy as np
 
-from dfusion import FusionNode
+from dfusion.fusion import FusionNode
 from dfusion.models import ConstantVelocity, PositionSensor
-from dfusion.sim.network import LinkSpec, SimulatedNetwork
+from dfusion.transport import LinkSpec, SimulatedNetwork
 
 
 def make_graph(kind: str, n: int, seed: int = 0) -> nx.Graph:

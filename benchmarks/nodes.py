@@ -50,12 +50,13 @@ import numpy as np
 
 from filterpy.kalman import ExtendedKalmanFilter
 
-from dfusion.datasets import BLERSSIDataset, PathLossCalibration
-from dfusion.estimation.eif import ExtendedInformationFilter
-from dfusion.fusion.node import FusionNode
-from dfusion.pf import RadioMap, WSNTracker
-from dfusion.sensors.camera import CameraFrontEnd
-from dfusion.sim.scenario import load_scenario
+from dfusion.datasets import BLERSSIDataset
+from dfusion.localization import PathLossCalibration
+from dfusion.estimation import ExtendedInformationFilter
+from dfusion.fusion import FusionNode
+from dfusion.localization import RadioMap, WSNTracker
+from dfusion.frontends import CameraFrontEnd
+from dfusion.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 SLICE = ROOT / "tests" / "data" / "ble_rssi"

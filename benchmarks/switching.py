@@ -42,21 +42,24 @@ import time
 from pathlib import Path
 
 import numpy as np
+from dfusion.maps.buildings import rooms
+from dfusion.geometry import se2_between
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dfusion import FusionNode, SourceEstimate  # noqa: E402
+from dfusion.fusion import FusionNode  # noqa: E402
+from dfusion.estimation import Estimate  # noqa: E402
 from dfusion.models import ConstantVelocity  # noqa: E402
-from dfusion.switching import (  # noqa: E402
+from dfusion.policies import (
     BlendedTransitionPolicy,
     Component,
     FusionFloorPolicy,
     GreedySwitchingPolicy,
     HysteresisSwitchingPolicy,
-    SimilarityRate,
     Supervisor,
 )
+from dfusion.localization import SimilarityRate
 
 NAMES = ("laser", "depth", "cam_room", "cam_corridor", "cam_square")
 P = 0.15
@@ -70,13 +73,13 @@ def make_node(policy) -> FusionNode:
                       policy=policy)
 
 
-def sources(i: int, t: float) -> list[SourceEstimate]:
+def sources(i: int, t: float) -> list[Estimate]:
     """Five estimates; the best one alternates between laser and depth with every ``i``."""
     best = NAMES[i % 2]
     out = []
     for k, name in enumerate(NAMES):
         r = 0.95 if name == best else 0.5 - 0.05 * k
-        out.append(SourceEstimate(name, t, np.full(4, float(k)), np.eye(4) * 0.01, r))
+        out.append(Estimate(name, t, np.full(4, float(k)), np.eye(4) * 0.01, r))
     return out
 
 
@@ -132,8 +135,8 @@ def in_process(n: int) -> list[tuple[str, float, float]]:
     t = timed(no_switch, 200, 9) * 1e6
     rows.append(("greedy: report_source x5 + output(), no switch", t, float("nan")))
 
-    fused = SourceEstimate("fused", 0.0, np.zeros(4), np.eye(4), 1.0)
-    sim = SourceEstimate("similarity", 0.0, np.zeros(4), np.eye(4), 0.7)
+    fused = Estimate("fused", 0.0, np.zeros(4), np.eye(4), 1.0)
+    sim = Estimate("similarity", 0.0, np.zeros(4), np.eye(4), 0.7)
     pol = {
         "GreedySwitchingPolicy.decide": (GreedySwitchingPolicy(P), same),
         "HysteresisSwitchingPolicy.decide": (HysteresisSwitchingPolicy("laser", "depth", signal="similarity"),
@@ -186,7 +189,7 @@ def decode(data: bytes):
     import msgpack
 
     seq, t_pub, rows = msgpack.unpackb(data)
-    srcs = [SourceEstimate(n, t, np.asarray(m), np.asarray(c).reshape(4, 4), r, h) for n, t, m, c, r, h in rows]
+    srcs = [Estimate(n, t, np.asarray(m), np.asarray(c).reshape(4, 4), r, h) for n, t, m, c, r, h in rows]
     return seq, t_pub, srcs
 
 
@@ -194,7 +197,7 @@ def node_child(cfg: dict) -> None:
     """The node process: sources in, output, acknowledgement out."""
     node = make_node(GreedySwitchingPolicy(P))
     if cfg["transport"] == "zenoh":
-        from dfusion.transport.zenoh import ZenohConfig, close_session, open_session
+        from dfusion.transport.zenoh import close_session, open_session, ZenohConfig
 
         z = open_session(ZenohConfig(listen=[cfg["listen"]], connect=cfg["connect"]))
         pub = z.declare_publisher(f"{cfg['net']}/ack", express=True)
@@ -219,7 +222,7 @@ def node_child(cfg: dict) -> None:
 
 
 def across_zenoh(n: int) -> dict:
-    from dfusion.transport.zenoh import ZenohConfig, close_session, free_tcp_endpoints, open_session
+    from dfusion.transport.zenoh import close_session, free_tcp_endpoints, open_session, ZenohConfig
 
     net = f"swbench{os.getpid()}"
     ea, eb = free_tcp_endpoints(2)
@@ -331,17 +334,16 @@ def similarity(n: int, batches: int) -> list[tuple[str, float]]:
     from scipy.spatial import cKDTree
 
     from dfusion.localization import scan_to_points
-    from dfusion.maps import OccupancyGrid, cast_rays
-    from dfusion.switching import relative_pose
-
-    g = OccupancyGrid.rooms(16.0, 10.0, 3, 2, seed=2)
+    from dfusion.maps import cast_rays, OccupancyGrid
+    
+    g = rooms(16.0, 10.0, 3, 2, seed=2)
     ang = np.linspace(-math.pi, math.pi, 720, endpoint=False)
     A, B = np.array([4.0, 3.0, 0.3]), np.array([4.2, 3.1, 0.35])
     rng = np.random.default_rng(0)
     ref = scan_to_points(cast_rays(g, B[None], ang, 30.0)[0], ang, 30.0)
     scan = scan_to_points(cast_rays(g, A[None], ang, 30.0)[0] + rng.normal(0, 0.01, 720), ang, 30.0)
     assert len(scan) == 720 and len(ref) == 720
-    T = relative_pose(A, B) + np.array([0.03, -0.02, 0.01])
+    T = se2_between(B, A) + np.array([0.03, -0.02, 0.01])
     kd = SimilarityRate(ref)
     t0 = time.perf_counter()
     grid = SimilarityRate(ref, nearest="grid")

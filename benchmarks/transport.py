@@ -50,9 +50,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dfusion import FusionNode  # noqa: E402
+from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.models import ConstantVelocity, PositionSensor  # noqa: E402
-from dfusion.transport.zenoh import ZenohConfig, ZenohTransport, free_tcp_endpoints, open_session  # noqa: E402
+from dfusion.transport.zenoh import free_tcp_endpoints, open_session, ZenohConfig, ZenohTransport  # noqa: E402
 
 DT = 0.1
 MOTION = ConstantVelocity(2, 0.1)

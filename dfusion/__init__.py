@@ -4,10 +4,15 @@ Fusion nodes run Extended Information Filters over delayed-state trajectories
 and exchange information with their neighbours in a tree; channel filters keep
 anything from being counted twice.
 """
-from . import errors, models
-from .estimation import DelayedStateEIF, ExtendedInformationFilter
-from .fusion import ChannelFilter, FusionNode, InformationFusionPolicy, Policy, SourceEstimate
-from .gaussian import InformationGaussian
+from dfusion import errors, models
+from dfusion.estimation import (
+    DelayedStateEIF,
+    Estimate,
+    ExtendedInformationFilter,
+    InformationGaussian,
+)
+from dfusion.fusion import ChannelFilter, FusionNode
+from dfusion.policies import InformationFusionPolicy, Policy
 
 __version__ = "0.1.0"
 
@@ -21,5 +26,5 @@ __all__ = [
     "FusionNode",
     "Policy",
     "InformationFusionPolicy",
-    "SourceEstimate",
+    "Estimate",
 ]

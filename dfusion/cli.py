@@ -15,12 +15,12 @@ import logging
 import sys
 from pathlib import Path
 
-from .errors import DfusionError
+from dfusion.errors import DfusionError
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from .sim.runner import run_scenario
-    from .sim.scenario import load_scenario
+    from dfusion.scenario.loader import load_scenario
+    from dfusion.sim.runner import run_scenario
 
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
     result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet)
@@ -30,7 +30,7 @@ def _simulate(args: argparse.Namespace) -> int:
         Path(args.json).write_text(result.to_json())
         print(f"wrote {args.json}")
     if args.plot:
-        from .plots import plot_result
+        from dfusion.plots import plot_result
 
         print(f"wrote {plot_result(result, args.plot)}")
     return 0
@@ -50,7 +50,7 @@ def _run(args: argparse.Namespace) -> int:
     codes = {"SIGTERM": 128 + signal.SIGTERM, "SIGINT": 128 + signal.SIGINT}
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        from .run.launcher import Launcher, Restart, RunOptions
+        from dfusion.run.launcher import Launcher, Restart, RunOptions
 
         opts = RunOptions(
             scenario=args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, speed=args.speed,
@@ -66,7 +66,7 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)
-    from .run.monitor import run_table
+    from dfusion.run.monitor import run_table
 
     if result is None:
         print(f"dfusion: stopped ({launcher.stop_reason}); every node process was stopped", file=sys.stderr)
@@ -74,7 +74,7 @@ def _run(args: argparse.Namespace) -> int:
     print(result.table())
     print(run_table(result))
     if args.compare:
-        from .sim.runner import run_scenario
+        from dfusion.sim.runner import run_scenario
 
         ref = run_scenario(launcher.sc).metrics
         print("\nagainst dfusion simulate (same scenario and seed):")
@@ -88,7 +88,7 @@ def _run(args: argparse.Namespace) -> int:
         Path(args.json).write_text(result.to_json())
         print(f"wrote {args.json}")
     if args.plot:
-        from .plots import plot_result
+        from dfusion.plots import plot_result
 
         print(f"wrote {plot_result(result, args.plot)}")
     return 1 if launcher.failures else 0

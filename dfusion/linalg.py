@@ -11,7 +11,13 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import NonFiniteError, NotPositiveDefiniteError, ShapeError, TimeError, ValidationError
+from dfusion.errors import (
+    NonFiniteError,
+    NotPositiveDefiniteError,
+    ShapeError,
+    TimeError,
+    ValidationError,
+)
 
 Array = NDArray[np.float64]
 

@@ -36,14 +36,14 @@ from __future__ import annotations
 import hashlib
 import hmac
 import math
-from functools import lru_cache
 from dataclasses import dataclass
+from functools import lru_cache
 
 import msgpack
 import numpy as np
 
-from .errors import MessageError
-from .linalg import Array
+from dfusion.errors import MessageError
+from dfusion.linalg import Array
 
 VERSION = 1
 #: Positive semi-definiteness check on received blocks (see ``_not_psd``): the floor added

@@ -45,19 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dfusion.datasets import (
-    BLERSSIDataset,
-    PathLossCalibration,
-    calibrate_path_loss,
-    error_stats,
-    find_dataset_root,
-    run_tracker,
-    weighted_centroid,
-)
-from dfusion.datasets.ble_rssi import MAP_SETTINGS_GRID, calibrate_radio_map, select_radio_map_settings
+from dfusion.datasets import BLERSSIDataset, find_dataset_root
+from dfusion.localization import calibrate_path_loss, PathLossCalibration, run_tracker, weighted_centroid
+from dfusion.metrics import error_stats
+from dfusion.localization import calibrate_radio_map, MAP_SETTINGS_GRID, select_radio_map_settings
 from dfusion.errors import DfusionError
 from dfusion.models import RSSISensor
-from dfusion.pf import RadioMap, WSNTracker
+from dfusion.localization import RadioMap, WSNTracker
 
 #: Defaults of the tracker (see docs/wsn.md for how they were chosen). A radio-map setting of
 #: None is chosen per evaluated track from MAP_SETTINGS_GRID (see the module docstring).

@@ -63,23 +63,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+from dfusion.maps.mapping import grid_from_scans
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfusion.datasets.carmen import read_carmen  # noqa: E402
+from dfusion.datasets import read_carmen  # noqa: E402
 from dfusion.errors import DfusionError, ValidationError  # noqa: E402
-from dfusion.localization import (  # noqa: E402
-    LaserConfig,
-    LikelihoodFieldModel,
-    MonteCarloLocalization,
-    OdometryEKF,
-    OdometryMotionModel,
-    ScanMatcher,
-    scan_to_points,
-)
-from dfusion.localization.mcl import se2_between, se2_compose  # noqa: E402
+from dfusion.models import LaserConfig, LikelihoodFieldModel, OdometryMotionModel
+from dfusion.localization import MonteCarloLocalization, OdometryEKF, scan_to_points, ScanMatcher
+from dfusion.geometry import se2_between, se2_compose  # noqa: E402
 from dfusion.maps import OccupancyGrid  # noqa: E402
-from dfusion.models.base import wrap_angle  # noqa: E402
+from dfusion.geometry import wrap_angle  # noqa: E402
 
 #: Simulated odometry noise: translation scale error (fraction), heading error per radian
 #: turned (fraction) and per metre travelled (rad/m); see the module docstring.
@@ -150,7 +144,7 @@ def run(args: argparse.Namespace) -> dict:
     loc_idx = np.arange(1, len(scans), 2)
 
     t0 = time.perf_counter()
-    grid = OccupancyGrid.from_scans(poses[map_idx], ranges[map_idx], angles, resolution=args.resolution,
+    grid = grid_from_scans(poses[map_idx], ranges[map_idx], angles, resolution=args.resolution,
                                     max_range=args.map_range)
     t_map = time.perf_counter() - t0
 

@@ -58,24 +58,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfusion import SourceEstimate  # noqa: E402
+from dfusion.estimation import Estimate  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402
-from dfusion.localization import (  # noqa: E402
-    LaserConfig,
-    MonteCarloLocalization,
-    ScanMatcher,
-    scan_to_points,
-    se2_between,
-    se2_compose,
-)
-from dfusion.maps import OccupancyGrid, cast_rays  # noqa: E402
-from dfusion.models.base import wrap_angle  # noqa: E402
-from dfusion.switching import (  # noqa: E402
-    BlendedTransitionPolicy,
-    HysteresisSwitchingPolicy,
-    SimilarityRate,
-    relative_pose,
-)
+from dfusion.models import LaserConfig
+from dfusion.localization import MonteCarloLocalization, scan_to_points, ScanMatcher
+from dfusion.geometry import se2_between, se2_compose
+from dfusion.maps import cast_rays, OccupancyGrid  # noqa: E402
+from dfusion.geometry import wrap_angle  # noqa: E402
+from dfusion.policies import BlendedTransitionPolicy, HysteresisSwitchingPolicy
+from dfusion.localization import SimilarityRate
 
 RES = 0.05
 LASER = LaserConfig.uniform(720, 2 * math.pi, 8.0)     # SICK LMS200 in its 8 m mode
@@ -222,7 +213,7 @@ def run_trial(case: Case, grid, coarse_grid, dt: float, seed: int):
         """Precise pose from a guess of the global pose: target (+) ICP(scan -> reference)."""
         t0 = time.perf_counter()
         try:
-            r = matcher.match(pts, relative_pose(guess, target))
+            r = matcher.match(pts, se2_between(target, guess))
             pose, cov = se2_compose(target, r.pose), pose_cov(r)
         except DfusionError:
             pose, cov = guess, np.eye(3)
@@ -260,13 +251,13 @@ def run_trial(case: Case, grid, coarse_grid, dt: float, seed: int):
         mcl_bg.add_scan(t, scans[k])
         eb = mcl_bg.estimate()
         t_mcl = time.perf_counter() - t0
-        coarse = SourceEstimate("coarse", t, eb.mean, eb.covariance, eb.reliability)
+        coarse = Estimate("coarse", t, eb.mean, eb.cov, eb.reliability)
         for key, label, pol in (("sw", "MCL + SM, switching", hyst), ("bl", "MCL + SM, switching + 1 s blend", blend)):
             r = runs[label]
             inner = pol if isinstance(pol, HysteresisSwitchingPolicy) else pol.inner
             guess = se2_compose(out_prev[key], inc)
             t0 = time.perf_counter()
-            rho = simrate(pts, relative_pose(guess, target))
+            rho = simrate(pts, se2_between(target, guess))
             stage = inner.next_stage(rho)
             t_sw = time.perf_counter() - t0
             srcs = [coarse]
@@ -274,10 +265,10 @@ def run_trial(case: Case, grid, coarse_grid, dt: float, seed: int):
             if stage == "high" or inner.stage == "high" or (key == "bl" and pol.blending):
                 # the precise localizer runs, started from the previous output moved by odometry
                 p, c, t_sm = sm_match(pts, guess)
-                srcs.append(SourceEstimate("precise", t, p, c, 1.0))
+                srcs.append(Estimate("precise", t, p, c, 1.0))
             t0 = time.perf_counter()
             inner.set_signal(rho)
-            out = pol.decide(SourceEstimate("fused", t, guess, np.eye(3), 0.0), srcs)
+            out = pol.decide(Estimate("fused", t, guess, np.eye(3), 0.0), srcs)
             t_sw += time.perf_counter() - t0
             out_prev[key] = np.asarray(out.mean, float)
             r.est.append(out_prev[key])

@@ -56,13 +56,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+from dfusion.maps.buildings import corridor, repetitive_corridor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfusion.localization import LaserConfig, MonteCarloLocalization, OdometryMotionModel  # noqa: E402
-from dfusion.localization.mcl import se2_between, se2_compose  # noqa: E402
-from dfusion.maps import OccupancyGrid, cast_rays  # noqa: E402
-from dfusion.models.base import wrap_angle  # noqa: E402
+from dfusion.models import LaserConfig, OdometryMotionModel  # noqa: E402
+from dfusion.localization import MonteCarloLocalization  # noqa: E402
+from dfusion.geometry import se2_between, se2_compose  # noqa: E402
+from dfusion.maps import cast_rays, OccupancyGrid  # noqa: E402
+from dfusion.geometry import wrap_angle  # noqa: E402
 
 CONFIGS = {
     "repetitive-8m": ("repetitive", 8.0),
@@ -76,8 +78,8 @@ POS_TOL, HEAD_TOL = 0.5, 0.2  # correct localization
 
 def make_map(kind: str) -> OccupancyGrid:
     if kind == "repetitive":
-        return OccupancyGrid.repetitive_corridor(length=30.0, width=2.0, period=3.0)
-    return OccupancyGrid.corridor(length=30.0, width=2.0, openings=5, seed=3)
+        return repetitive_corridor(length=30.0, width=2.0, period=3.0)
+    return corridor(length=30.0, width=2.0, openings=5, seed=3)
 
 
 def drive(start: np.ndarray, steps: int, length: float, rng: np.random.Generator) -> np.ndarray:

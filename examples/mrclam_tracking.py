@@ -83,18 +83,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfusion.datasets.mrclam import integrate_odometry, mean_velocities, read_mrclam  # noqa: E402
+from dfusion.datasets import integrate_odometry, mean_velocities, read_mrclam  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402
-from dfusion.fusion.node import FusionNode  # noqa: E402
-from dfusion.localization.robot_node import (  # noqa: E402
-    LandmarkEKF,
-    LandmarkRangeBearing,
-    TargetRangeBearing,
-    VelocityOdometry,
-)
+from dfusion.fusion import FusionNode  # noqa: E402
+from dfusion.localization import LandmarkEKF
+from dfusion.models import LandmarkRangeBearing, TargetRangeBearing, VelocityOdometry
 from dfusion.models import ConstantVelocity, Unicycle  # noqa: E402
-from dfusion.models.base import wrap_angle  # noqa: E402
-from dfusion.sim.network import LinkSpec, SimulatedNetwork  # noqa: E402
+from dfusion.geometry import wrap_angle  # noqa: E402
+from dfusion.transport import LinkSpec, SimulatedNetwork  # noqa: E402
 
 DEFAULTS = {
     "q": 0.0001,

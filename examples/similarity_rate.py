@@ -33,19 +33,22 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
+from dfusion.maps.buildings import rooms
+from dfusion.geometry import se2_between
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.localization import scan_to_points  # noqa: E402
-from dfusion.maps import OccupancyGrid, cast_rays  # noqa: E402
-from dfusion.switching import SimilarityRate, relative_pose, transform_points  # noqa: E402
+from dfusion.maps import cast_rays, OccupancyGrid  # noqa: E402
+from dfusion.localization import SimilarityRate  # noqa: E402
+from dfusion.geometry import transform_points  # noqa: E402
 
 ANGLES = np.linspace(-math.pi, math.pi, 720, endpoint=False)
 LEVELS = [(0.0, 0.0), (0.01, 7.0), (0.02, 14.0), (0.03, 21.0)]
 
 
 def make_sets(seed: int = 0):
-    g = OccupancyGrid.rooms(16.0, 10.0, 3, 2, seed=2)
+    g = rooms(16.0, 10.0, 3, 2, seed=2)
     data = g.data.copy()
     i, j = g.world_to_cell(np.array([[5.0, 2.0], [5.4, 2.4]]))
     data[i[0]:i[1] + 1, j[0]:j[1] + 1] = 100
@@ -58,7 +61,7 @@ def make_sets(seed: int = 0):
     X = X + rng.uniform(-0.02, 0.02, X.shape)
     X = np.vstack([X, rng.normal(0.0, 2.0, (len(X) // 20, 2))])
     Y = scan_to_points(cast_rays(g2, B[None], ANGLES, 30.0)[0], ANGLES, 30.0)
-    return X, Y, relative_pose(A, B), float(np.mean(ra[ra < 30.0]))
+    return X, Y, se2_between(B, A), float(np.mean(ra[ra < 30.0]))
 
 
 def run(draws: int, seed: int = 0):

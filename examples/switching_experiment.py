@@ -65,17 +65,18 @@ from scipy.signal import lfilter
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfusion import FusionNode, SourceEstimate  # noqa: E402
+from dfusion.fusion import FusionNode  # noqa: E402
+from dfusion.estimation import Estimate  # noqa: E402
 from dfusion.models import ConstantVelocity  # noqa: E402
 from dfusion.reliability import camera_reliability, pixel_angle, pixel_footprint  # noqa: E402
-from dfusion.reliability_models import ScoreErrorTable, covariance_reliability, reliability_from_error  # noqa: E402
-from dfusion.switching import (  # noqa: E402
+from dfusion.reliability import covariance_reliability, reliability_from_error, ScoreErrorTable  # noqa: E402
+from dfusion.policies import (
     BlendedTransitionPolicy,
     Component,
     FusionFloorPolicy,
     GreedySwitchingPolicy,
-    Supervisor,
     select_punishment,
+    Supervisor,
 )
 
 SPEED = 0.5
@@ -251,18 +252,18 @@ def simulate(duration: float, dt: float, seed: int, table: ScoreErrorTable | Non
         sup.check(t[k])
         c = comps["depth"]
         if c.active:
-            c.report(SourceEstimate("depth", t[k], rec.est["depth"][k], np.eye(2)), t[k])
+            c.report(Estimate("depth", t[k], rec.est["depth"][k], np.eye(2)), t[k])
         s = c.source()
         dh[k] = bool(s is not None and s.healthy)
     rec.lifecycle_events = len(sup.events)
     return rec, calib
 
 
-def sources_at(rec: Recording, k: int) -> list[SourceEstimate]:
+def sources_at(rec: Recording, k: int) -> list[Estimate]:
     out = []
     for s in SOURCES:
         v = float(rec.var[s][k])
-        out.append(SourceEstimate(s, float(rec.t[k]), rec.est[s][k], np.diag([v, v]), float(rec.rel[s][k]),
+        out.append(Estimate(s, float(rec.t[k]), rec.est[s][k], np.diag([v, v]), float(rec.rel[s][k]),
                                   bool(rec.healthy[s][k])))
     return out
 
@@ -296,10 +297,10 @@ def lost_situations(err: np.ndarray, dt: float, enter: float = 1.0, leave: float
     return n
 
 
-FUSED = SourceEstimate("fused", 0.0, np.zeros(2), np.eye(2) * 1e6, 0.0)
+FUSED = Estimate("fused", 0.0, np.zeros(2), np.eye(2) * 1e6, 0.0)
 
 
-def replay(rec: Recording, policy, srcs: list[list[SourceEstimate]], name: str) -> Result:
+def replay(rec: Recording, policy, srcs: list[list[Estimate]], name: str) -> Result:
     K = rec.t.size
     err = np.empty(K)
     rel = np.empty(K)

@@ -50,22 +50,22 @@ def have_run_command() -> bool:
         sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
         if "run" not in sub.choices:
             return False
-        from dfusion.run.launcher import RunOptions, run_processes  # noqa: F401
+        from dfusion.run.launcher import run_processes, RunOptions
     except (ImportError, StopIteration, AttributeError):
         return False
     return True
 
 
 def run_in_process(args):
-    from dfusion.sim.runner import run_scenario
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.sim import run_scenario
+    from dfusion.scenario import load_scenario
 
     sc = load_scenario(args.scenario, seed=args.seed, duration=args.duration)
     return run_scenario(sc)
 
 
 def run_processes_mode(args):
-    from dfusion.run.launcher import RunOptions, run_processes
+    from dfusion.run.launcher import run_processes, RunOptions
 
     opts = RunOptions(scenario=str(args.scenario), seed=args.seed, duration=args.duration, speed=args.speed,
                       emulate_links=True, progress=sys.stderr.isatty())

@@ -9,7 +9,7 @@ import networkx as nx
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from dfusion import FusionNode
+from dfusion.fusion import FusionNode
 from dfusion.errors import OutsideWindowError
 from dfusion.models import ConstantVelocity, PositionSensor
 

@@ -14,19 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dfusion.datasets import (
-    BLERSSIDataset,
-    PathLossCalibration,
-    calibrate_path_loss,
-    error_stats,
-    find_dataset_root,
-    read_track,
-    weighted_centroid,
-)
-from dfusion.datasets.ble_rssi import calibrate_radio_map
+from dfusion.datasets import BLERSSIDataset, find_dataset_root, read_track
+from dfusion.localization import calibrate_path_loss, PathLossCalibration, weighted_centroid
+from dfusion.metrics import error_stats
+from dfusion.localization import calibrate_radio_map
 from dfusion.errors import ValidationError
-from dfusion.models import RSSISensor, fit_path_loss
-from dfusion.pf import RadioMap, WSNTracker, fit_radio_map, kernel_residual_map
+from dfusion.models import fit_path_loss, RSSISensor
+from dfusion.localization import fit_radio_map, kernel_residual_map, RadioMap, WSNTracker
 
 ROOT = Path(__file__).resolve().parent.parent
 SLICE = ROOT / "tests" / "data" / "ble_rssi"
@@ -350,7 +344,7 @@ def _synthetic_tracks(ds, rng, n_tracks=3, rows=900):
 
 
 def test_directional_path_loss_calibration(ds):
-    from dfusion.pf.radio_map import fit_directional_path_loss, path_loss_design
+    from dfusion.localization import fit_directional_path_loss, path_loss_design
     tr = ds.load_track("straight_03")
     pos = ds.receiver_positions
     cal = calibrate_path_loss([tr], pos, ds.receiver_macs, order=2, ridge=50.0)
@@ -383,8 +377,8 @@ def test_directional_path_loss_calibration(ds):
 
 
 def test_held_out_residuals_and_split_noise_calibration(ds):
-    from dfusion.datasets.ble_rssi import held_out_residuals, held_out_score
-    from dfusion.pf.radio_map import fit_split_normal, split_normal_logpdf
+    from dfusion.localization import held_out_residuals, held_out_score
+    from dfusion.localization import fit_split_normal, split_normal_logpdf
     parts = _pieces(ds.load_track("straight_03"))
     pos, macs = ds.receiver_positions, ds.receiver_macs
     st = dict(order=1, ridge=30.0, bandwidth=0.8, prior_weight=0.1)
@@ -423,7 +417,7 @@ def stats_norm_logpdf(u):
 
 
 def test_select_radio_map_settings(ds):
-    from dfusion.datasets.ble_rssi import held_out_residuals, held_out_score, select_radio_map_settings
+    from dfusion.localization import held_out_residuals, held_out_score, select_radio_map_settings
     rng = np.random.default_rng(12)
     tracks = _synthetic_tracks(ds, rng)
     pos, macs = ds.receiver_positions, ds.receiver_macs

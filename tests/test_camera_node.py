@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dfusion.errors import OutsideWindowError, ScenarioError
-from dfusion.fusion.node import FusionNode
+from dfusion.fusion import FusionNode
 from dfusion.models import ConstantVelocity, PinholeCamera
 from dfusion.reliability import (
     camera_geometry,
@@ -19,9 +19,10 @@ from dfusion.reliability import (
     recognition_accuracy,
     viewing_angle,
 )
-from dfusion.sensors.camera import CameraFrontEnd, SceneCamera, gate_threshold
-from dfusion.sim.scenario import load_scenario
-from dfusion.sim.world import simulate_world
+from dfusion.frontends import CameraFrontEnd, gate_threshold
+from dfusion.models import SceneCamera
+from dfusion.scenario import load_scenario
+from dfusion.sim import simulate_world
 
 
 def camera_scenario(**cam) -> dict:

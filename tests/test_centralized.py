@@ -14,16 +14,10 @@ from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dfusion.errors import (
-    NonFiniteError,
-    NotPositiveDefiniteError,
-    ShapeError,
-    TimeError,
-    ValidationError,
-)
-from dfusion.estimation.centralized import CentralizedEKF
+from dfusion.errors import NonFiniteError, NotPositiveDefiniteError, ShapeError, TimeError, ValidationError
+from dfusion.estimation import CentralizedEKF
 from dfusion.models import ConstantVelocity, PositionSensor
-from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.models import MeasurementModel, MotionModel
 
 RTOL = 1e-10
 Q_PSD = 0.3  # acceleration noise spectral density of the 2-D constant-velocity tests

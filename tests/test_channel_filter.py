@@ -17,7 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dfusion import FusionNode
+from dfusion.fusion import FusionNode
 from dfusion.models import ConstantVelocity, PositionSensor
 
 from fusion_harness import P0, Q_PSD, central_kalman

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from dfusion.sim.metrics import nees
-from dfusion.sim.runner import run_scenario
-from dfusion.sim.scenario import load_scenario
+from dfusion.metrics import nees
+from dfusion.sim import run_scenario
+from dfusion.scenario import load_scenario
 
 DATA = Path(__file__).parent / "data"
 RUNS = 12

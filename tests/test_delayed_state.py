@@ -8,7 +8,7 @@ from filterpy.kalman import KalmanFilter
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dfusion import DelayedStateEIF
+from dfusion.estimation import DelayedStateEIF
 from dfusion.errors import (
     DfusionError,
     NonFiniteError,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from dfusion import DelayedStateEIF, ExtendedInformationFilter, InformationGaussian
+from dfusion.estimation import DelayedStateEIF, ExtendedInformationFilter, InformationGaussian
 from dfusion.models import ConstantVelocity, PinholeCamera, RangeBearing, Unicycle
 
 SEEDS = [0, 1, 2, 3, 4]

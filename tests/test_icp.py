@@ -10,11 +10,13 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
 from dfusion.errors import NotPositiveDefiniteError, ValidationError
-from dfusion.localization import se2_compose
-from dfusion.localization.icp import ScanMatcher, estimate_normals, icp, scan_to_points
-from dfusion.localization.odometry_ekf import OdometryEKF, odometry_increment
-from dfusion.maps import OccupancyGrid, cast_rays
-from dfusion.models.base import wrap_angle
+from dfusion.geometry import se2_compose
+from dfusion.localization import estimate_normals, icp, scan_to_points, ScanMatcher
+from dfusion.localization import OdometryEKF
+from dfusion.models import odometry_increment
+from dfusion.maps import cast_rays, OccupancyGrid
+from dfusion.geometry import wrap_angle
+from dfusion.maps.buildings import rooms
 
 ANGLES = np.linspace(-np.pi, np.pi, 360, endpoint=False)
 
@@ -32,7 +34,7 @@ def _to_world(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def scene():
-    g = OccupancyGrid.rooms(12.0, 8.0, 3, 2, seed=3)
+    g = rooms(12.0, 8.0, 3, 2, seed=3)
     a = np.array([2.0, 2.0, 0.3])
     ranges = cast_rays(g, a[None], ANGLES, 10.0)[0]
     world = _to_world(scan_to_points(ranges, ANGLES, 10.0), a)

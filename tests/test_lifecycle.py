@@ -6,20 +6,14 @@ import itertools
 import numpy as np
 import pytest
 
-from dfusion import FusionNode, SourceEstimate
+from dfusion.fusion import FusionNode
+from dfusion.estimation import Estimate
 from dfusion.models import ConstantVelocity
-from dfusion.switching import (
-    TRANSITIONS,
-    Component,
-    GreedySwitchingPolicy,
-    InvalidTransition,
-    State,
-    Supervisor,
-)
+from dfusion.policies import Component, GreedySwitchingPolicy, InvalidTransition, State, Supervisor, TRANSITIONS
 
 
 def est(name, t, r=0.8):
-    return SourceEstimate(name, t, np.array([t, 0.0]), np.eye(2) * 0.01, r)
+    return Estimate(name, t, np.array([t, 0.0]), np.eye(2) * 0.01, r)
 
 
 def test_valid_life_cycle():

@@ -9,10 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dfusion.datasets.carmen import beam_angles, read_carmen
+from dfusion.datasets import beam_angles, read_carmen
 from dfusion.errors import ShapeError, ValidationError
-from dfusion.maps import OccupancyGrid, RayCastTable, cast_rays, parse_simple_yaml, read_pgm, write_pgm
-from dfusion.maps.grid import FREE, OCCUPIED, UNKNOWN
+from dfusion.maps import cast_rays, OccupancyGrid, RayCastTable, read_map_meta, read_pgm, write_pgm
+from dfusion.maps import FREE, OCCUPIED, UNKNOWN
+from dfusion.maps.buildings import corridor, repetitive_corridor, rooms
+from dfusion.maps.mapping import grid_from_scans
+from dfusion.maps.io import read_map_yaml, write_map_yaml
 
 DATA = Path(__file__).parent / "data" / "carmen"
 
@@ -48,7 +51,7 @@ def test_yaml_pgm_load_round_trip(tmp_path):
         "occupied_thresh: 0.65\n"
         "free_thresh: 0.196\n"
     )
-    g = OccupancyGrid.load(tmp_path / "tiny.yaml")
+    g = read_map_yaml(tmp_path / "tiny.yaml")
     assert g.shape == (3, 4)
     assert g.resolution == 0.1
     np.testing.assert_array_equal(g.origin, [-1.5, 2.0, 0.0])
@@ -64,8 +67,8 @@ def test_yaml_pgm_load_round_trip(tmp_path):
     assert g.value_at([[-1.45, 2.05]])[0] == FREE
     assert g.value_at([[-1.45, 2.25]])[0] == OCCUPIED  # top-left image pixel
     # save and load again: same classification, same geometry
-    g.save(tmp_path / "again.yaml")
-    g2 = OccupancyGrid.load(tmp_path / "again.yaml")
+    write_map_yaml(g, tmp_path / "again.yaml")
+    g2 = read_map_yaml(tmp_path / "again.yaml")
     np.testing.assert_array_equal(g2.data, g.data)
     np.testing.assert_array_equal(g2.origin, g.origin)
     assert g2.resolution == g.resolution
@@ -82,29 +85,29 @@ def test_yaml_pgm_negate_scale_raw_and_ascii(tmp_path):
     base = "image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
     (tmp_path / "neg.yaml").write_text(base + "negate: 1\n")
     # negate: p = v / 255 -> 0, 0.39, 0.78, 1.0
-    np.testing.assert_array_equal(OccupancyGrid.load(tmp_path / "neg.yaml").data[0], [FREE, UNKNOWN, OCCUPIED, OCCUPIED])
+    np.testing.assert_array_equal(read_map_yaml(tmp_path / "neg.yaml").data[0], [FREE, UNKNOWN, OCCUPIED, OCCUPIED])
     (tmp_path / "scale.yaml").write_text(base + "negate: 0\nmode: scale\n")
     # p = 1, 0.608, 0.216, 0 -> 100, 1 + 98 (p - .196) / (.65 - .196), ..., 0
-    d = OccupancyGrid.load(tmp_path / "scale.yaml").data[0]
+    d = read_map_yaml(tmp_path / "scale.yaml").data[0]
     p = (255 - img[0].astype(float)) / 255
     assert d[0] == OCCUPIED and d[3] == FREE
     assert d[1] == round(1 + 98 * (p[1] - 0.196) / (0.65 - 0.196))
     assert d[2] == round(1 + 98 * (p[2] - 0.196) / (0.65 - 0.196))
     (tmp_path / "raw.yaml").write_text(base + "negate: 0\nmode: raw\n")
-    np.testing.assert_array_equal(OccupancyGrid.load(tmp_path / "raw.yaml").data[0], [0, 100, UNKNOWN, UNKNOWN])
+    np.testing.assert_array_equal(read_map_yaml(tmp_path / "raw.yaml").data[0], [0, 100, UNKNOWN, UNKNOWN])
     # ASCII PGM (P2), 16-bit maxval scaled to 8 bits
     (tmp_path / "a.pgm").write_text("P2\n# ascii\n2 1\n65535\n0 65535\n")
     np.testing.assert_array_equal(read_pgm(tmp_path / "a.pgm"), [[0, 255]])
 
 
 def test_simple_yaml_parser_and_errors(tmp_path):
-    y = parse_simple_yaml('image: "my map.pgm"  # c\nresolution: 0.025\norigin: [-10.0, -5, 0.1]\nnegate: 0\nflag: true\n')
+    y = read_map_meta('image: "my map.pgm"  # c\nresolution: 0.025\norigin: [-10.0, -5, 0.1]\nnegate: 0\nflag: true\n')
     assert y == {"image": "my map.pgm", "resolution": 0.025, "origin": [-10.0, -5, 0.1], "negate": 0, "flag": True}
     with pytest.raises(ValidationError):
-        parse_simple_yaml("origin:\n  - 1\n  - 2\n")
+        read_map_meta("origin:\n  - 1\n  - 2\n")
     (tmp_path / "bad.yaml").write_text("image: x.pgm\nresolution: 0.1\n")
     with pytest.raises(ValidationError, match="origin"):
-        OccupancyGrid.load(tmp_path / "bad.yaml")
+        read_map_yaml(tmp_path / "bad.yaml")
     (tmp_path / "x.pgm").write_bytes(b"P6\n1 1\n255\n\x00\x00\x00")
     with pytest.raises(ValidationError):
         read_pgm(tmp_path / "x.pgm")
@@ -161,9 +164,9 @@ def test_surface_distance_field_on_a_thick_wall():
 @pytest.mark.parametrize(
     "make",
     [
-        lambda: OccupancyGrid.rooms(seed=5),
-        lambda: OccupancyGrid.corridor(seed=5),
-        lambda: OccupancyGrid.repetitive_corridor(),
+        lambda: rooms(seed=5),
+        lambda: corridor(seed=5),
+        lambda: repetitive_corridor(),
     ],
 )
 def test_generated_maps_are_closed_and_deterministic(make):
@@ -181,14 +184,14 @@ def test_generated_maps_are_closed_and_deterministic(make):
 
 
 def test_repetitive_corridor_is_periodic():
-    g = OccupancyGrid.repetitive_corridor(length=30.0, period=3.0)
+    g = repetitive_corridor(length=30.0, period=3.0)
     k = int(round(3.0 / g.resolution))
     mid = g.data[:, 2 * k : 6 * k]
     np.testing.assert_array_equal(mid, g.data[:, 3 * k : 7 * k])  # shifting by one period
 
 
 def test_sample_free_poses_uniform_over_free_space():
-    g = OccupancyGrid.rooms(seed=2)
+    g = rooms(seed=2)
     p = g.sample_free_poses(40000, rng=1)
     assert g.is_free(p[:, :2]).all()
     assert np.all((p[:, 2] >= -np.pi) & (p[:, 2] < np.pi))
@@ -200,12 +203,12 @@ def test_sample_free_poses_uniform_over_free_space():
 
 
 def test_map_from_scans_reproduces_the_walls():
-    truth = OccupancyGrid.rooms(8.0, 6.0, 2, 1, obstacles=2, seed=1)
+    truth = rooms(8.0, 6.0, 2, 1, obstacles=2, seed=1)
     rng = np.random.default_rng(0)
     poses = truth.sample_free_poses(60, rng)
     angles = np.linspace(-np.pi, np.pi, 360, endpoint=False)
     scans = cast_rays(truth, poses, angles, 8.0) + 0.005 * rng.standard_normal((60, 360))
-    built = OccupancyGrid.from_scans(poses, scans, angles, resolution=0.05, max_range=8.0)
+    built = grid_from_scans(poses, scans, angles, resolution=0.05, max_range=8.0)
     # every occupied cell of the built map lies within 1.5 cells of a true occupied cell
     occ_pts = built.occupied_points(boundary_only=False)
     ti, tj = truth.world_to_cell(occ_pts)
@@ -240,7 +243,7 @@ def _near_cell_corner(grid, world_pt, tol):
 
 @pytest.mark.parametrize("origin", [(-0.65, -0.65, 0.0), (3.0, -1.0, 0.7)])
 def test_cast_rays_matches_brute_force(origin):
-    base = OccupancyGrid.rooms(8.0, 6.0, 2, 2, obstacles=4, seed=3)
+    base = rooms(8.0, 6.0, 2, 2, obstacles=4, seed=3)
     g = OccupancyGrid(base.data, base.resolution, origin)
     rng = np.random.default_rng(7)
     poses = g.sample_free_poses(15, rng)
@@ -286,7 +289,7 @@ def test_cast_rays_conventions():
 
 
 def test_ray_cast_table_accuracy():
-    g = OccupancyGrid.rooms(8.0, 6.0, 2, 2, obstacles=4, seed=3)
+    g = rooms(8.0, 6.0, 2, 2, obstacles=4, seed=3)
     table = RayCastTable(g, 8.0, theta_bins=72)
     assert table.table.dtype == np.uint16 and table.nbytes < 10e6
     rng = np.random.default_rng(3)
@@ -354,7 +357,7 @@ def test_carmen_reader_on_the_intel_excerpt(tmp_path):
     np.testing.assert_array_equal(np.sort(log2.odom_t, kind="stable"), log.odom_t)
     # a map built from the three scans contains the walls the scans saw
     pts = np.vstack([s.points("world") for s in log.scans])
-    m = OccupancyGrid.from_scans(log.scan_poses, np.array([s.ranges for s in log.scans]), s0.angles, 0.05, 81.83)
+    m = grid_from_scans(log.scan_poses, np.array([s.ranges for s in log.scans]), s0.angles, 0.05, 81.83)
     i, j = m.world_to_cell(pts)
     # (an end point cell seen once (+0.85) and crossed once by another beam (-0.4) stays
     # below the occupied threshold logit(0.65) = 0.62, hence not 100 %)

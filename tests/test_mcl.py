@@ -10,21 +10,14 @@ from scipy.special import erfc
 from scipy.stats import chi2
 
 from dfusion.errors import NotInitializedError, OutsideWindowError, ShapeError, TimeError
-from dfusion.localization import (
-    BeamErfcModel,
-    LaserConfig,
-    LikelihoodFieldModel,
-    MonteCarloLocalization,
-    OdometryMotionModel,
-    gaussian_summary,
-    kld_sample_size,
-    reliability,
-    se2_between,
-    se2_compose,
-    se2_inverse,
-)
-from dfusion.maps import OccupancyGrid, cast_rays
-from dfusion.models.base import wrap_angle
+from dfusion.models import BeamErfcModel, LaserConfig, LikelihoodFieldModel, OdometryMotionModel
+from dfusion.localization import kld_sample_size, MonteCarloLocalization
+from dfusion.estimation import gaussian_summary
+from dfusion.reliability import covariance_reliability
+from dfusion.geometry import se2_between, se2_compose, se2_inverse
+from dfusion.maps import cast_rays, OccupancyGrid
+from dfusion.geometry import wrap_angle
+from dfusion.maps.buildings import rooms
 
 LASER = LaserConfig.uniform(181, math.pi, 10.0)
 
@@ -32,7 +25,7 @@ LASER = LaserConfig.uniform(181, math.pi, 10.0)
 @pytest.fixture(scope="module")
 def world():
     """A seeded rooms map, a robot path through it, noisy scans and drifting odometry."""
-    g = OccupancyGrid.rooms(12.0, 8.0, 3, 2, seed=3)
+    g = rooms(12.0, 8.0, 3, 2, seed=3)
     rng = np.random.default_rng(0)
     p = np.array([2.0, 2.0, 0.0])
     path = [p.copy()]
@@ -138,7 +131,7 @@ def test_gaussian_summary_circular_mean_and_reliability():
     mean, cov = gaussian_summary(p, [1.0, 1.0])
     assert abs(abs(mean[2]) - math.pi) < 1e-12
     np.testing.assert_allclose(cov, [[1.0, 0.0, 0.1], [0.0, 0.0, 0.0], [0.1, 0.0, 0.01]], atol=1e-12)
-    assert reliability(np.diag([0.09, 0.16, 1.0])) == pytest.approx(1 / 1.5)
+    assert covariance_reliability(np.diag([0.09, 0.16, 1.0])) == pytest.approx(1 / 1.5)
     a = np.array([1.0, 2.0, 0.5])
     np.testing.assert_allclose(se2_compose(a, se2_inverse(a)), np.zeros(3), atol=1e-12)
 

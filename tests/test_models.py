@@ -18,14 +18,14 @@ from scipy.stats import linregress
 from dfusion.errors import NonFiniteError, ShapeError, ValidationError
 from dfusion.models import (
     ConstantVelocity,
+    fit_path_loss,
     PinholeCamera,
     PositionSensor,
     RangeBearing,
     RSSISensor,
     Unicycle,
-    fit_path_loss,
-    wrap_angle,
 )
+from dfusion.geometry import wrap_angle
 
 FAST = settings(max_examples=60, deadline=None)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dfusion.datasets.mrclam import integrate_odometry, mean_velocities, read_mrclam
+from dfusion.datasets import integrate_odometry, mean_velocities, read_mrclam
 from dfusion.errors import ValidationError
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from dfusion import FusionNode
+from dfusion.fusion import FusionNode
 from dfusion.models import MeasurementModel, Unicycle
 
 

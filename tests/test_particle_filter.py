@@ -11,14 +11,13 @@ import numpy as np
 import pytest
 
 from dfusion.errors import NotInitializedError, ShapeError, ValidationError
-from dfusion.gaussian import InformationGaussian
+from dfusion.estimation import InformationGaussian
 from dfusion.models import RSSISensor
-from dfusion.pf import (
-    OccupancyGrid,
+from dfusion.maps import NodeLattice
+from dfusion.estimation import (
+    effective_sample_size,
     ParticleDepletionError,
     ParticleFilter,
-    WSNTracker,
-    effective_sample_size,
     project_psd_information,
     roughening_std,
     stratified_resample,
@@ -26,6 +25,7 @@ from dfusion.pf import (
     systematic_resample,
     weighted_mean_cov,
 )
+from dfusion.localization import WSNTracker
 
 
 # --------------------------------------------------------------------------- references
@@ -63,7 +63,7 @@ def segment_box_overlap(a, b, lo, hi):
     return np.maximum(0.0, t1 - t0)
 
 
-def ref_blocked(grid: OccupancyGrid, a, b, eps=1e-9):
+def ref_blocked(grid: NodeLattice, a, b, eps=1e-9):
     """Exact: does a->b overlap an occupied square (or leave the grid) over a positive length?
 
     Returns None when the answer hinges on a tangency (overlap length below ``eps``).
@@ -83,12 +83,12 @@ def ref_blocked(grid: OccupancyGrid, a, b, eps=1e-9):
     return bool(best > 0)
 
 
-def point_occupied(grid: OccupancyGrid, p):
+def point_occupied(grid: NodeLattice, p):
     """Occupancy of one point by direct arithmetic (no grid method)."""
     return bool(points_occupied(grid, np.asarray(p, float)[None])[0])
 
 
-def points_occupied(grid: OccupancyGrid, p):
+def points_occupied(grid: NodeLattice, p):
     """Occupancy of points ``(..., 2)`` by direct arithmetic: nearest node, outside = occupied."""
     i = np.floor((p[..., 0] - grid.origin[0]) / grid.cell + 0.5)
     j = np.floor((p[..., 1] - grid.origin[1]) / grid.cell + 0.5)
@@ -98,7 +98,7 @@ def points_occupied(grid: OccupancyGrid, p):
     return out
 
 
-def dense_crossing(grid: OccupancyGrid, a, b, n=400):
+def dense_crossing(grid: NodeLattice, a, b, n=400):
     """Brute force: does any of ``n`` evenly spaced points of each segment a[k]->b[k] hit an obstacle?"""
     t = np.linspace(0.0, 1.0, n)[None, :, None]
     return points_occupied(grid, a[:, None, :] + t * (b - a)[:, None, :]).any(axis=1)
@@ -112,7 +112,7 @@ def walled_grid():
     occ[24, :] = True
     occ[24, 18:23] = False  # door at y in [4.5, 5.5]
     occ[8:14, 26:32] = True  # block
-    return OccupancyGrid(occ, 0.25)
+    return NodeLattice(occ, 0.25)
 
 
 # --------------------------------------------------------------------------- generic filter
@@ -275,14 +275,14 @@ def test_occ_file_parsing_unsorted_lines(tmp_path):
     rng.shuffle(lines)
     f = tmp_path / "x_0.5.occ"
     f.write_text("[[0.0, 0.0], [1.6, 1.1]]::0.5\n" + "\n".join(lines) + "\n")
-    g = OccupancyGrid.from_occ_file(f)
+    g = NodeLattice.from_occ_file(f)
     assert g.shape == (4, 3) and g.cell == 0.5
     np.testing.assert_array_equal(g.occupied, occ)
-    g0 = OccupancyGrid.from_occ_file(f, occupied_value=0)
+    g0 = NodeLattice.from_occ_file(f, occupied_value=0)
     np.testing.assert_array_equal(g0.occupied, ~occ)
     f.write_text("[[0.0, 0.0], [1.6, 1.1]]::0.5\n" + "\n".join(lines[:-1]) + "\n")
     with pytest.raises(ValidationError):
-        OccupancyGrid.from_occ_file(f)
+        NodeLattice.from_occ_file(f)
 
 
 def test_world_cell_conversion_and_point_occupancy():
@@ -302,7 +302,7 @@ def test_world_cell_conversion_and_point_occupancy():
 def test_segment_test_is_exact_against_liang_barsky():
     rng = np.random.default_rng(2)
     occ = rng.random((30, 24)) < 0.25
-    g = OccupancyGrid(occ, 0.2, origin=(1.0, -0.5))
+    g = NodeLattice(occ, 0.2, origin=(1.0, -0.5))
     n = 1500
     a = g.origin + rng.uniform(-0.3, 6.2, size=(n, 2)) * [1, 0.8]
     b = a + rng.standard_normal((n, 2)) * rng.choice([0.03, 0.2, 1.0, 3.0], size=(n, 1))
@@ -311,9 +311,14 @@ def test_segment_test_is_exact_against_liang_barsky():
     b[100:200, 0] = a[100:200, 0]
     b[200:300] = a[200:300] + 0.01
     got = g.segment_blocked(a, b)
-    np.testing.assert_array_equal(got, g._blocked_exact(
-        g._u1(a[:, 0], 0), g._u1(a[:, 1], 1), np.floor(g._u1(a[:, 0], 0)).astype(int),
-        np.floor(g._u1(a[:, 1], 1)).astype(int), g._u1(b[:, 0], 0), g._u1(b[:, 1], 1)))
+    m = g.map
+
+    def u1(v, ax):   # continuous cell coordinate along axis ax of the lattice's map
+        return m._u1(v - m.origin[ax], ax)
+
+    np.testing.assert_array_equal(got, m._blocked_exact(
+        u1(a[:, 0], 0), u1(a[:, 1], 1), np.floor(u1(a[:, 0], 0)).astype(int),
+        np.floor(u1(a[:, 1], 1)).astype(int), u1(b[:, 0], 0), u1(b[:, 1], 1)))
     checked = 0
     for k in range(n):
         ref = ref_blocked(g, a[k], b[k])

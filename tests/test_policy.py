@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from dfusion import FusionNode, InformationFusionPolicy, Policy, SourceEstimate
+from dfusion.fusion import FusionNode
+from dfusion.policies import InformationFusionPolicy, Policy
+from dfusion.estimation import Estimate
 from dfusion.models import ConstantVelocity, PositionSensor
 
 
@@ -36,12 +38,12 @@ def test_default_policy_outputs_the_fused_estimate():
 
 def test_a_custom_policy_decides_the_output():
     node = make(MostReliable())
-    lidar = SourceEstimate("lidar", 1.0, np.ones(4), np.eye(4), reliability=0.9)
-    camera = SourceEstimate("camera", 1.0, np.zeros(4), np.eye(4), reliability=0.95, healthy=False)
+    lidar = Estimate("lidar", 1.0, np.ones(4), np.eye(4), reliability=0.9)
+    camera = Estimate("camera", 1.0, np.zeros(4), np.eye(4), reliability=0.95, healthy=False)
     node.report_source(lidar)
     node.report_source(camera)
     assert node.output().name == "lidar"          # the camera is in error
-    node.report_source(SourceEstimate("camera", 1.1, np.zeros(4), np.eye(4), reliability=0.95))
+    node.report_source(Estimate("camera", 1.1, np.zeros(4), np.eye(4), reliability=0.95))
     assert node.output().name == "camera"         # latest report replaces the previous one
     # the fused estimate is untouched by the policy
     assert node.estimate()[0][0] > 0.5

@@ -59,24 +59,24 @@ def write(tmp_path: Path, policy: str = GREEDY) -> Path:
     return path
 
 
-def test_load_scenario_registers_the_switching_policies_itself(tmp_path):
-    """In a fresh interpreter that never imports dfusion.switching, a policy name works."""
+def test_load_scenario_knows_the_switching_policies_itself(tmp_path):
+    """In a fresh interpreter that imports only dfusion.scenario, a policy name works: the
+    built-in policies are an explicit table of the scenario package, not registered by an
+    import the user has to remember."""
     path = write(tmp_path)
     script = textwrap.dedent(f"""
         import json, sys
-        from dfusion.sim.scenario import load_scenario
-        before = "dfusion.switching" in sys.modules
+        from dfusion.scenario import load_scenario
         sc = load_scenario({str(path)!r})
         pol = sc.nodes["cam"].policy
-        print(json.dumps({{"before": before, "cls": type(pol).__module__ + "." + type(pol).__name__,
+        print(json.dumps({{"cls": type(pol).__module__ + "." + type(pol).__name__,
                           "punishment": pol.punishment,
                           "relay": type(sc.nodes["relay"].policy).__name__ if sc.nodes["relay"].policy else None}}))
     """)
     res = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
-    assert out["before"] is False, "dfusion.switching already imported: this test would prove nothing"
-    assert out["cls"] == "dfusion.switching.policies.GreedySwitchingPolicy"
+    assert out["cls"] == "dfusion.policies.switching.GreedySwitchingPolicy"
     assert out["punishment"] == 0.12
     assert out["relay"] in (None, "InformationFusionPolicy")   # default: the node's fusion
 
@@ -101,7 +101,7 @@ def _simulate_nodes(path: Path, monkeypatch, capsys) -> dict:
 
 
 def test_dfusion_simulate_nodes_output_through_the_scenario_policy(tmp_path, monkeypatch, capsys):
-    from dfusion.switching import GreedySwitchingPolicy
+    from dfusion.policies import GreedySwitchingPolicy
 
     nodes = _simulate_nodes(write(tmp_path), monkeypatch, capsys)
     cam = nodes["cam"]
@@ -124,8 +124,8 @@ def test_node_program_builds_its_node_with_the_scenario_policy(tmp_path):
     """The node program (``dfusion.run.node_process``) builds the same policy and its front
     end feeds the same sources; driven step by step here without opening a Zenoh session."""
     from dfusion.run.node_process import NodeProcess
-    from dfusion.sim.scenario import load_scenario
-    from dfusion.switching import GreedySwitchingPolicy
+    from dfusion.scenario import load_scenario
+    from dfusion.policies import GreedySwitchingPolicy
 
     sc = load_scenario(write(tmp_path))
     proc = NodeProcess(sc, "cam", start=0.0)
@@ -148,10 +148,10 @@ def test_node_program_builds_its_node_with_the_scenario_policy(tmp_path):
     ('{ kind = "fusion_floor", floor = 0.3 }', "FusionFloorPolicy"),
 ])
 def test_every_switching_policy_name_builds_in_both_paths(tmp_path, policy, expected):
-    import dfusion.switching as switching
+    import dfusion.policies as switching
     from dfusion.run.node_process import NodeProcess
-    from dfusion.sim.runner import build_nodes
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.scenario import build_nodes
+    from dfusion.scenario import load_scenario
 
     cls = getattr(switching, expected)
     sc = load_scenario(write(tmp_path, policy))
@@ -162,8 +162,9 @@ def test_every_switching_policy_name_builds_in_both_paths(tmp_path, policy, expe
 def test_simulate_records_the_policy_output_and_scores_it(tmp_path):
     """``run_scenario`` records ``node.output()`` of a node with a switching policy; the
     JSON figures of that output match a direct computation from the recorded series."""
-    from dfusion.sim.runner import build_nodes, run_scenario
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.scenario import build_nodes
+    from dfusion.sim import run_scenario
+    from dfusion.scenario import load_scenario
 
     sc = load_scenario(write(tmp_path))
     res = run_scenario(sc)
@@ -208,8 +209,8 @@ def test_dfusion_run_reports_the_policy_output_like_simulate(tmp_path, capsys):
     ``dfusion run`` scores it with the keys of ``dfusion simulate``."""
     pytest.importorskip("zenoh")
     from dfusion.cli import main
-    from dfusion.sim.runner import run_scenario
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.sim import run_scenario
+    from dfusion.scenario import load_scenario
 
     path = write(tmp_path)
     out_json = tmp_path / "run.json"
@@ -230,11 +231,11 @@ def test_dfusion_run_reports_the_policy_output_like_simulate(tmp_path, capsys):
 
 def test_policies_named_in_a_plain_topology_file(tmp_path):
     """Topology files (names and links only) can name a policy per node too."""
-    from dfusion import FusionNode
+    from dfusion.fusion import FusionNode
     from dfusion.errors import ScenarioError
     from dfusion.models import ConstantVelocity
-    from dfusion.sim.scenario import node_policies
-    from dfusion.switching import GreedySwitchingPolicy, HysteresisSwitchingPolicy
+    from dfusion.scenario import node_policies
+    from dfusion.policies import GreedySwitchingPolicy, HysteresisSwitchingPolicy
     from dfusion.topology import load_topology
 
     path = tmp_path / "t.toml"

@@ -12,13 +12,13 @@ import pytest
 from scipy import integrate, optimize, stats
 
 from dfusion.errors import ValidationError
-from dfusion.models import RSSISensor, fit_path_loss
-from dfusion.pf import WSNTracker
-from dfusion.pf.radio_map import (
-    RadioMap,
+from dfusion.models import fit_path_loss, RSSISensor
+from dfusion.localization import WSNTracker
+from dfusion.localization import (
     fit_directional_path_loss,
     fit_split_normal,
     path_loss_design,
+    RadioMap,
     split_normal_logpdf,
 )
 

@@ -27,10 +27,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dfusion import FusionNode
+from dfusion.fusion import FusionNode
 from dfusion.errors import MessageError
 from dfusion.models import ConstantVelocity, PositionSensor
-from dfusion.wire import PSD_RTOL, PSD_SCALED_ATOL, InfoMessage, decode, encode
+from dfusion.wire import decode, encode, InfoMessage, PSD_RTOL, PSD_SCALED_ATOL
 
 KEY = b"fuzz-network-key"
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -14,25 +14,24 @@ import numpy as np
 import pytest
 
 from dfusion.errors import ShapeError, ValidationError
-from dfusion.fusion.node import FusionNode
-from dfusion.localization import LaserConfig, LikelihoodFieldModel, MonteCarloLocalization, ScanMatcher
-from dfusion.localization.env_camera import EnvironmentCameraLocalizer
+from dfusion.fusion import FusionNode
+from dfusion.models import LaserConfig, LikelihoodFieldModel
+from dfusion.localization import MonteCarloLocalization, ScanMatcher
+from dfusion.localization import EnvironmentCameraLocalizer
 from dfusion.reliability import camera_reliability
-from dfusion.localization.robot_node import (
+from dfusion.frontends import (
     EnvCameraFrontEnd,
-    ICPFrontEnd,
-    LandmarkEKF,
-    LandmarkRangeBearing,
-    LaserScanSensor,
-    MCLFrontEnd,
-    PositionFix,
-    TargetRangeBearing,
-    VelocityOdometry,
     fit_difference_information,
+    ICPFrontEnd,
+    MCLFrontEnd,
     position_information,
 )
+from dfusion.localization import LandmarkEKF
+from dfusion.models import LandmarkRangeBearing, LaserScanSensor, PositionFix, TargetRangeBearing, VelocityOdometry
 from dfusion.maps import OccupancyGrid
 from dfusion.models import ConstantVelocity, PinholeCamera, Unicycle
+from dfusion.maps.io import read_occ
+from dfusion.maps.buildings import rooms
 
 
 def fd_jacobian(f, x, eps=1e-6):
@@ -158,7 +157,7 @@ def test_landmark_ekf_localizes_and_gates_outliers():
     assert ekf.rejected >= 1 and ekf.accepted > 200
     assert np.sqrt(np.mean(np.square(errs))) < 0.15
     est = ekf.estimate()
-    assert est.covariance.shape == (3, 3) and 0 < est.reliability <= 1
+    assert est.cov.shape == (3, 3) and 0 < est.reliability <= 1
 
 
 # --------------------------------------------------------------------------- environmental camera
@@ -205,18 +204,18 @@ def test_env_camera_localizer_position_covariance_heading():
     px = cam.h(p_true)
     est = loc.update(0.0, px)
     np.testing.assert_allclose(est.mean[:2], p_true, atol=1e-9)
-    assert est.covariance[2, 2] == pytest.approx(math.pi**2 / 3)  # no heading yet
+    assert est.cov[2, 2] == pytest.approx(math.pi**2 / 3)  # no heading yet
     # covariance: Monte Carlo of the pixel noise through the back-projection
     rng = np.random.default_rng(1)
     pts = np.array([cam.ground_point(px + 2.0 * rng.standard_normal(2)) for _ in range(20000)])
     emp = np.cov(pts.T)
-    np.testing.assert_allclose(est.covariance[:2, :2], emp, rtol=0.06, atol=0.03 * emp.max())
+    np.testing.assert_allclose(est.cov[:2, :2], emp, rtol=0.06, atol=0.03 * emp.max())
     # farther from the camera: larger covariance, lower reliability
     far = loc.update(10.0, cam.h([6.0, 0.5]))
-    assert far.reliability < est.reliability and np.trace(far.covariance[:2, :2]) > np.trace(est.covariance[:2, :2])
+    assert far.reliability < est.reliability and np.trace(far.cov[:2, :2]) > np.trace(est.cov[:2, :2])
     # heading from the displacement of two fixes less than max_gap apart
     e2 = loc.update(11.0, cam.h([6.0, 1.5]))
-    assert e2.mean[2] == pytest.approx(math.pi / 2, abs=0.01) and e2.covariance[2, 2] < 0.01
+    assert e2.mean[2] == pytest.approx(math.pi / 2, abs=0.01) and e2.cov[2, 2] < 0.01
     assert loc.update(12.0, [-5.0, 10.0]) is None  # outside the image
 
 
@@ -233,7 +232,7 @@ def pair(window=50):
 
 @pytest.fixture(scope="module")
 def room():
-    return OccupancyGrid.rooms(12.0, 8.0, 1, 1, obstacles=6, seed=4)
+    return rooms(12.0, 8.0, 1, 1, obstacles=6, seed=4)
 
 
 def scans_along(grid, laser, n, rng, dt=0.5):
@@ -305,7 +304,7 @@ def test_mcl_contribution_is_the_scan_information(room):
     m, P = node.estimate()
     post = fe.last
     np.testing.assert_allclose(m[:2], post.mean[:2], atol=0.01)
-    np.testing.assert_allclose(P[:2, :2], post.covariance[:2, :2], rtol=0.15, atol=1e-5)
+    np.testing.assert_allclose(P[:2, :2], post.cov[:2, :2], rtol=0.15, atol=1e-5)
     assert np.trace(P[:2, :2]) < 0.1 * np.trace(P_prior[:2, :2])
 
 
@@ -348,8 +347,9 @@ def robot_scenario():
 
 
 def test_robot_scenario_kinds_run_and_agree():
-    from dfusion.sim.runner import build_front_ends, run_scenario
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.scenario import build_front_ends
+    from dfusion.sim import run_scenario
+    from dfusion.scenario import load_scenario
 
     sc = load_scenario(robot_scenario())
     fronts = build_front_ends(sc)
@@ -366,7 +366,7 @@ def test_robot_scenario_kinds_run_and_agree():
 
 def test_robot_scenario_errors():
     from dfusion.errors import ScenarioError
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.scenario import load_scenario
 
     raw = robot_scenario()
     raw["nodes"][0] = {"name": "cam", "sensor": "robot_env_camera"}  # no camera pose
@@ -400,8 +400,8 @@ def test_segment_blocked_on_a_rotated_map_with_unknown_cells():
 
 
 def test_node_grid_view_is_the_map_grid(tmp_path):
-    from dfusion.pf import OccupancyGrid as NodeGrid
-    from dfusion.pf import WSNTracker
+    from dfusion.maps import NodeLattice as NodeGrid
+    from dfusion.localization import WSNTracker
     from dfusion.models import RSSISensor
 
     occ = np.zeros((5, 4), bool)
@@ -415,7 +415,7 @@ def test_node_grid_view_is_the_map_grid(tmp_path):
     lines = [f"[{1.0 + 0.5 * i}, {2.0 + 0.5 * j}]::{int(occ[i, j])}" for i in range(5) for j in range(4)]
     f = tmp_path / "g_0.5.occ"
     f.write_text("[[1.0, 2.0], [3.0, 3.5]]::0.5\n" + "\n".join(lines) + "\n")
-    np.testing.assert_array_equal(OccupancyGrid.from_occ_file(f).data, m.data)
+    np.testing.assert_array_equal(read_occ(f).data, m.data)
     # WSNTracker takes either; the same seed gives the same particles
     s = RSSISensor(np.array([[1.0, 2.0, 2.0], [3.0, 3.0, 2.0]]), -40.0, 2.0, 4.0)
     t1 = WSNTracker(s, 200, grid=v, seed=3)

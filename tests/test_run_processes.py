@@ -21,11 +21,11 @@ import pytest
 pytest.importorskip("zenoh")
 
 from dfusion.cli import main  # noqa: E402
-from dfusion.fusion.node import FusionNode  # noqa: E402
+from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.run.launcher import Launcher, Restart, RunOptions  # noqa: E402
-from dfusion.sim.runner import run_scenario  # noqa: E402
-from dfusion.sim.scenario import load_scenario  # noqa: E402
-from dfusion.transport.zenoh import ZenohConfig, link_key, open_session  # noqa: E402
+from dfusion.sim import run_scenario  # noqa: E402
+from dfusion.scenario import load_scenario  # noqa: E402
+from dfusion.transport.zenoh import link_key, open_session, ZenohConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -313,7 +313,7 @@ def test_node_program_stops_on_sigterm_even_with_a_frozen_neighbour(tmp_path):
 def test_recordings_and_the_state_log(tmp_path):
     """Recordings (.jsonl, .npz) hold the world's measurements exactly; the state log survives a
     torn last line and starts afresh for another run."""
-    from dfusion.run.measurements import MeasurementLog, load_recording, save_recording, world_measurements
+    from dfusion.run.measurements import load_recording, MeasurementLog, save_recording, world_measurements
 
     sc = load_scenario(chain3(tmp_path))
     ref = world_measurements(sc, "b")

@@ -12,9 +12,9 @@ import pytest
 
 from dfusion.cli import main
 from dfusion.errors import ScenarioError
-from dfusion.sim.runner import run_scenario
-from dfusion.sim.scenario import load_scenario
-from dfusion.sim.world import simulate_world
+from dfusion.sim import run_scenario
+from dfusion.scenario import load_scenario
+from dfusion.sim import simulate_world
 
 ROOT = Path(__file__).parent.parent
 SHIPPED = sorted((ROOT / "topologies").glob("*.scenario.toml"))
@@ -220,9 +220,9 @@ def test_cyclic_graph_fused_over_its_spanning_tree_on_request():
 
 
 def test_policy_selected_per_node_in_the_scenario():
-    from dfusion import InformationFusionPolicy, Policy
-    from dfusion.sim.runner import build_nodes
-    from dfusion.sim.scenario import POLICY_KINDS, register_policy
+    from dfusion.policies import InformationFusionPolicy, Policy
+    from dfusion.scenario import build_nodes
+    from dfusion.scenario import Kinds, builtin_kinds
 
     class Loudest(Policy):
         name = "loudest"
@@ -233,17 +233,17 @@ def test_policy_selected_per_node_in_the_scenario():
         def decide(self, fused, sources):
             return fused
 
-    register_policy("loudest", lambda p: Loudest(**p))
-    try:
-        nodes = [{"name": "a", "sensor": "position", "policy": {"kind": "loudest", "floor": 0.3}},
-                 {"name": "b", "sensor": "position", "policy": "fusion"}]
-        sc = load_scenario(small(nodes=nodes))
-        built = build_nodes(sc)
-        assert isinstance(built["a"].policy, Loudest) and built["a"].policy.floor == 0.3
-        assert isinstance(built["b"].policy, InformationFusionPolicy)
-        with pytest.raises(ScenarioError, match="unknown policy"):
-            load_scenario(small(nodes=[{"name": "a", "policy": "oracle"}, {"name": "b"}]))
-        with pytest.raises(ScenarioError, match="policy"):
-            load_scenario(small(nodes=[{"name": "a", "policy": {"kind": "loudest", "volume": 11}}, {"name": "b"}]))
-    finally:
-        POLICY_KINDS.pop("loudest", None)
+    kinds = builtin_kinds().merged(Kinds({}, {"loudest": lambda p: Loudest(**p)}, {}), "test")
+    nodes = [{"name": "a", "sensor": "position", "policy": {"kind": "loudest", "floor": 0.3}},
+             {"name": "b", "sensor": "position", "policy": "fusion"}]
+    sc = load_scenario(small(nodes=nodes), kinds=kinds)
+    built = build_nodes(sc)
+    assert isinstance(built["a"].policy, Loudest) and built["a"].policy.floor == 0.3
+    assert isinstance(built["b"].policy, InformationFusionPolicy)
+    with pytest.raises(ScenarioError, match="unknown policy"):
+        load_scenario(small(nodes=[{"name": "a", "policy": "oracle"}, {"name": "b"}]), kinds=kinds)
+    with pytest.raises(ScenarioError, match="policy"):
+        load_scenario(small(nodes=[{"name": "a", "policy": {"kind": "loudest", "volume": 11}}, {"name": "b"}]),
+                      kinds=kinds)
+    with pytest.raises(ScenarioError, match="unknown policy"):   # nothing was registered globally
+        load_scenario(small(nodes=nodes))

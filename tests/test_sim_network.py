@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dfusion.errors import ValidationError
-from dfusion.sim import LinkSpec, SimulatedNetwork
+from dfusion.transport import LinkSpec, SimulatedNetwork
 from dfusion.transport import Delivery, Transport, TransportStats
 
 

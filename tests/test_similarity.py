@@ -9,16 +9,12 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from dfusion.errors import ShapeError, ValidationError
-from dfusion.localization import scan_to_points, se2_between
-from dfusion.maps import OccupancyGrid, cast_rays
-from dfusion.switching import (
-    SimilarityRate,
-    correntropy_similarity,
-    relative_pose,
-    similarity_rate,
-    transform_points,
-    trimmed_overlap_ratio,
-)
+from dfusion.localization import scan_to_points
+from dfusion.geometry import se2_between
+from dfusion.maps import cast_rays, OccupancyGrid
+from dfusion.localization import correntropy_similarity, similarity_rate, SimilarityRate, trimmed_overlap_ratio
+from dfusion.geometry import transform_points
+from dfusion.maps.buildings import rooms
 
 ANGLES = np.linspace(-math.pi, math.pi, 720, endpoint=False)   # 720 beams, 0.5 deg
 
@@ -27,7 +23,7 @@ ANGLES = np.linspace(-math.pi, math.pi, 720, endpoint=False)   # 720 beams, 0.5 
 def scans():
     """The paper's Fig. 2 set-up: a data scan with uniform noise and Gaussian clutter; a model
     scan from a nearby pose in the map with an added obstacle, to be cropped."""
-    g = OccupancyGrid.rooms(16.0, 10.0, 3, 2, seed=2)
+    g = rooms(16.0, 10.0, 3, 2, seed=2)
     data = g.data.copy()
     i, j = g.world_to_cell(np.array([[5.0, 2.0], [5.4, 2.4]]))
     data[i[0]:i[1] + 1, j[0]:j[1] + 1] = 100                    # a box the data scan does not see
@@ -39,12 +35,20 @@ def scans():
     X = X + rng.uniform(-0.02, 0.02, X.shape)
     X = np.vstack([X, rng.normal(0.0, 2.0, (36, 2))])            # 5 % clutter
     Y = scan_to_points(cast_rays(g2, B[None], ANGLES, 30.0)[0], ANGLES, 30.0)
-    return X, Y, relative_pose(A, B)
+    return X, Y, se2_between(B, A)
+
+
+def _homogeneous(p):
+    c, s = math.cos(p[2]), math.sin(p[2])
+    return np.array([[c, -s, p[0]], [s, c, p[1]], [0.0, 0.0, 1.0]])
 
 
 def test_relative_pose_matches_se2_between():
+    # the relative pose of b seen from a is a^-1 b, computed here with homogeneous matrices
     a, b = np.array([1.0, 2.0, 0.3]), np.array([-0.5, 0.7, -2.9])
-    np.testing.assert_allclose(relative_pose(b, a), se2_between(a, b), atol=1e-12)
+    T = np.linalg.solve(_homogeneous(a), _homogeneous(b))
+    expected = np.array([T[0, 2], T[1, 2], math.atan2(T[1, 0], T[0, 0])])
+    np.testing.assert_allclose(se2_between(a, b), expected, atol=1e-12)
     p = np.array([[1.0, 0.0], [0.0, 2.0]])
     np.testing.assert_allclose(transform_points(p, (1.0, -1.0, math.pi / 2)), [[1.0, 0.0], [-1.0, -1.0]], atol=1e-12)
 

@@ -7,20 +7,21 @@ import math
 import numpy as np
 import pytest
 
-import dfusion.switching  # noqa: F401  (registers the policies)
-from dfusion import FusionNode, InformationFusionPolicy, SourceEstimate
+from dfusion.fusion import FusionNode
+from dfusion.policies import InformationFusionPolicy
+from dfusion.estimation import Estimate
 from dfusion.errors import ValidationError
 from dfusion.models import ConstantVelocity
-from dfusion.reliability_models import (
-    NDTMap,
-    ScoreErrorTable,
+from dfusion.reliability import (
     covariance_error,
     covariance_reliability,
     error_from_reliability,
     isotonic_decreasing,
+    NDTMap,
     reliability_from_error,
+    ScoreErrorTable,
 )
-from dfusion.switching import (
+from dfusion.policies import (
     BlendedTransitionPolicy,
     FusionFloorPolicy,
     GreedySwitchingPolicy,
@@ -29,12 +30,12 @@ from dfusion.switching import (
     select_punishment,
 )
 
-FUSED = SourceEstimate("fused", 0.0, np.zeros(2), np.eye(2) * 100.0)
+FUSED = Estimate("fused", 0.0, np.zeros(2), np.eye(2) * 100.0)
 
 
 def src(name, r, t=0.0, healthy=True, mean=None, cov=None):
     m = np.full(2, float(ord(name[0]))) if mean is None else np.asarray(mean, float)
-    return SourceEstimate(name, t, m, np.eye(2) * 0.01 if cov is None else np.asarray(cov, float), r, healthy)
+    return Estimate(name, t, m, np.eye(2) * 0.01 if cov is None else np.asarray(cov, float), r, healthy)
 
 
 # ------------------------------------------------------------------------------ greedy
@@ -177,9 +178,9 @@ def test_blend_switching_again_mid_transition_never_jumps():
 
 def test_blend_wraps_angles():
     p = BlendedTransitionPolicy(HysteresisSwitchingPolicy("p", "c", signal="rho"), duration=1.0, angle_indices=[2])
-    a = lambda t: SourceEstimate("c", t, np.array([0, 0, math.pi - 0.1]), np.eye(3), 0.5)  # noqa: E731
-    b = lambda t: SourceEstimate("p", t, np.array([0, 0, -math.pi + 0.1]), np.eye(3), 0.9)  # noqa: E731
-    r = lambda t, v: SourceEstimate("rho", t, np.zeros(3), np.eye(3), v)  # noqa: E731
+    a = lambda t: Estimate("c", t, np.array([0, 0, math.pi - 0.1]), np.eye(3), 0.5)  # noqa: E731
+    b = lambda t: Estimate("p", t, np.array([0, 0, -math.pi + 0.1]), np.eye(3), 0.9)  # noqa: E731
+    r = lambda t, v: Estimate("rho", t, np.zeros(3), np.eye(3), v)  # noqa: E731
     p.decide(FUSED, [a(0), b(0), r(0, 0.1)])
     p.decide(FUSED, [a(1), b(1), r(1, 0.9)])
     out = p.decide(FUSED, [a(1.5), b(1.5), r(1.5, 0.9)])
@@ -188,10 +189,10 @@ def test_blend_wraps_angles():
 
 # ------------------------------------------------------------------------------ fusion floor
 def test_fusion_floor_matches_a_hand_computed_information_fusion():
-    a = SourceEstimate("a", 1.0, np.array([1.0, 2.0]), np.array([[0.04, 0.01], [0.01, 0.09]]), 0.8)
-    b = SourceEstimate("b", 1.0, np.array([1.3, 1.8]), np.array([[0.25, 0.0], [0.0, 0.01]]), 0.7)
-    c = SourceEstimate("c", 1.0, np.array([9.0, 9.0]), np.eye(2) * 0.01, 0.3)          # below the floor
-    d = SourceEstimate("d", 1.0, np.array([-9.0, 9.0]), np.eye(2) * 0.01, 0.95, False)  # in error
+    a = Estimate("a", 1.0, np.array([1.0, 2.0]), np.array([[0.04, 0.01], [0.01, 0.09]]), 0.8)
+    b = Estimate("b", 1.0, np.array([1.3, 1.8]), np.array([[0.25, 0.0], [0.0, 0.01]]), 0.7)
+    c = Estimate("c", 1.0, np.array([9.0, 9.0]), np.eye(2) * 0.01, 0.3)          # below the floor
+    d = Estimate("d", 1.0, np.array([-9.0, 9.0]), np.eye(2) * 0.01, 0.95, False)  # in error
     p = FusionFloorPolicy(floor=0.5)
     out = p.decide(FUSED, [a, b, c, d])
     # by hand: Y = A^-1 + B^-1, y = A^-1 a + B^-1 b
@@ -204,7 +205,7 @@ def test_fusion_floor_matches_a_hand_computed_information_fusion():
     assert out.name == "a+b" and p.current == ("a", "b")
     assert out.reliability == pytest.approx(1 / (math.sqrt(out.cov[0, 0] + out.cov[1, 1]) + 1))
     # the set changes when c rises above the floor: recorded as a switch
-    c2 = SourceEstimate("c", 2.0, c.mean, c.cov, 0.6)
+    c2 = Estimate("c", 2.0, c.mean, c.cov, 0.6)
     assert p.decide(FUSED, [a, b, c2]).name == "a+b+c"
     assert p.switches == [(2.0, ("a", "b"), ("a", "b", "c"))]
     # nothing above the floor: the most reliable healthy source
@@ -213,8 +214,8 @@ def test_fusion_floor_matches_a_hand_computed_information_fusion():
 
 
 def test_information_fusion_of_angles_wraps():
-    a = SourceEstimate("a", 0, np.array([0.0, math.pi - 0.1]), np.eye(2), 1)
-    b = SourceEstimate("b", 0, np.array([0.0, -math.pi + 0.1]), np.eye(2), 1)
+    a = Estimate("a", 0, np.array([0.0, math.pi - 0.1]), np.eye(2), 1)
+    b = Estimate("b", 0, np.array([0.0, -math.pi + 0.1]), np.eye(2), 1)
     mean, _ = information_fusion([a, b], angle_indices=[1])
     assert abs(abs(mean[1]) - math.pi) < 1e-9
 
@@ -232,14 +233,14 @@ def _scenario(policy_a, policy_b="fusion"):
 
 
 def test_fusion_and_switching_selected_by_configuration():
-    from dfusion.sim.runner import build_nodes
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.scenario import build_nodes
+    from dfusion.scenario import load_scenario
 
     built = build_nodes(load_scenario(_scenario("greedy")))
     assert isinstance(built["a"].policy, GreedySwitchingPolicy)
     assert isinstance(built["b"].policy, InformationFusionPolicy)
-    lidar = SourceEstimate("lidar", 0.0, np.array([5.0, 5.0, 0, 0]), np.eye(4) * 0.01, 0.9)
-    camera = SourceEstimate("camera", 0.0, np.array([-5.0, 5.0, 0, 0]), np.eye(4) * 0.01, 0.6)
+    lidar = Estimate("lidar", 0.0, np.array([5.0, 5.0, 0, 0]), np.eye(4) * 0.01, 0.9)
+    camera = Estimate("camera", 0.0, np.array([-5.0, 5.0, 0, 0]), np.eye(4) * 0.01, 0.6)
     for node in built.values():
         node.report_source(lidar)
         node.report_source(camera)
@@ -269,7 +270,7 @@ def test_fusion_and_switching_selected_by_configuration():
 
 def test_bad_policy_parameters_name_the_key():
     from dfusion.errors import ScenarioError
-    from dfusion.sim.scenario import load_scenario
+    from dfusion.scenario import load_scenario
 
     with pytest.raises(ScenarioError, match=r"nodes\[0\].*policy.*punishment"):
         load_scenario(_scenario({"kind": "greedy", "punishment": -1}))
@@ -280,12 +281,12 @@ def test_bad_policy_parameters_name_the_key():
 def test_switching_policy_inside_a_node_sees_the_node_sources():
     node = FusionNode("n", [], ConstantVelocity(2, 0.1), window=5, prior=(0.0, np.zeros(4), np.eye(4)),
                       policy=GreedySwitchingPolicy(0.1))
-    node.report_source(SourceEstimate("x", 0.0, np.ones(4), np.eye(4), 0.7))
-    node.report_source(SourceEstimate("y", 0.0, np.ones(4) * 2, np.eye(4), 0.75))
+    node.report_source(Estimate("x", 0.0, np.ones(4), np.eye(4), 0.7))
+    node.report_source(Estimate("y", 0.0, np.ones(4) * 2, np.eye(4), 0.75))
     assert node.output().name == "y"
-    node.report_source(SourceEstimate("x", 0.1, np.ones(4), np.eye(4), 0.84))
+    node.report_source(Estimate("x", 0.1, np.ones(4), np.eye(4), 0.84))
     assert node.output().name == "y"                 # 0.84 - 0.1 = 0.74 < 0.75: stay
-    node.report_source(SourceEstimate("x", 0.2, np.ones(4), np.eye(4), 0.9))
+    node.report_source(Estimate("x", 0.2, np.ones(4), np.eye(4), 0.9))
     assert node.output().name == "x"                 # 0.9 - 0.1 = 0.8 > 0.75: switch
     assert node.policy.switches == [(0.2, "y", "x")]
 
@@ -295,8 +296,7 @@ def test_covariance_model_eq_11_12():
     C = np.diag([0.09, 0.16, 5.0])
     assert covariance_error(C) == pytest.approx(0.5)
     assert covariance_reliability(C) == pytest.approx(1 / 1.5)
-    from dfusion.localization import reliability
-    assert covariance_reliability(C) == pytest.approx(reliability(C))
+    assert covariance_reliability(C) == pytest.approx(1 / (math.sqrt(C[0, 0] + C[1, 1]) + 1))
     assert reliability_from_error(0.0) == 1.0
     assert error_from_reliability(reliability_from_error(0.37)) == pytest.approx(0.37)
     with pytest.raises(ValidationError):

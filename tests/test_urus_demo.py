@@ -10,8 +10,8 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from dfusion.sim.scenario import load_scenario
-from dfusion.sim.world import simulate_world
+from dfusion.scenario import load_scenario
+from dfusion.sim import simulate_world
 
 ROOT = Path(__file__).parent.parent
 SCENARIO = ROOT / "topologies" / "urus.scenario.toml"
@@ -72,7 +72,7 @@ def test_demo_runs_in_process_shortened_and_writes_its_figures(tmp_path, capsys,
 
 
 def test_outage_shows_and_heals_in_the_gap(tmp_path):
-    from dfusion.sim.runner import run_scenario
+    from dfusion.sim import run_scenario
 
     res = run_scenario(load_scenario(SCENARIO, duration=48.0))
     t = res.times
@@ -87,7 +87,7 @@ def test_outage_shows_and_heals_in_the_gap(tmp_path):
 
 def test_plot_figure33_needs_a_known_node(tmp_path):
     from dfusion.plots import plot_figure33
-    from dfusion.sim.runner import run_scenario
+    from dfusion.sim import run_scenario
 
     res = run_scenario(load_scenario(SCENARIO, duration=3.0))
     with pytest.raises(KeyError, match="nobody"):

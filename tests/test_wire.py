@@ -17,7 +17,18 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dfusion.errors import DfusionError, MessageError
-from dfusion.wire import MAX_ABS_INFO, MAX_ABS_TIME, MAX_ABS_VEC, MAX_MESSAGE_BYTES, MAX_STATE_DIM, PSD_RTOL, VERSION, InfoMessage, decode, encode
+from dfusion.wire import (
+    decode,
+    encode,
+    InfoMessage,
+    MAX_ABS_INFO,
+    MAX_ABS_TIME,
+    MAX_ABS_VEC,
+    MAX_MESSAGE_BYTES,
+    MAX_STATE_DIM,
+    PSD_RTOL,
+    VERSION,
+)
 from dfusion import wire
 
 KEY = b"network-key-for-tests"

@@ -12,15 +12,16 @@ import pytest
 from scipy.stats import chi2
 
 from dfusion.errors import OutsideWindowError, ScenarioError
-from dfusion.estimation.delayed_state import DelayedStateEIF
-from dfusion.fusion.node import FusionNode
+from dfusion.estimation import DelayedStateEIF
+from dfusion.fusion import FusionNode
 from dfusion.models import ConstantVelocity, RSSISensor
-from dfusion.pf import WSNTracker
-from dfusion.sensors.wsn import WSNFrontEnd
-from dfusion.sim.metrics import nees
-from dfusion.sim.runner import build_front_ends, run_scenario
-from dfusion.sim.scenario import load_scenario
-from dfusion.sim.world import simulate_world
+from dfusion.localization import WSNTracker
+from dfusion.frontends import WSNFrontEnd
+from dfusion.metrics import nees
+from dfusion.scenario import build_front_ends
+from dfusion.sim import run_scenario
+from dfusion.scenario import load_scenario
+from dfusion.sim import simulate_world
 
 DATA = Path(__file__).parent / "data"
 RECEIVERS = [[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [0.0, 12.0], [10.0, 12.0], [20.0, 12.0]]

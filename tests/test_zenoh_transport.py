@@ -15,7 +15,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from dfusion.errors import ValidationError  # noqa: E402
-from dfusion.transport import ZenohConfig, ZenohTransport  # noqa: E402
+from dfusion.transport.zenoh import ZenohConfig, ZenohTransport  # noqa: E402
 from dfusion.transport.zenoh import free_tcp_endpoints, link_key, open_session  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -166,7 +166,7 @@ def test_close_does_not_hang_with_a_frozen_peer_and_reconnects_in_flight():
     ea, eb, dead = free_tcp_endpoints(3)
     code = textwrap.dedent(f"""
         import sys, time
-        from dfusion.transport import ZenohTransport, ZenohConfig
+        from dfusion.transport.zenoh import ZenohTransport, ZenohConfig
         with ZenohTransport({net!r}, {{"b": ["a"]}}, ZenohConfig(listen=[{eb!r}], connect=[{ea!r}])) as t:
             print("up", flush=True)
             time.sleep(60)
@@ -194,7 +194,7 @@ def test_close_does_not_hang_with_a_frozen_peer_and_reconnects_in_flight():
 def test_a_process_with_an_open_transport_exits_when_it_closes_it():
     net = network()
     code = textwrap.dedent(f"""
-        from dfusion.transport import ZenohTransport
+        from dfusion.transport.zenoh import ZenohTransport
         t = ZenohTransport({net!r}, {{"a": ["b"]}})
         t.send("a", "b", b"x", 0.0)
         t.close()

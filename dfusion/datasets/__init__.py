@@ -1,19 +1,21 @@
-"""Readers for public datasets used to evaluate dfusion (data not bundled; pass the path)."""
-from .ble_rssi import (
+"""Readers of public datasets used to evaluate dfusion (data not bundled; pass the path)."""
+from dfusion.datasets.ble_rssi import (
     BLERSSIDataset,
-    PathLossCalibration,
     Receiver,
     Track,
-    calibrate_path_loss,
-    calibrate_radio_map,
-    held_out_residuals,
-    select_radio_map_settings,
-    error_stats,
     find_dataset_root,
     read_devices,
     read_track,
-    run_tracker,
-    weighted_centroid,
+)
+from dfusion.datasets.carmen import CarmenLog, LaserScan, beam_angles, read_carmen
+from dfusion.datasets.mrclam import (
+    ROBOTS,
+    MRCLAMDataset,
+    RobotLog,
+    integrate_odometry,
+    interpolate_poses,
+    mean_velocities,
+    read_mrclam,
 )
 
 __all__ = [
@@ -23,12 +25,15 @@ __all__ = [
     "read_devices",
     "read_track",
     "find_dataset_root",
-    "PathLossCalibration",
-    "calibrate_path_loss",
-    "calibrate_radio_map",
-    "held_out_residuals",
-    "select_radio_map_settings",
-    "weighted_centroid",
-    "run_tracker",
-    "error_stats",
+    "LaserScan",
+    "CarmenLog",
+    "read_carmen",
+    "beam_angles",
+    "RobotLog",
+    "MRCLAMDataset",
+    "read_mrclam",
+    "integrate_odometry",
+    "interpolate_poses",
+    "mean_velocities",
+    "ROBOTS",
 ]

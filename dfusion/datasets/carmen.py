@@ -46,7 +46,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..errors import ValidationError
+from dfusion.errors import ValidationError
 
 logger = logging.getLogger(__name__)
 

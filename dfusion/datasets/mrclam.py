@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ValidationError
-from ..models.base import wrap_angle
+from dfusion.errors import ValidationError
+from dfusion.geometry import wrap_angle
 
 logger = logging.getLogger(__name__)
 

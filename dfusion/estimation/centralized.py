@@ -44,9 +44,9 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from numpy.typing import ArrayLike
 
-from ..errors import NonFiniteError, ShapeError, TimeError, ValidationError
-from ..linalg import as_time, as_spd, as_vector, symmetrize
-from ..models.base import Array, MeasurementModel, MotionModel
+from dfusion.errors import NonFiniteError, ShapeError, TimeError, ValidationError
+from dfusion.linalg import Array, as_spd, as_time, as_vector, symmetrize
+from dfusion.models.base import MeasurementModel, MotionModel
 
 __all__ = ["CentralizedEKF", "History"]
 

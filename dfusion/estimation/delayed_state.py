@@ -36,7 +36,7 @@ from typing import Iterator
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import (
+from dfusion.errors import (
     NonFiniteError,
     NotInitializedError,
     OutsideWindowError,
@@ -44,9 +44,18 @@ from ..errors import (
     TimeError,
     ValidationError,
 )
-from ..linalg import Array, as_time, as_spd, as_vector, cholesky, check_psd, symmetrize, as_matrix
-from ..models.base import MeasurementModel, MotionModel
-from .trajectory import MotionFactor, TrajectoryInformation
+from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
+from dfusion.linalg import (
+    Array,
+    as_matrix,
+    as_spd,
+    as_time,
+    as_vector,
+    check_psd,
+    cholesky,
+    symmetrize,
+)
+from dfusion.models.base import MeasurementModel, MotionModel
 
 log = logging.getLogger(__name__)
 

@@ -15,11 +15,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import NotInitializedError, TimeError
-from ..gaussian import InformationGaussian
-from ..linalg import Array, as_matrix, as_spd, as_vector, spd_inverse, symmetrize
-from ..models.base import MeasurementModel, MotionModel
-from .delayed_state import measurement_information
+from dfusion.errors import NotInitializedError, TimeError
+from dfusion.estimation.delayed_state import measurement_information
+from dfusion.estimation.gaussian import InformationGaussian
+from dfusion.linalg import Array, as_matrix, as_spd, as_vector, spd_inverse, symmetrize
+from dfusion.models.base import MeasurementModel, MotionModel
 
 
 class ExtendedInformationFilter:

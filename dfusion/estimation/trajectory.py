@@ -53,8 +53,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import lapack
 
-from ..errors import NotPositiveDefiniteError
-from ..linalg import Array, symmetrize
+from dfusion.errors import NotPositiveDefiniteError
+from dfusion.linalg import Array, symmetrize
 
 # LAPACK called directly: the same routines as numpy.linalg.solve / cholesky without
 # their per-call Python checks, which cost more than the arithmetic on 4 x 4 blocks.

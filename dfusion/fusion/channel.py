@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..linalg import Array
-from ..wire import InfoMessage
+from dfusion.linalg import Array
+from dfusion.wire import InfoMessage
 
 
 def time_key(t: float) -> int:

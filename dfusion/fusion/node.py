@@ -28,13 +28,25 @@ from typing import Iterable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import DfusionError, MessageError, OutsideWindowError, ValidationError
-from ..estimation.delayed_state import DelayedStateEIF
-from ..linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
-from ..models.base import MeasurementModel, MotionModel
-from ..wire import InfoMessage, decode, encode
-from .channel import ChannelFilter, find_keys, nonzero_blocks, time_key, time_keys
-from .policy import InformationFusionPolicy, Policy, SourceEstimate
+from dfusion.errors import (
+    DfusionError,
+    MessageError,
+    OutsideWindowError,
+    ValidationError,
+)
+from dfusion.estimation.delayed_state import DelayedStateEIF
+from dfusion.estimation.estimate import Estimate
+from dfusion.fusion.channel import (
+    ChannelFilter,
+    find_keys,
+    nonzero_blocks,
+    time_key,
+    time_keys,
+)
+from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
+from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.policies.base import InformationFusionPolicy, Policy
+from dfusion.wire import InfoMessage, decode, encode
 
 log = logging.getLogger(__name__)
 
@@ -268,7 +280,7 @@ class FusionNode:
         self.filter.initialize(t0, mean, cov)
         self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j) for j in nbrs}
         self.stats = NodeStats()
-        self.sources: dict[str, SourceEstimate] = {}
+        self.sources: dict[str, Estimate] = {}
         self._own = _Blocks(self.filter.n)
         self._total = _Blocks(self.filter.n)   # entries newer than the newest state wait for predict
         self._pruned_at = self.filter.oldest_time
@@ -351,13 +363,13 @@ class FusionNode:
         """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""
         return self.filter.estimate(t)
 
-    def output(self) -> SourceEstimate:
+    def output(self) -> Estimate:
         """The node's output: the policy's choice among the fused estimate and the sources."""
         mean, cov = self.filter.estimate()
-        fused = SourceEstimate("fused", self.filter.latest_time, mean, cov)
+        fused = Estimate("fused", self.filter.latest_time, mean, cov)
         return self.policy.decide(fused, list(self.sources.values()))
 
-    def report_source(self, estimate: SourceEstimate) -> None:
+    def report_source(self, estimate: Estimate) -> None:
         """Record the latest estimate of a candidate source (for switching policies)."""
         self.sources[estimate.name] = estimate
 

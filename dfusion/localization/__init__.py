@@ -1,45 +1,84 @@
-"""Map-based localization of a robot with a planar laser.
-
-* :mod:`.mcl` -- Monte Carlo localization (odometry motion model, URUS erfc beam model and
-  likelihood field, KLD sampling, Augmented-MCL recovery, late scans).
-* :mod:`.icp` -- 2-D ICP scan matching (point-to-point, point-to-line) with covariance.
-* :mod:`.odometry_ekf` -- the EKF fusing odometry with scan-matching poses (survey eq. 5-8).
-"""
-from .icp import ICPResult, ScanMatcher, estimate_normals, icp, scan_to_points
-from .mcl import (
-    BeamErfcModel,
-    LaserConfig,
-    LikelihoodFieldModel,
-    MonteCarloLocalization,
-    OdometryMotionModel,
-    PoseEstimate,
-    gaussian_summary,
-    kld_sample_size,
-    reliability,
-    se2_between,
-    se2_compose,
-    se2_inverse,
+"""Localizers and trackers, each an :class:`~dfusion.estimation.Estimator`: MCL, ICP, odometry EKF, landmark EKF, environmental camera, WSN tracker; radio maps and their calibration; scan similarity."""
+from dfusion.localization.env_camera import EnvironmentCameraLocalizer
+from dfusion.localization.icp import (
+    ICPResult,
+    ScanMatcher,
+    estimate_normals,
+    icp,
+    scan_to_points,
 )
-from .odometry_ekf import OdometryEKF, odometry_increment
+from dfusion.localization.landmark_ekf import LandmarkEKF
+from dfusion.localization.mcl import MonteCarloLocalization, kld_sample_size
+from dfusion.localization.odometry_ekf import OdometryEKF
+from dfusion.localization.radio_calibration import (
+    MAP_SETTINGS_GRID,
+    NOISE_MODELS,
+    PathLossCalibration,
+    calibrate_path_loss,
+    calibrate_radio_map,
+    held_out_residuals,
+    held_out_score,
+    run_tracker,
+    select_radio_map_settings,
+    weighted_centroid,
+)
+from dfusion.localization.radio_map import (
+    RadioMap,
+    binned_residual_stats,
+    fit_directional_path_loss,
+    fit_radio_map,
+    fit_radio_maps,
+    fit_split_normal,
+    kernel_residual_map,
+    path_loss_design,
+    split_normal_logpdf,
+)
+from dfusion.localization.similarity import (
+    SimilarityRate,
+    SimilarityResult,
+    correntropy_similarity,
+    overlap_ratio,
+    similarity_rate,
+    trimmed_overlap_ratio,
+)
+from dfusion.localization.wsn_tracker import MOTIONS, WSNTracker
 
 __all__ = [
+    "EnvironmentCameraLocalizer",
     "ICPResult",
     "ScanMatcher",
-    "estimate_normals",
     "icp",
     "scan_to_points",
-    "OdometryEKF",
-    "odometry_increment",
-    "BeamErfcModel",
-    "LaserConfig",
-    "LikelihoodFieldModel",
+    "estimate_normals",
+    "LandmarkEKF",
     "MonteCarloLocalization",
-    "OdometryMotionModel",
-    "PoseEstimate",
-    "gaussian_summary",
     "kld_sample_size",
-    "reliability",
-    "se2_between",
-    "se2_compose",
-    "se2_inverse",
+    "OdometryEKF",
+    "PathLossCalibration",
+    "calibrate_path_loss",
+    "calibrate_radio_map",
+    "held_out_residuals",
+    "held_out_score",
+    "select_radio_map_settings",
+    "MAP_SETTINGS_GRID",
+    "NOISE_MODELS",
+    "weighted_centroid",
+    "run_tracker",
+    "RadioMap",
+    "fit_radio_map",
+    "fit_radio_maps",
+    "kernel_residual_map",
+    "binned_residual_stats",
+    "split_normal_logpdf",
+    "fit_split_normal",
+    "path_loss_design",
+    "fit_directional_path_loss",
+    "SimilarityResult",
+    "SimilarityRate",
+    "correntropy_similarity",
+    "trimmed_overlap_ratio",
+    "similarity_rate",
+    "overlap_ratio",
+    "WSNTracker",
+    "MOTIONS",
 ]

@@ -32,11 +32,11 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import ValidationError
-from ..linalg import as_vector, symmetrize
-from ..models.camera import PinholeCamera
-from ..reliability import camera_geometry, camera_reliability
-from .mcl import PoseEstimate
+from dfusion.errors import ValidationError
+from dfusion.estimation.estimate import Estimate
+from dfusion.linalg import as_vector, symmetrize
+from dfusion.models.camera import PinholeCamera
+from dfusion.reliability import camera_geometry, camera_reliability
 
 __all__ = ["EnvironmentCameraLocalizer"]
 
@@ -66,7 +66,7 @@ class EnvironmentCameraLocalizer:
         self.min_baseline = float(min_baseline)
         self.max_gap = float(max_gap)
         self._prev: tuple[float, np.ndarray, np.ndarray] | None = None
-        self.last: PoseEstimate | None = None
+        self.last: Estimate | None = None
 
     def reliability(self, pixel: ArrayLike) -> float:
         """``R_c`` of eq. 9 at this pixel."""
@@ -84,8 +84,8 @@ class EnvironmentCameraLocalizer:
         S = symmetrize(cam.pixel_std**2 * J @ J.T)
         return p, S
 
-    def update(self, t: float, pixel: ArrayLike) -> PoseEstimate | None:
-        """A fix from the marker's pixel at time ``t``: ``PoseEstimate`` with mean
+    def update(self, t: float, pixel: ArrayLike) -> Estimate | None:
+        """A fix from the marker's pixel at time ``t``: ``Estimate`` with mean
         ``(x, y, heading)``, 3 x 3 covariance and ``R_c``; ``None`` if the pixel is outside
         the image or its ray misses the marker plane."""
         z = as_vector(pixel, 2, "pixel")
@@ -107,6 +107,6 @@ class EnvironmentCameraLocalizer:
         cov = np.zeros((3, 3))
         cov[:2, :2] = S
         cov[2, 2] = var_h
-        est = PoseEstimate(float(t), np.array([p[0], p[1], heading]), cov, self.reliability(z))
+        est = Estimate("env_camera", float(t), np.array([p[0], p[1], heading]), cov, self.reliability(z))
         self.last = est
         return est

@@ -57,10 +57,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from ..errors import ShapeError, ValidationError
-from ..linalg import as_vector
-from ..models.base import Array, wrap_angle
-from .mcl import reliability
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.geometry import NearestPointGrid, rotation, wrap_angle
+from dfusion.linalg import Array, as_vector
+from dfusion.reliability import covariance_reliability
 
 __all__ = ["ICPResult", "ScanMatcher", "icp", "scan_to_points", "estimate_normals"]
 
@@ -127,9 +127,6 @@ class ICPResult:
     reliability: float
 
 
-def _rot(theta: float) -> Array:
-    c, s = math.cos(theta), math.sin(theta)
-    return np.array([[c, -s], [s, c]])
 
 
 class ScanMatcher:
@@ -168,6 +165,7 @@ class ScanMatcher:
         normal_neighbors: int = 7,
         min_variance: float = 1e-8,
         trim_keep_factor: float = 3.0,
+        lookup: NearestPointGrid | None = None,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
         if ref.ndim != 2 or ref.shape[1] != 2 or ref.shape[0] < 3:
@@ -187,8 +185,8 @@ class ScanMatcher:
         self.trim_keep_factor = float(trim_keep_factor)
         self.min_variance = float(min_variance)
         self.tree = cKDTree(ref)
-        self._nn_grid = None  # set by from_grid(nearest="grid")
-        self._nn_index: np.ndarray | None = None
+        #: Grid lookup replacing the KD-tree search (:meth:`from_grid` with ``nearest="grid"``).
+        self.lookup = lookup
         self.normals = estimate_normals(ref, self.tree, normal_neighbors) if method == "point_to_line" else None
 
     @classmethod
@@ -216,8 +214,6 @@ class ScanMatcher:
         computed exactly); queries off the map use the nearest border cell. It is several
         times faster than the KD-tree for a 360-point scan (``docs/localization.md``).
         """
-        from scipy.ndimage import distance_transform_edt  # noqa: PLC0415
-
         boundary = grid.occupied.copy()
         f = grid.free
         nb = np.zeros_like(boundary)
@@ -236,29 +232,21 @@ class ScanMatcher:
             off = 0.5 * grid.resolution * np.column_stack([ox, oy])
             c, s_ = math.cos(grid.origin[2]), math.sin(grid.origin[2])
             pts = pts + off @ np.array([[c, s_], [-s_, c]])
-        m = cls(pts, method, **kw)
-        if nearest == "grid":
-            point_of_cell = np.full(grid.shape, -1, dtype=np.int64)
-            point_of_cell[bi, bj] = np.arange(bi.size)
-            _, (ni, nj) = distance_transform_edt(~boundary, return_indices=True)
-            m._nn_grid = grid
-            m._nn_index = point_of_cell[ni, nj].reshape(-1)
-        elif nearest != "kdtree":
+        if nearest not in ("grid", "kdtree"):
             raise ValidationError(f"nearest must be 'grid' or 'kdtree', got {nearest!r}")
-        return m
+        lookup = None
+        if nearest == "grid":
+            lookup = NearestPointGrid(pts, grid.resolution, origin=grid.origin[:2], shape=(grid.width, grid.height),
+                                      cells=(bj, bi), yaw=float(grid.origin[2]))
+        return cls(pts, method, lookup=lookup, **kw)
 
     # -- matching ------------------------------------------------------------------------
     def _nearest(self, q: Array, ub: float) -> tuple[np.ndarray, np.ndarray]:
         """Nearest reference point (distance, index; inf / M beyond ``ub``)."""
-        grid = self._nn_grid
-        if grid is None:
+        if self.lookup is None:
             return self.tree.query(q, k=1, distance_upper_bound=ub)
-        g = grid.world_to_grid(q) * (1.0 / grid.resolution)
-        H, W = grid.shape
-        j = np.clip(np.floor(g[:, 0]), 0, W - 1).astype(np.intp)
-        i = np.clip(np.floor(g[:, 1]), 0, H - 1).astype(np.intp)
-        idx = self._nn_index[i * W + j]
-        dist = np.linalg.norm(q - self.reference[idx], axis=1)
+        d2, idx = self.lookup.nearest(q)
+        dist = np.sqrt(d2)
         far = dist > ub
         return np.where(far, np.inf, dist), np.where(far, self.reference.shape[0], idx)
 
@@ -293,7 +281,7 @@ class ScanMatcher:
         it = 0
         ok = np.zeros(p.shape[0], dtype=bool)
         for it in range(1, self.max_iterations + 1):
-            R = _rot(x[2])
+            R = rotation(x[2])
             rp = p @ R.T
             q = rp + x[:2]
             idx, _, ok = self._correspond(q)
@@ -311,7 +299,7 @@ class ScanMatcher:
                 break
         # covariance at the solution, with the correspondences of the last iteration (the
         # pose moved by less than the tolerance since they were found)
-        R = _rot(x[2])
+        R = rotation(x[2])
         rp = p @ R.T
         q = rp + x[:2]
         J, r = self._jacobian(rp[ok], q[ok], self.reference[idx[ok]], None if self.normals is None else self.normals[idx[ok]])
@@ -325,7 +313,7 @@ class ScanMatcher:
         cov = s2 * (V / w) @ V.T
         cov = 0.5 * (cov + cov.T)
         rmse = math.sqrt(float(np.mean(r**2) * (2 if self.method == "point_to_point" else 1)))
-        return ICPResult(x, cov, rmse, int(ok.sum()), it, converged, ok, reliability(cov))
+        return ICPResult(x, cov, rmse, int(ok.sum()), it, converged, ok, covariance_reliability(cov))
 
     @staticmethod
     def _solve_point_to_point(p: Array, q: Array) -> Array:
@@ -333,7 +321,7 @@ class ScanMatcher:
         mp, mq = p.mean(axis=0), q.mean(axis=0)
         S = (p - mp).T @ (q - mq)
         theta = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
-        t = mq - _rot(theta) @ mp
+        t = mq - rotation(theta) @ mp
         return np.array([t[0], t[1], theta])
 
     @staticmethod

@@ -5,40 +5,12 @@ Fox, *Probabilistic Robotics*, 2005, ch. 8; Dellaert, Fox, Burgard & Thrun, ICRA
 as summarized by the URUS paper (Sanfeliu et al., sec. 8.1) and the repetitive-environment
 survey (sec. III.A, "AMCL"). Pieces:
 
-Motion: odometry model
-    ``sample_motion_model_odometry`` of Thrun et al. table 5.6. The odometry displacement
-    between two odometry poses is decomposed into ``rot1, trans, rot2``; each particle gets
-    a perturbed copy with variances ``alpha1 rot1^2 + alpha2 trans^2`` (rotations),
-    ``alpha3 trans^2 + alpha4 (rot1^2 + rot2^2)`` (translation). Two details follow ROS
-    AMCL (``amcl_odom.cpp``): ``rot1 = 0`` when ``trans < 0.01 m`` (the heading of a tiny
-    displacement is meaningless), and the rotation magnitudes entering the variances are
-    ``min(|rot|, |pi - rot|)`` so that driving backwards does not count as a half turn.
+Motion: the sampled odometry model of :class:`dfusion.models.OdometryMotionModel`
+    (Thrun et al. table 5.6).
 
-Measurement: two laser models (``sensor=`` of :class:`MonteCarloLocalization`)
-    * :class:`BeamErfcModel` -- the URUS likelihood (sec. 8.1)::
-
-          L = (1 / N_L) sum_j erfc(|z_j - zhat_j| / (sigma sqrt 2))
-
-      with ``zhat_j`` the range ray-cast in the map from the particle along beam ``j``.
-      The seed text prints the argument without the absolute value; taken literally
-      (``two_sided=False``) ``erfc`` of a negative argument is up to 2, so particles that
-      expect *longer* ranges than measured everywhere are preferred (open space wins).
-      With ``|.|`` (default) ``erfc(|d| / (sigma sqrt 2))`` is the probability that Gaussian
-      range noise is at least as large as the observed discrepancy: 1 for a perfect beam,
-      in ``[0, 1]``. The per-beam terms are averaged, not multiplied, which makes the
-      model robust to unmodelled obstacles and keeps ``L`` on the same scale for every
-      scan. Expected ranges come from a :class:`~dfusion.maps.RayCastTable` (default) or
-      exact ray casting (``raycast="exact"``); see the measured costs in
-      ``docs/localization.md``.
-    * :class:`LikelihoodFieldModel` -- Thrun et al. table 6.3 (the model of ROS AMCL's
-      ``likelihood_field``): every beam end point ``e`` scores
-      ``z_hit N(dist(e); 0, sigma_hit^2) + z_rand / z_max`` with ``dist`` the distance to the
-      nearest occupied cell; beams at maximum range are skipped; the scan likelihood is
-      the product over beams. The per-cell log-likelihood is precomputed from the
-      distance field, so a particle costs one table lookup per beam.
-
-    ``exponent`` (both models) raises the likelihood to a power (``< 1`` tempers the
-    over-confidence of treating correlated beams as independent).
+Measurement: two laser models (``sensor=`` of :class:`MonteCarloLocalization`), the URUS
+    erfc beam model :class:`dfusion.models.BeamErfcModel` and the likelihood field
+    :class:`dfusion.models.LikelihoodFieldModel` (:mod:`dfusion.models.laser`).
 
 Adaptive sample size: KLD sampling (Fox, "Adapting the sample size in particle filters
     through KLD-sampling", IJRR 22(12), 2003). At resampling, particles are drawn one by
@@ -118,15 +90,12 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.special import erfc
 from scipy.stats import norm
 
-from ..errors import (
+from dfusion.errors import (
     NonFiniteError,
     NotInitializedError,
     OutsideWindowError,
@@ -134,25 +103,25 @@ from ..errors import (
     TimeError,
     ValidationError,
 )
-from ..linalg import as_vector
-from ..maps.grid import OccupancyGrid
-from ..maps.raycast import RayCastTable, cast_rays
-from ..models.base import Array, wrap_angle
+from dfusion.estimation.estimate import Estimate
+from dfusion.estimation.particle_filter import gaussian_summary
+from dfusion.geometry import se2_between, se2_compose, se2_inverse, wrap_angle
+from dfusion.linalg import Array, as_vector
+from dfusion.maps.grid import OccupancyGrid
+from dfusion.maps.raycast import RayCastTable
+from dfusion.models.laser import (
+    BeamErfcModel,
+    LaserConfig,
+    LikelihoodFieldModel,
+    _laser_poses_grid,
+)
+from dfusion.models.odometry import OdometryMotionModel
+from dfusion.reliability import covariance_reliability
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "LaserConfig",
-    "OdometryMotionModel",
-    "BeamErfcModel",
-    "LikelihoodFieldModel",
-    "PoseEstimate",
     "MonteCarloLocalization",
-    "gaussian_summary",
-    "reliability",
-    "se2_compose",
-    "se2_inverse",
-    "se2_between",
     "kld_sample_size",
 ]
 
@@ -160,390 +129,38 @@ __all__ = [
 # ----------------------------------------------------------------------------------------
 # SE(2) helpers (poses as (..., 3) arrays)
 # ----------------------------------------------------------------------------------------
-def se2_compose(a: ArrayLike, b: ArrayLike) -> Array:
-    """``a (+) b``: pose ``b`` expressed in frame ``a``, mapped to the frame of ``a``."""
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [
-            a[..., 0] + c * b[..., 0] - s * b[..., 1],
-            a[..., 1] + s * b[..., 0] + c * b[..., 1],
-            wrap_angle(a[..., 2] + b[..., 2]),
-        ],
-        axis=-1,
-    )
 
 
-def se2_inverse(a: ArrayLike) -> Array:
-    """``a^-1`` such that ``a (+) a^-1 = 0``."""
-    a = np.asarray(a, dtype=float)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])],
-        axis=-1,
-    )
 
 
-def se2_between(a: ArrayLike, b: ArrayLike) -> Array:
-    """``a^-1 (+) b``: pose ``b`` in the frame of pose ``a``."""
-    return se2_compose(se2_inverse(a), b)
 
 
 # ----------------------------------------------------------------------------------------
 # Gaussian summary and reliability
 # ----------------------------------------------------------------------------------------
-def gaussian_summary(poses: ArrayLike, weights: ArrayLike | None = None) -> tuple[Array, Array]:
-    """Weighted mean (circular mean for theta) and covariance of poses ``(N, 3)``.
-
-    ``theta`` residuals are wrapped around the circular mean
-    ``atan2(sum w sin theta, sum w cos theta)``; the covariance is the weighted second
-    moment ``sum w_i r_i r_i^T`` (weights normalized to sum 1, no small-sample correction).
-    """
-    p = np.asarray(poses, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
-        raise ShapeError(f"poses must have shape (N, 3), N >= 1, got {p.shape}")
-    if weights is None:
-        w = np.full(p.shape[0], 1.0 / p.shape[0])
-    else:
-        w = np.asarray(weights, dtype=float).reshape(-1)
-        if w.shape[0] != p.shape[0]:
-            raise ShapeError("weights must have one entry per pose")
-        w = w / w.sum()
-    mean = np.empty(3)
-    mean[:2] = w @ p[:, :2]
-    mean[2] = math.atan2(float(w @ np.sin(p[:, 2])), float(w @ np.cos(p[:, 2])))
-    r = p - mean
-    r[:, 2] = wrap_angle(r[:, 2])
-    cov = (r * w[:, None]).T @ r
-    return mean, 0.5 * (cov + cov.T)
 
 
-def reliability(cov: ArrayLike) -> float:
-    """``R = 1 / (E + 1)`` with ``E = sqrt(c_xx + c_yy)`` (seed 000, eq. 11-12)."""
-    c = np.asarray(cov, dtype=float)
-    return 1.0 / (math.sqrt(max(float(c[0, 0] + c[1, 1]), 0.0)) + 1.0)
 
 
-@dataclass(frozen=True)
-class PoseEstimate:
-    """Gaussian summary of a localizer's belief at time ``t``."""
-
-    t: float | None
-    mean: Array
-    covariance: Array
-    reliability: float
-    n_particles: int = 0
-    n_eff: float = 0.0
 
 
 # ----------------------------------------------------------------------------------------
 # Laser description
 # ----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class LaserConfig:
-    """A planar laser range finder.
-
-    Attributes
-    ----------
-    angles : (B,) array
-        Beam angles in the laser frame (rad, counter-clockwise, 0 = laser x axis).
-    max_range : float
-        Maximum range (m); readings ``>= max_range`` mean "no return".
-    min_range : float
-        Readings below this (m) are ignored.
-    offset : (3,) array
-        Pose of the laser in the robot frame ``(x, y, theta)``.
-    """
-
-    angles: Array
-    max_range: float
-    min_range: float = 0.0
-    offset: Array = field(default_factory=lambda: np.zeros(3))
-
-    def __post_init__(self) -> None:
-        a = np.asarray(self.angles, dtype=float).reshape(-1)
-        if a.size == 0 or not np.all(np.isfinite(a)):
-            raise ValidationError("laser angles must be a non-empty finite vector")
-        object.__setattr__(self, "angles", a)
-        mr = float(self.max_range)
-        if not (np.isfinite(mr) and mr > 0):
-            raise ValidationError(f"max_range must be positive and finite, got {self.max_range}")
-        object.__setattr__(self, "max_range", mr)
-        object.__setattr__(self, "min_range", float(self.min_range))
-        object.__setattr__(self, "offset", as_vector(self.offset, 3, "laser offset"))
-
-    @classmethod
-    def uniform(cls, n: int, fov: float, max_range: float, **kw) -> "LaserConfig":
-        """``n`` beams evenly spread over ``[-fov/2, fov/2]`` (both ends included; for a full
-        circle ``fov = 2 pi`` the last beam is dropped so no direction is duplicated)."""
-        if fov >= 2 * math.pi - 1e-12:
-            angles = np.linspace(-math.pi, math.pi, int(n), endpoint=False)
-        else:
-            angles = np.linspace(-fov / 2, fov / 2, int(n))
-        return cls(angles, max_range, **kw)
 
 
 # ----------------------------------------------------------------------------------------
 # Odometry motion model
 # ----------------------------------------------------------------------------------------
-class OdometryMotionModel:
-    """``sample_motion_model_odometry`` (Thrun et al. 2005, table 5.6; see module docstring).
-
-    Parameters
-    ----------
-    alpha1 : rotation noise from rotation (rad^2 / rad^2)
-    alpha2 : rotation noise from translation (rad^2 / m^2)
-    alpha3 : translation noise from translation (m^2 / m^2)
-    alpha4 : translation noise from rotation (m^2 / rad^2)
-    min_trans : below this translation (m) ``rot1`` is set to 0 (ROS AMCL uses 0.01).
-    """
-
-    def __init__(
-        self,
-        alpha1: float = 0.2,
-        alpha2: float = 0.2,
-        alpha3: float = 0.2,
-        alpha4: float = 0.2,
-        min_trans: float = 0.01,
-    ) -> None:
-        alphas = [float(a) for a in (alpha1, alpha2, alpha3, alpha4)]
-        if not all(np.isfinite(a) and a >= 0 for a in alphas):
-            raise ValidationError(f"alphas must be finite and >= 0, got {alphas}")
-        self.alpha1, self.alpha2, self.alpha3, self.alpha4 = alphas
-        self.min_trans = float(min_trans)
-
-    def __repr__(self) -> str:
-        return (
-            f"OdometryMotionModel(alpha1={self.alpha1}, alpha2={self.alpha2}, "
-            f"alpha3={self.alpha3}, alpha4={self.alpha4})"
-        )
-
-    def decompose(self, odom0: ArrayLike, odom1: ArrayLike) -> tuple[float, float, float]:
-        """``(rot1, trans, rot2)`` of the odometry displacement from ``odom0`` to ``odom1``."""
-        o0 = np.asarray(odom0, dtype=float)
-        o1 = np.asarray(odom1, dtype=float)
-        dx, dy = o1[0] - o0[0], o1[1] - o0[1]
-        trans = math.hypot(dx, dy)
-        rot1 = 0.0 if trans < self.min_trans else float(wrap_angle(math.atan2(dy, dx) - o0[2]))
-        rot2 = float(wrap_angle(o1[2] - o0[2] - rot1))
-        return rot1, trans, rot2
-
-    def variances(self, rot1: float, trans: float, rot2: float) -> tuple[float, float, float]:
-        """Variances of the noise added to ``rot1``, ``trans`` and ``rot2``."""
-        r1 = min(abs(rot1), abs(float(wrap_angle(rot1 - math.pi))))
-        r2 = min(abs(rot2), abs(float(wrap_angle(rot2 - math.pi))))
-        v1 = self.alpha1 * r1 * r1 + self.alpha2 * trans * trans
-        vt = self.alpha3 * trans * trans + self.alpha4 * (r1 * r1 + r2 * r2)
-        v2 = self.alpha1 * r2 * r2 + self.alpha2 * trans * trans
-        return v1, vt, v2
-
-    def sample(
-        self, particles: ArrayLike, odom0: ArrayLike, odom1: ArrayLike, rng: np.random.Generator
-    ) -> Array:
-        """Propagate every particle ``(N, 3)`` by one noisy copy of the odometry motion."""
-        p = np.asarray(particles, dtype=float)
-        rot1, trans, rot2 = self.decompose(odom0, odom1)
-        v1, vt, v2 = self.variances(rot1, trans, rot2)
-        n = p.shape[0]
-        e = rng.standard_normal((n, 3))
-        r1 = rot1 - math.sqrt(v1) * e[:, 0]
-        tr = trans - math.sqrt(vt) * e[:, 1]
-        r2 = rot2 - math.sqrt(v2) * e[:, 2]
-        h = p[:, 2] + r1
-        out = np.empty_like(p)
-        out[:, 0] = p[:, 0] + tr * np.cos(h)
-        out[:, 1] = p[:, 1] + tr * np.sin(h)
-        out[:, 2] = wrap_angle(h + r2)
-        return out
 
 
 # ----------------------------------------------------------------------------------------
 # Laser measurement models
 # ----------------------------------------------------------------------------------------
-def _laser_poses_grid(grid: OccupancyGrid, particles: Array, offset: Array) -> Array:
-    """Grid-frame laser poses for robot particles (world frame)."""
-    if np.any(offset != 0.0):
-        particles = se2_compose(particles, offset)
-    return grid.pose_to_grid(particles)
 
 
-class BeamErfcModel:
-    """URUS beam likelihood ``L = mean_j erfc(|z_j - zhat_j| / (sigma sqrt 2))``.
-
-    Parameters
-    ----------
-    sigma : float
-        Laser range noise ``sigma_1`` (m).
-    two_sided : bool
-        Use ``|z - zhat|`` (default); ``False`` uses the signed ``z - zhat`` as printed in the
-        seed text (see the module docstring).
-    exponent : float
-        The likelihood is raised to this power.
-    raycast : ``"table"`` or ``"exact"``
-        Expected ranges from a precomputed :class:`RayCastTable` or from :func:`cast_rays`.
-    theta_bins : int
-        Heading bins of the table.
-    unknown_blocks : bool
-        Unknown cells stop rays (ROS AMCL convention).
-    """
-
-    def __init__(
-        self,
-        sigma: float = 0.1,
-        *,
-        two_sided: bool = True,
-        exponent: float = 1.0,
-        raycast: Literal["table", "exact"] = "table",
-        theta_bins: int = 360,
-        unknown_blocks: bool = True,
-    ) -> None:
-        self.sigma = float(sigma)
-        if not (np.isfinite(self.sigma) and self.sigma > 0):
-            raise ValidationError(f"sigma must be positive, got {sigma}")
-        self.two_sided = bool(two_sided)
-        self.exponent = float(exponent)
-        if raycast not in ("table", "exact"):
-            raise ValidationError(f"raycast must be 'table' or 'exact', got {raycast!r}")
-        self.raycast = raycast
-        self.theta_bins = int(theta_bins)
-        self.unknown_blocks = bool(unknown_blocks)
-        self.grid: OccupancyGrid | None = None
-        self.table: RayCastTable | None = None
-
-    def prepare(self, grid: OccupancyGrid, max_range: float, table: RayCastTable | None = None) -> None:
-        """Bind to a map; builds (or adopts) the ray-cast table and the erfc lookup."""
-        self.grid = grid
-        self.max_range = float(max_range)
-        if self.raycast == "table":
-            if table is not None and (table.grid is not grid or table.max_range != self.max_range):
-                raise ValidationError("the ray-cast table was built for another map or max_range")
-            self.table = table or RayCastTable(
-                grid, self.max_range, self.theta_bins, unknown_blocks=self.unknown_blocks
-            )
-            unit = self.table.unit
-            # erfc on the integer range difference (units of the table): exact up to 1 unit
-            self._dmax = int(math.ceil(8.0 * self.sigma / unit))
-            k = np.arange(-self._dmax, self._dmax + 1) * unit
-            arg = (np.abs(k) if self.two_sided else k) / (self.sigma * math.sqrt(2.0))
-            self._erfc_lut = erfc(arg).astype(np.float32)
-
-    def log_likelihood(self, laser_grid_poses: Array, z: Array, angles: Array) -> tuple[Array, int]:
-        """``(log L per particle, 1)`` for grid-frame laser poses, ranges ``z`` and angles."""
-        if self.grid is None:
-            raise NotInitializedError("BeamErfcModel.prepare was not called")
-        zc = np.minimum(z, self.max_range)
-        if self.raycast == "table":
-            t = self.table
-            zq = np.rint(zc / t.unit).astype(np.intp) + self._dmax
-            zhat = t.lookup_quantized(laser_grid_poses, angles)
-            d = np.subtract(zq[None, :], zhat, dtype=np.intp)  # z - zhat + dmax
-            np.clip(d, 0, 2 * self._dmax, out=d)
-            L = self._erfc_lut[d].sum(axis=1).astype(np.float64) / z.size
-        else:
-            world = self.grid.grid_to_world(laser_grid_poses[:, :2])
-            poses = np.column_stack([world, laser_grid_poses[:, 2] + self.grid.origin[2]])
-            zhat = cast_rays(self.grid, poses, angles, self.max_range, unknown_blocks=self.unknown_blocks)
-            diff = zc[None, :] - zhat
-            if self.two_sided:
-                diff = np.abs(diff)
-            L = erfc(diff / (self.sigma * math.sqrt(2.0))).mean(axis=1)
-        with np.errstate(divide="ignore"):
-            return self.exponent * np.log(np.maximum(L, 1e-300)), 1
 
 
-class LikelihoodFieldModel:
-    """Likelihood field (Thrun et al. 2005, table 6.3) with a precomputed log table.
-
-    Parameters
-    ----------
-    sigma_hit : float
-        Standard deviation (m) of the end-point distance.
-    z_hit, z_rand : float
-        Mixture weights of the Gaussian and the uniform term (``z_rand / max_range``).
-    max_distance : float
-        Distances are capped here (m); end points off the map count as this far (as ROS
-        AMCL's ``laser_likelihood_max_dist``, default 2 m).
-    exponent : float
-        The likelihood is raised to this power.
-    surface : bool
-        Measure distances to the obstacle surface
-        (:meth:`~dfusion.maps.OccupancyGrid.surface_distance_field`, default) instead of to
-        the nearest occupied cell centre (Thrun et al., ROS AMCL). With the latter, end
-        points anywhere inside a thick wall score as well as end points on its surface,
-        which pulls the estimate into walls (measured: 9 cm mean error on a map with
-        15 cm walls, against 2 cm with ``surface=True``; ``docs/localization.md``).
-    """
-
-    def __init__(
-        self,
-        sigma_hit: float = 0.2,
-        z_hit: float = 0.95,
-        z_rand: float = 0.05,
-        *,
-        max_distance: float = 2.0,
-        exponent: float = 1.0,
-        surface: bool = True,
-    ) -> None:
-        self.surface = bool(surface)
-        self.sigma_hit = float(sigma_hit)
-        self.z_hit = float(z_hit)
-        self.z_rand = float(z_rand)
-        if not (self.sigma_hit > 0 and self.z_hit >= 0 and self.z_rand >= 0 and self.z_hit + self.z_rand > 0):
-            raise ValidationError("need sigma_hit > 0, z_hit >= 0, z_rand >= 0, z_hit + z_rand > 0")
-        self.max_distance = float(max_distance)
-        self.exponent = float(exponent)
-        self.grid: OccupancyGrid | None = None
-
-    def point_log_likelihood(self, d: ArrayLike, max_range: float) -> Array:
-        """``log(z_hit N(d; 0, sigma_hit^2) + z_rand / max_range)``."""
-        d = np.minimum(np.asarray(d, dtype=float), self.max_distance)
-        s = self.sigma_hit
-        p = self.z_hit * np.exp(-0.5 * (d / s) ** 2) / (math.sqrt(2 * math.pi) * s) + self.z_rand / max_range
-        return np.log(p)
-
-    def prepare(self, grid: OccupancyGrid, max_range: float, table: RayCastTable | None = None) -> None:
-        self.grid = grid
-        self.max_range = float(max_range)
-        H, W = grid.shape
-        lf = np.empty((H + 2, W + 2), dtype=np.float32)  # one border cell: "off the map"
-        lf[:] = self.point_log_likelihood(self.max_distance, self.max_range)
-        dist = grid.surface_distance_field() if self.surface else grid.distance_field()
-        lf[1:-1, 1:-1] = self.point_log_likelihood(dist, self.max_range)
-        self._table = lf.reshape(-1)
-        self._Wp, self._Hp = W + 2, H + 2
-
-    def log_likelihood(self, laser_grid_poses: Array, z: Array, angles: Array) -> tuple[Array, int]:
-        """``(sum over beams of log p, number of beams used)``; max-range beams are skipped."""
-        if self.grid is None:
-            raise NotInitializedError("LikelihoodFieldModel.prepare was not called")
-        use = z < self.max_range
-        z, angles = z[use], angles[use]
-        n = laser_grid_poses.shape[0]
-        if z.size == 0:
-            return np.zeros(n), 0
-        inv = 1.0 / self.grid.resolution
-        lx = (z * np.cos(angles) * inv).astype(np.float32)[None, :]
-        ly = (z * np.sin(angles) * inv).astype(np.float32)[None, :]
-        th = laser_grid_poses[:, 2]
-        c = np.cos(th).astype(np.float32)[:, None]
-        s = np.sin(th).astype(np.float32)[:, None]
-        x = (laser_grid_poses[:, 0] * inv + 1.0).astype(np.float32)[:, None]  # +1: border
-        y = (laser_grid_poses[:, 1] * inv + 1.0).astype(np.float32)[:, None]
-        ex = c * lx - s * ly
-        ex += x
-        ey = s * lx + c * ly
-        ey += y
-        # truncation toward zero is floor for the non-negative values; anything left of
-        # column 1 / below row 1 lands in the border (off the map), as do clipped ones
-        j = ex.astype(np.int32)
-        np.clip(j, 0, self._Wp - 1, out=j)
-        i = ey.astype(np.int32)
-        np.clip(i, 0, self._Hp - 1, out=i)
-        i *= self._Wp
-        i += j
-        ll = self._table.take(i).sum(axis=1, dtype=np.float64)
-        return self.exponent * ll, int(z.size)
 
 
 # ----------------------------------------------------------------------------------------
@@ -715,7 +332,9 @@ class MonteCarloLocalization:
             raise NotInitializedError("call initialize_gaussian, initialize_global or initialize_particles first")
 
     # -- initialization ------------------------------------------------------------------
-    def _default_n(self, n: int | None) -> int:
+    def particle_count(self, n: int | None = None) -> int:
+        """``n`` checked, or the default number of particles of a new set (``max_particles``
+        when adaptive, else ``n_particles``)."""
         if n is None:
             return self.max_particles if self.adaptive else self.n_particles
         n = int(n)
@@ -750,12 +369,12 @@ class MonteCarloLocalization:
         cov = np.asarray(cov, dtype=float)
         if cov.shape != (3, 3):
             raise ShapeError("cov must be 3 x 3")
-        p = self.rng.multivariate_normal(mean, cov, size=self._default_n(n), method="cholesky")
+        p = self.rng.multivariate_normal(mean, cov, size=self.particle_count(n), method="cholesky")
         self.initialize_particles(p, t=t)
 
     def initialize_global(self, n: int | None = None, t: float | None = None) -> None:
         """Particles uniform over the free space of the map (global localization)."""
-        self.initialize_particles(self.grid.sample_free_poses(self._default_n(n), self.rng), t=t)
+        self.initialize_particles(self.grid.sample_free_poses(self.particle_count(n), self.rng), t=t)
 
     def _set_time(self, t: float | None) -> None:
         """Particle time: ``t`` if inside the odometry buffer, else the newest odometry."""
@@ -922,9 +541,10 @@ class MonteCarloLocalization:
                 self._log_w_slow = _log_ema(self._log_w_slow, log_avg, self.alpha_slow)
                 self._log_w_fast = _log_ema(self._log_w_fast, log_avg, self.alpha_fast)
         if self.n_eff < self.resample_threshold * self._weights.size:
-            self._resample()
+            self.resample()
 
-    def _resample(self) -> None:
+    def resample(self) -> None:
+        """Resample now (KLD-adaptive or fixed size), with Augmented-MCL injection when enabled."""
         p_inject = 0.0
         if self._log_w_slow is not None and (self.alpha_slow > 0 or self.alpha_fast > 0):
             p_inject = max(0.0, 1.0 - math.exp(self._log_w_fast - self._log_w_slow))
@@ -989,7 +609,7 @@ class MonteCarloLocalization:
         return int(np.argmax(enough)) + 1 if enough.any() else M
 
     # -- output --------------------------------------------------------------------------
-    def estimate(self) -> PoseEstimate:
+    def estimate(self) -> Estimate:
         """Gaussian summary and reliability of the current particle set."""
         self._require_init()
         w = self._weights
@@ -998,7 +618,8 @@ class MonteCarloLocalization:
             # yet: they are hypotheses, not evidence, and are left out of the summary
             w = np.where(self._fresh, 0.0, w)
         mean, cov = gaussian_summary(self._particles, w)
-        return PoseEstimate(self._time, mean, cov, reliability(cov), self._particles.shape[0], self.n_eff)
+        return Estimate("mcl", self._time, mean, cov, covariance_reliability(cov),
+                        n_particles=self._particles.shape[0], n_eff=self.n_eff)
 
 
 def _log_ema(log_old: float, log_new: float, alpha: float) -> float:

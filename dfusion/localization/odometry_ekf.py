@@ -36,28 +36,18 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 from numpy.typing import ArrayLike
 
-from ..errors import ShapeError, ValidationError
-from ..linalg import as_spd, as_vector, symmetrize
-from ..models.base import Array, wrap_angle
-from .mcl import PoseEstimate, reliability
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.estimation.estimate import Estimate
+from dfusion.geometry import wrap_angle
+from dfusion.linalg import Array, as_spd, as_vector, symmetrize
+from dfusion.models.odometry import odometry_increment
+from dfusion.reliability import covariance_reliability
 
-__all__ = ["OdometryEKF", "odometry_increment"]
+__all__ = [
+    "OdometryEKF",
+]
 
 
-def odometry_increment(odom0: ArrayLike, odom1: ArrayLike) -> tuple[float, float]:
-    """``(Delta d, Delta theta)`` between two odometry poses.
-
-    ``Delta d`` is the travelled distance, signed by the direction of travel relative to
-    the heading at ``odom0`` (negative when driving backwards), and ``Delta theta`` the
-    wrapped heading change.
-    """
-    o0 = as_vector(odom0, 3, "odom0")
-    o1 = as_vector(odom1, 3, "odom1")
-    dx, dy = o1[0] - o0[0], o1[1] - o0[1]
-    d = math.hypot(dx, dy)
-    if dx * math.cos(o0[2]) + dy * math.sin(o0[2]) < 0:
-        d = -d
-    return d, float(wrap_angle(o1[2] - o0[2]))
 
 
 class OdometryEKF:
@@ -108,9 +98,9 @@ class OdometryEKF:
     def P(self) -> Array:
         return self.ekf.P.copy()
 
-    def estimate(self) -> PoseEstimate:
+    def estimate(self) -> Estimate:
         P = self.P
-        return PoseEstimate(self.t, self.x, P, reliability(P))
+        return Estimate("odometry_ekf", self.t, self.x, P, covariance_reliability(P))
 
     # -- prediction (eq. 5-6) ----------------------------------------------------------
     def odometry_covariance(self, delta_d: float, delta_theta: float) -> Array:

@@ -1,21 +1,43 @@
-"""Occupancy grid maps and ray casting for map-based localization.
-
-* :class:`OccupancyGrid` -- ROS map_server grids: load/save YAML + PGM, build from laser
-  scans, generated test buildings, distance field.
-* :func:`cast_rays` -- exact vectorized ray casting (grid traversal with empty-space skipping).
-* :class:`RayCastTable` -- precomputed expected ranges per (cell, heading bin).
-"""
-from .grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid, parse_simple_yaml, read_pgm, write_pgm
-from .raycast import RayCastTable, cast_rays
+"""Occupancy grids: the grid, map files, ray casting, grids from scans, synthetic buildings, node lattices."""
+from dfusion.maps.buildings import (
+    GENERATORS,
+    corridor,
+    obstacle_grid,
+    repetitive_corridor,
+    rooms,
+)
+from dfusion.maps.grid import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
+from dfusion.maps.io import (
+    read_map_meta,
+    read_map_yaml,
+    read_occ,
+    read_pgm,
+    write_map_yaml,
+    write_pgm,
+)
+from dfusion.maps.lattice import NodeLattice, as_map_grid
+from dfusion.maps.mapping import grid_from_scans
+from dfusion.maps.raycast import RayCastTable, cast_rays
 
 __all__ = [
+    "rooms",
+    "corridor",
+    "repetitive_corridor",
+    "obstacle_grid",
+    "GENERATORS",
     "OccupancyGrid",
-    "RayCastTable",
-    "cast_rays",
-    "parse_simple_yaml",
-    "read_pgm",
-    "write_pgm",
     "FREE",
     "OCCUPIED",
     "UNKNOWN",
+    "read_map_yaml",
+    "write_map_yaml",
+    "read_map_meta",
+    "read_pgm",
+    "write_pgm",
+    "read_occ",
+    "NodeLattice",
+    "as_map_grid",
+    "grid_from_scans",
+    "cast_rays",
+    "RayCastTable",
 ]

@@ -64,9 +64,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.ndimage import distance_transform_edt
 
-from ..errors import ShapeError, ValidationError
-from ..models.base import Array, wrap_angle
-from .grid import OccupancyGrid
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.geometry import wrap_angle
+from dfusion.linalg import Array
+from dfusion.maps.grid import OccupancyGrid
 
 __all__ = ["cast_rays", "RayCastTable"]
 

@@ -1,18 +1,47 @@
-"""Motion and measurement models (``f, F, Q`` and ``h, H, R``)."""
-from .base import MeasurementModel, MotionModel, wrap_angle
-from .camera import PinholeCamera
-from .measurement import PositionSensor, RangeBearing, RSSISensor, fit_path_loss
-from .motion import ConstantVelocity, Unicycle
+"""Motion and measurement models (``f, F, Q`` and ``h, H, R``), laser and odometry models."""
+from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.models.camera import PinholeCamera, SceneCamera
+from dfusion.models.laser import (
+    BeamErfcModel,
+    LaserConfig,
+    LaserScanSensor,
+    LikelihoodFieldModel,
+)
+from dfusion.models.measurement import (
+    LandmarkRangeBearing,
+    PositionFix,
+    PositionSensor,
+    RangeBearing,
+    RSSISensor,
+    TargetRangeBearing,
+    fit_path_loss,
+)
+from dfusion.models.motion import ConstantVelocity, Unicycle
+from dfusion.models.odometry import (
+    OdometryMotionModel,
+    VelocityOdometry,
+    odometry_increment,
+)
 
 __all__ = [
     "MotionModel",
     "MeasurementModel",
-    "wrap_angle",
-    "ConstantVelocity",
+    "PinholeCamera",
+    "SceneCamera",
+    "LaserConfig",
+    "BeamErfcModel",
+    "LikelihoodFieldModel",
+    "LaserScanSensor",
     "PositionSensor",
-    "Unicycle",
     "RangeBearing",
     "RSSISensor",
     "fit_path_loss",
-    "PinholeCamera",
+    "LandmarkRangeBearing",
+    "TargetRangeBearing",
+    "PositionFix",
+    "ConstantVelocity",
+    "Unicycle",
+    "OdometryMotionModel",
+    "VelocityOdometry",
+    "odometry_increment",
 ]

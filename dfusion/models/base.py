@@ -13,6 +13,8 @@ from abc import ABC, abstractmethod
 import numpy as np
 from numpy.typing import NDArray
 
+from dfusion.geometry import wrap_angle
+
 Array = NDArray[np.float64]
 
 
@@ -99,6 +101,3 @@ class MeasurementModel(ABC):
         return d
 
 
-def wrap_angle(a):
-    """Wrap angles to ``[-pi, pi)``."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi

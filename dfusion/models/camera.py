@@ -13,12 +13,15 @@ axis), ``x`` right, ``y`` down in the image::
 """
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 
-from ..errors import ValidationError
-from ..linalg import as_matrix, as_vector
-from .base import Array, MeasurementModel
-from .measurement import _finite, _position_state, _positive
+from dfusion.errors import ValidationError
+from dfusion.linalg import Array, as_matrix, as_vector
+from dfusion.models.base import MeasurementModel
+from dfusion.models.measurement import _finite, _position_state, _positive
 
 
 def _image_size(value: int, name: str) -> int:
@@ -230,3 +233,20 @@ class PinholeCamera(MeasurementModel):
         t = -R_cw @ self.position + self.point_height * R_cw[:, 2]
         return self.K @ np.column_stack([R_cw[:, 0], R_cw[:, 1], t])
 
+
+class SceneCamera(PinholeCamera):
+    """A :class:`PinholeCamera` that also produces false detections in the simulated world.
+
+    ``clutter_rate`` is the mean number of false detections per frame (Poisson);
+    :meth:`sample_clutter` draws them uniformly in the image.
+    """
+
+    def __init__(self, *args: Any, clutter_rate: float = 0.0, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if not (math.isfinite(clutter_rate) and clutter_rate >= 0):
+            raise ValidationError(f"false_detection_rate must be >= 0, got {clutter_rate!r}")
+        self.clutter_rate = float(clutter_rate)
+
+    def sample_clutter(self, rng: np.random.Generator, k: int) -> Array:
+        """``k`` false detections ``(u, v)`` uniform in ``[0, width) x [0, height)``, shape ``(k, 2)``."""
+        return rng.random((int(k), 2)) * np.array([self.width, self.height], dtype=float)

@@ -1,4 +1,4 @@
-"""Measurement models.
+r"""Measurement models.
 
 ``PositionSensor``: ``z = [I 0] x + v``, ``v ~ N(0, std^2 I)``: observes the
 first ``dim`` components (the position) of any state.
@@ -9,16 +9,42 @@ target from a sensor with known pose.
 ``RSSISensor``: received signal strength at fixed receivers under the
 log-distance path-loss model ``p0 - 10 n log10(d / d0)``; ``fit_path_loss``
 calibrates ``(p0, n, std)`` from data.
+
+Robots observing landmarks and other robots:
+
+:class:`LandmarkRangeBearing`
+    range and bearing of a known landmark ``l`` from the robot pose ``(x, y, theta)``
+    (the state): ``h = [|l - p|, wrap(atan2(l_y - y, l_x - x) - theta)]``.
+:class:`TargetRangeBearing`
+    range and bearing of a target (state position ``q``) from an observer whose pose
+    ``s = (x_s, y_s, theta_s)`` is an estimate with covariance ``P_s``. The pose error
+    enters the measurement linearly, ``z ~ h(q, s) + J_s (s_true - s) + v``, so the
+    target filter uses ``R_eff = R + J_s P_s J_s^T`` with
+    ``J_s = dh/ds = [[-dx/r, -dy/r, 0], [dy/r^2, -dx/r^2, -1]]`` evaluated at the
+    *measured* point ``(dx, dy) = r (cos(theta_s + b), sin(theta_s + b))`` (so ``R_eff``
+    does not depend on the target's estimate). :meth:`TargetRangeBearing.position_fix`
+    gives the same measurement as a linear :class:`PositionFix` of the target:
+    ``p = s_xy + r (cos(theta_s + b), sin(theta_s + b))`` with
+    ``R_eff = G R G^T + J_c P_s J_c^T`` (``G = dp/d(r, b)``, ``J_c = dp/ds``); a filter
+    whose estimate is far from the target (after a long gap) cannot linearize the polar
+    form well, the linear fix has no such problem. Both assume the observer's pose error
+    is independent of the target's state and of the observer's other measurements of the
+    same target; consecutive observations from one robot share its pose error, which this
+    model ignores (see ``docs/robots.md``).
 """
 from __future__ import annotations
 
-import numpy as np
+import math
 
-from ..linalg import as_finite as _finite
-from ..linalg import as_positive as _positive
-from ..errors import ShapeError, ValidationError
-from ..linalg import as_vector
-from .base import Array, MeasurementModel, wrap_angle
+import numpy as np
+from numpy.typing import ArrayLike
+
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.geometry import wrap_angle
+from dfusion.linalg import Array, as_positive, as_spd, as_vector, symmetrize
+from dfusion.linalg import as_finite as _finite
+from dfusion.linalg import as_positive as _positive
+from dfusion.models.base import MeasurementModel
 
 
 class PositionSensor(MeasurementModel):
@@ -281,3 +307,135 @@ def fit_path_loss(distances: Array, rssi: Array, d0: float = 1.0) -> tuple[float
     e = z - A @ np.array([p0, n])
     std = float(np.sqrt(e @ e / (d.shape[0] - 2)))
     return float(p0), float(n), std
+
+
+class LandmarkRangeBearing(MeasurementModel):
+    """Range and bearing of a known landmark from the robot pose (the first 3 state entries).
+
+    ``h(x) = [r, wrap(atan2(dy, dx) - theta)]`` with ``(dx, dy) = l - (x, y)``;
+    ``H = [[-dx/r, -dy/r, 0], [dy/r^2, -dx/r^2, -1]]``; ``R = diag(range_std^2, bearing_std^2)``.
+    """
+
+    dim_z = 2
+    is_linear = False
+    angle_indices = (1,)
+
+    def __init__(self, landmark: ArrayLike, range_std: float, bearing_std: float) -> None:
+        self.landmark = as_vector(landmark, 2, "landmark position")
+        self.range_std = as_positive(range_std, "range_std")
+        self.bearing_std = as_positive(bearing_std, "bearing_std")
+        self._R = np.diag([self.range_std**2, self.bearing_std**2])
+
+    def __repr__(self) -> str:
+        return f"LandmarkRangeBearing(landmark={self.landmark.tolist()}, range_std={self.range_std}, bearing_std={self.bearing_std})"
+
+    def h(self, x: Array) -> Array:
+        x = np.asarray(x, dtype=float)
+        dx, dy = self.landmark[0] - x[0], self.landmark[1] - x[1]
+        return np.array([math.hypot(dx, dy), float(wrap_angle(math.atan2(dy, dx) - x[2]))])
+
+    def H(self, x: Array) -> Array:
+        x = np.asarray(x, dtype=float)
+        if x.shape[0] < 3:
+            raise ShapeError("LandmarkRangeBearing needs a pose state (x, y, theta, ...)")
+        dx, dy = self.landmark[0] - x[0], self.landmark[1] - x[1]
+        r2 = dx * dx + dy * dy
+        if r2 < 1e-18:
+            raise ValidationError("LandmarkRangeBearing: robot at the landmark, bearing undefined")
+        r = math.sqrt(r2)
+        H = np.zeros((2, x.shape[0]))
+        H[0, :3] = -dx / r, -dy / r, 0.0
+        H[1, :3] = dy / r2, -dx / r2, -1.0
+        return H
+
+    @property
+    def R(self) -> Array:
+        return self._R
+
+
+def _observer_jacobian(observer_pose: Array, z: Array) -> Array:
+    """``dh/ds`` of range-bearing w.r.t. the observer pose, at the measured point."""
+    r, b = float(z[0]), float(z[1])
+    phi = observer_pose[2] + b
+    dx, dy = r * math.cos(phi), r * math.sin(phi)
+    r2 = max(r * r, 1e-18)
+    r = math.sqrt(r2)
+    return np.array([[-dx / r, -dy / r, 0.0], [dy / r2, -dx / r2, -1.0]])
+
+
+class TargetRangeBearing(RangeBearing):
+    """Range and bearing of a target (state position ``x[:2]``) from an uncertain observer.
+
+    :class:`dfusion.models.RangeBearing` with the observer's estimated pose as the sensor
+    pose (same ``h`` and ``H``), and the observer's pose uncertainty folded into the noise.
+
+    Parameters
+    ----------
+    observer_pose : (3,)
+        The observer's estimated pose ``(x_s, y_s, theta_s)``.
+    observer_cov : (3, 3)
+        Its covariance ``P_s`` (zeros: a known pose).
+    z : (2,)
+        The measurement ``(range, bearing)``; fixes the point where ``J_s`` is evaluated.
+    range_std, bearing_std : float
+        Sensor noise.
+
+    ``R = diag(range_std^2, bearing_std^2) + J_s P_s J_s^T`` (module docstring).
+    """
+
+    def __init__(self, observer_pose: ArrayLike, observer_cov: ArrayLike, z: ArrayLike,
+                 range_std: float, bearing_std: float) -> None:
+        super().__init__(observer_pose, range_std, bearing_std)
+        P = np.asarray(observer_cov, dtype=float)
+        if P.shape != (3, 3) or not np.all(np.isfinite(P)):
+            raise ShapeError("observer_cov must be a finite 3 x 3 matrix")
+        self.observer_cov = symmetrize(P)
+        self.z = as_vector(z, 2, "range-bearing measurement")
+        J = _observer_jacobian(self.sensor_pose, self.z)
+        self.J = J
+        self._R = symmetrize(self._R + J @ self.observer_cov @ J.T)
+
+    @property
+    def observer_pose(self) -> Array:
+        """The observer's estimated pose (the sensor pose of :class:`RangeBearing`)."""
+        return self.sensor_pose
+
+    def position_fix(self) -> "PositionFix":
+        """The measurement converted to a position fix of the target (module docstring):
+        ``p = s_xy + r (cos(theta_s + b), sin(theta_s + b))`` with covariance
+        ``G R G^T + J_c P_s J_c^T``, ``G = dp/d(r, b)``, ``J_c = dp/ds``."""
+        r, b = float(self.z[0]), float(self.z[1])
+        s = self.observer_pose
+        c, sn = math.cos(s[2] + b), math.sin(s[2] + b)
+        p = s[:2] + r * np.array([c, sn])
+        G = np.array([[c, -r * sn], [sn, r * c]])
+        Jc = np.array([[1.0, 0.0, -r * sn], [0.0, 1.0, r * c]])
+        R0 = np.diag([self.range_std**2, self.bearing_std**2])
+        return PositionFix(p, symmetrize(G @ R0 @ G.T + Jc @ self.observer_cov @ Jc.T))
+
+
+class PositionFix(MeasurementModel):
+    """A linear position measurement ``z = x[:d] + v``, ``v ~ N(0, cov)`` with a full covariance.
+
+    ``z`` (the fix itself) is kept in :attr:`z` for convenience.
+    """
+
+    is_linear = True
+
+    def __init__(self, z: ArrayLike, cov: ArrayLike) -> None:
+        self.z = np.asarray(z, dtype=float).reshape(-1)
+        self.dim_z = self.z.size
+        self._R = as_spd(cov, self.dim_z, "position fix covariance")
+
+    def h(self, x: Array) -> Array:
+        return np.asarray(x, dtype=float)[: self.dim_z].copy()
+
+    def H(self, x: Array) -> Array:
+        n = np.shape(x)[0]
+        H = np.zeros((self.dim_z, n))
+        H[:, : self.dim_z] = np.eye(self.dim_z)
+        return H
+
+    @property
+    def R(self) -> Array:
+        return self._R

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..linalg import as_positive as _positive
-from ..errors import ShapeError, ValidationError
-from ..linalg import as_vector
-from .base import Array, MotionModel, wrap_angle
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.geometry import wrap_angle
+from dfusion.linalg import Array, as_vector
+from dfusion.linalg import as_positive as _positive
+from dfusion.models.base import MotionModel
 
 
 class ConstantVelocity(MotionModel):

@@ -19,8 +19,8 @@ import msgpack
 import networkx as nx
 import numpy as np
 
-from ..errors import MessageError, ValidationError
-from ..sim.scenario import Scenario
+from dfusion.errors import MessageError, ValidationError
+from dfusion.scenario.spec import Scenario
 
 log = logging.getLogger(__name__)
 

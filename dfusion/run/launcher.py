@@ -42,11 +42,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import DfusionError
-from ..sim.scenario import load_scenario
-from ..transport.zenoh import ZenohConfig, check_name, free_tcp_endpoints
-from .common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
-from .monitor import Monitor, build_result
+from dfusion.errors import DfusionError
+from dfusion.run.common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
+from dfusion.run.monitor import Monitor, build_result
+from dfusion.scenario.loader import load_scenario
+from dfusion.transport.zenoh import ZenohConfig, check_name, free_tcp_endpoints
 
 log = logging.getLogger(__name__)
 

@@ -30,9 +30,10 @@ from typing import Iterable
 
 import numpy as np
 
-from ..errors import ValidationError
-from ..linalg import Array
-from ..sim.scenario import Scenario
+from dfusion.errors import ValidationError
+from dfusion.linalg import Array
+from dfusion.scenario.spec import Scenario
+from dfusion.sim.world import simulate_world
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +65,6 @@ def world_measurements(sc: Scenario, node: str, world=None) -> list[OwnMeasureme
     if node not in sc.nodes:
         raise ValidationError(f"{node!r} is not a node of {sc.path}")
     if world is None:
-        from ..sim.world import simulate_world
-
         world = simulate_world(sc)
     return _ordered(OwnMeasurement(m.t, np.asarray(m.z, float), m.arrival) for m in world.measurements if m.node == node)
 

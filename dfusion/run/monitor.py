@@ -29,11 +29,22 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import MessageError
-from ..sim.scenario import Scenario
-from ..transport.base import TransportStats
-from ..transport.zenoh import ZenohConfig, alive_key, close_session, monitor_key, open_session
-from .common import Status
+from dfusion.errors import MessageError
+from dfusion.estimation.centralized import CentralizedEKF
+from dfusion.fusion.channel import time_key
+from dfusion.run.common import Status, load_network_key
+from dfusion.scenario.loader import load_scenario
+from dfusion.scenario.spec import Scenario
+from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
+from dfusion.sim.world import simulate_world
+from dfusion.transport.base import TransportStats
+from dfusion.transport.zenoh import (
+    ZenohConfig,
+    alive_key,
+    close_session,
+    monitor_key,
+    open_session,
+)
 
 log = logging.getLogger(__name__)
 
@@ -183,9 +194,6 @@ def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = f
 
     ``exclude`` holds ``(node, time_key)`` of measurements nobody received.
     """
-    from ..estimation.centralized import CentralizedEKF   # filterpy and scipy.stats: slow to import
-    from ..fusion.channel import time_key
-
     motion = sc.target.motion
     central = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
     sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
@@ -226,8 +234,6 @@ def _filled(rec: NodeRecord, sc: Scenario) -> tuple[np.ndarray, np.ndarray, int]
 def _filled_output(rec: NodeRecord, sc: Scenario, mean: np.ndarray, cov: np.ndarray):
     """The policy output on the whole grid (``None`` if the node published none): steps
     without a publication hold the previous output; before the first, the node's estimate."""
-    from ..sim.runner import NodeOutput
-
     if rec.out_mean is None:
         return None
     spec_policy = sc.nodes[rec.name].policy
@@ -255,10 +261,6 @@ def build_result(
     ``finals`` holds each node's final status (from its result file or the
     monitor); a node without one is judged on its last published estimate.
     """
-    from ..fusion.channel import time_key
-    from ..sim.runner import SimulationResult, compute_metrics
-    from ..sim.world import simulate_world
-
     world = world if world is not None else simulate_world(sc)
     lost = {(name, time_key(t)) for name, st in finals.items() for t in st.lost}
     c_mean, c_cov, c_final = centralized_reference(sc, world, lost)
@@ -353,9 +355,6 @@ def main(argv: list[str] | None = None) -> int:
     import sys
     from pathlib import Path
 
-    from ..sim.scenario import load_scenario
-    from .common import load_network_key
-
     p = argparse.ArgumentParser(prog="python -m dfusion.run.monitor", description=main.__doc__.split("\n")[0])
     p.add_argument("--scenario", required=True)
     p.add_argument("--seed", type=int, default=None)
@@ -391,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(_json.dumps(result.metrics, indent=2, sort_keys=True))
     if args.plot:
-        from ..plots import plot_result
+        from dfusion.plots import plot_result
 
         plot_result(result, args.plot)
     return 0 if len(finals) == len(sc.nodes) else 1

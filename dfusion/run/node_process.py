@@ -39,13 +39,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DfusionError, MessageError, OutsideWindowError
-from ..fusion.node import FusionNode
-from ..sim.runner import build_front_end, records_output
-from ..sim.scenario import Scenario, load_scenario
-from ..transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
-from .common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
-from .measurements import MeasurementLog, OwnMeasurement, load_recording, save_recording, world_measurements
+from dfusion.errors import DfusionError, MessageError, OutsideWindowError
+from dfusion.fusion.node import FusionNode
+from dfusion.run.common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
+from dfusion.run.measurements import (
+    MeasurementLog,
+    OwnMeasurement,
+    load_recording,
+    save_recording,
+    world_measurements,
+)
+from dfusion.scenario.build import build_front_end
+from dfusion.scenario.loader import load_scenario
+from dfusion.scenario.spec import Scenario
+from dfusion.sim.runner import records_output
+from dfusion.transport.simulated import link_generator
+from dfusion.transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
 
 log = logging.getLogger("dfusion.node")
 
@@ -150,12 +159,10 @@ class NodeProcess:
         self.t_started = 0.0
         self._links = {}
         if emulate_links:
-            from ..sim.network import _link_generator
-
             for (a, b), lspec in sc.links.items():
                 if name in (a, b):
                     other = b if a == name else a
-                    self._links[other] = (lspec, _link_generator(sc.seed, name, other))
+                    self._links[other] = (lspec, link_generator(sc.seed, name, other))
         self.tr: ZenohTransport | None = None
         self._mlog: MeasurementLog | None = None
 

@@ -20,7 +20,6 @@ centralized one.
 """
 from __future__ import annotations
 
-import copy
 import json
 import logging
 from dataclasses import dataclass, field
@@ -29,16 +28,16 @@ from typing import Any
 import networkx as nx
 import numpy as np
 
-from ..errors import MessageError, OutsideWindowError
-from ..estimation.centralized import CentralizedEKF
-from ..fusion.node import FusionNode
-from ..fusion.policy import InformationFusionPolicy
-from ..linalg import Array
-from .metrics import nees, rmse
-from .network import SimulatedNetwork
-from .frontends import EIFFrontEnd
-from .scenario import FRONT_ENDS, Scenario
-from .world import World, simulate_world
+from dfusion.errors import MessageError, OutsideWindowError
+from dfusion.estimation.centralized import CentralizedEKF
+from dfusion.fusion.node import FusionNode
+from dfusion.linalg import Array
+from dfusion.metrics import chi2_interval, nees, rmse
+from dfusion.policies.base import InformationFusionPolicy
+from dfusion.scenario.build import build_front_ends, build_nodes
+from dfusion.scenario.spec import Scenario
+from dfusion.sim.world import World, simulate_world
+from dfusion.transport.simulated import SimulatedNetwork
 
 log = logging.getLogger(__name__)
 
@@ -135,41 +134,10 @@ def _progress(iterable, enabled: bool, total: int):
     return tqdm(iterable, total=total, unit="step", leave=False)
 
 
-def build_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, FusionNode]:
-    """One :class:`FusionNode` per scenario node, all with the common prior."""
-    prior = (0.0, sc.target.initial_mean, sc.target.initial_cov)
-    nodes = {}
-    for i, name in enumerate(sorted(sc.nodes)):
-        nodes[name] = FusionNode(
-            name,
-            sorted(sc.graph.neighbors(name)),
-            sc.target.motion,
-            window=sc.window,
-            horizon=sc.horizon,
-            prior=prior,
-            fusion=sc.fusion,
-            # a policy keeps state (the current source): each node built gets its own copy
-            policy=copy.deepcopy(sc.nodes[name].policy),
-            network_key=network_key,
-            epoch=i + 1,
-        )
-    return nodes
 
 
-def build_front_end(sc: Scenario, name: str):
-    """The front end of node ``name`` (None without a sensor), seeded from the scenario's
-    seed and the node's rank, so that ``simulate`` and ``run`` build the same one."""
-    spec = sc.nodes[name]
-    if spec.sensor is None:
-        return None
-    factory = FRONT_ENDS.get(spec.sensor_kind)
-    seed = sc.seed * 1000 + sorted(sc.nodes).index(name)
-    return factory(spec, sc, seed) if factory else EIFFrontEnd(spec.sensor)
 
 
-def build_front_ends(sc: Scenario) -> dict[str, object]:
-    """The front end of every node with a sensor."""
-    return {name: fe for name in sorted(sc.nodes) if (fe := build_front_end(sc, name)) is not None}
 
 
 def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
@@ -274,8 +242,6 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
     centralized mean at the end; ``net`` has ``stats.total`` (delivered, dropped).
     Shared by ``dfusion simulate`` and ``dfusion run``.
     """
-    from .metrics import chi2_interval
-
     axes = sc.target.axes
     motion = sc.target.motion
     resid = motion.residual if motion.angle_indices else None

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..linalg import Array
-from .scenario import Scenario
+from dfusion.linalg import Array
+from dfusion.scenario.spec import Scenario
 
 TIME_DECIMALS = 9
 

@@ -56,8 +56,14 @@ from typing import Any
 
 import zenoh
 
-from ..errors import ValidationError
-from .base import Delivery, LinkKey, StatsReport, Transport, TransportStats
+from dfusion.errors import ValidationError
+from dfusion.transport.base import (
+    Delivery,
+    LinkKey,
+    StatsReport,
+    Transport,
+    TransportStats,
+)
 
 log = logging.getLogger(__name__)
 

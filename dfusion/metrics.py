@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from ..linalg import Array
+from dfusion.linalg import Array
+
+__all__ = ["rmse", "nees", "chi2_interval", "error_stats"]
 
 
 def rmse(est: Array, truth: Array, axes: int) -> float:
@@ -34,3 +36,10 @@ def chi2_interval(dof: int, samples: int, level: float = 0.95) -> tuple[float, f
     """Interval containing the average of ``samples`` chi-square(``dof``) values with probability ``level``."""
     a = 1.0 - level
     return (chi2.ppf(a / 2, dof * samples) / samples, chi2.ppf(1 - a / 2, dof * samples) / samples)
+
+
+def error_stats(errors: Array) -> dict[str, float]:
+    """RMSE, median, mean and 90th percentile of horizontal errors (m)."""
+    e = np.asarray(errors, dtype=float)
+    return {"rmse": float(np.sqrt(np.mean(e * e))), "median_error": float(np.median(e)),
+            "mean_error": float(np.mean(e)), "p90_error": float(np.percentile(e, 90)), "n": int(e.size)}

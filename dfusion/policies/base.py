@@ -14,7 +14,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Sequence
 
-from ..linalg import Array
+from dfusion.linalg import Array
 
 
 @dataclass(frozen=True)

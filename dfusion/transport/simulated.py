@@ -37,8 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ValidationError
-from ..transport.base import Delivery, LinkKey, StatsReport, Transport, TransportStats
+from dfusion.errors import ValidationError
+from dfusion.transport.base import (
+    Delivery,
+    LinkKey,
+    StatsReport,
+    Transport,
+    TransportStats,
+)
 
 _log = logging.getLogger(__name__)
 
@@ -145,7 +151,7 @@ def _outages(value: Any) -> tuple[tuple[float, float], ...]:
     return tuple(sorted(out))
 
 
-def _link_generator(seed: int, src: str, dst: str) -> np.random.Generator:
+def link_generator(seed: int, src: str, dst: str) -> np.random.Generator:
     """The random generator of directed link ``src -> dst``, a function of ``(seed, src, dst)`` only.
 
     The link name is hashed (SHA-256 of ``json.dumps([src, dst])``, stable
@@ -216,7 +222,7 @@ class SimulatedNetwork(Transport):
                 raise ValidationError(f"link ({src!r}, {dst!r}) needs a LinkSpec, got {type(spec).__name__}")
             if (src, dst) in self._links:
                 raise ValidationError(f"link ({src!r}, {dst!r}) is given twice")
-            self._links[(src, dst)] = _Link(spec, _link_generator(self._seed, src, dst))
+            self._links[(src, dst)] = _Link(spec, link_generator(self._seed, src, dst))
         nodes = {n for key in self._links for n in key}
         self._queues: dict[str, list[_Entry]] = {n: [] for n in sorted(nodes)}
         self._seq = itertools.count()

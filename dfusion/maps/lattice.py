@@ -1,19 +1,19 @@
-r"""The node-lattice view of :class:`dfusion.maps.OccupancyGrid` used by the WSN particle filter.
+r"""A node-lattice view of :class:`dfusion.maps.OccupancyGrid` (the BLE RSSI dataset's grids).
 
 There is one occupancy-grid class in dfusion, :class:`dfusion.maps.OccupancyGrid` (ROS
 layout: ``data[row = y, column = x]``, origin at the lower-left *corner* of the first
-cell). It holds everything the particle filter needs: the ``.occ`` reader
-(:meth:`~dfusion.maps.OccupancyGrid.from_occ_file`), the exact vectorized segment test
-(:meth:`~dfusion.maps.OccupancyGrid.segment_blocked`), the point test
+cell). It holds everything the WSN particle filter needs: the exact vectorized segment
+test (:meth:`~dfusion.maps.OccupancyGrid.segment_blocked`), the point test
 (:meth:`~dfusion.maps.OccupancyGrid.is_blocked`) and uniform sampling of free space
-(:meth:`~dfusion.maps.OccupancyGrid.sample_free`). :class:`dfusion.pf.WSNTracker` accepts it
-directly.
+(:meth:`~dfusion.maps.OccupancyGrid.sample_free`); the ``.occ`` files of the dataset are
+read by :func:`dfusion.maps.io.read_occ`. :class:`dfusion.localization.WSNTracker`
+accepts a grid directly.
 
-:class:`OccupancyGrid` here (exported as ``dfusion.pf.OccupancyGrid`` for existing code)
-is only a thin *view* of such a grid in the conventions of the BLE RSSI dataset's node
-lattices: ``occupied[ix, iy]`` indexed x first, ``origin`` the world position of node
-``(0, 0)`` (the *centre* of the first cell), ``shape = (nx, ny)``. It stores the map grid
-in :attr:`OccupancyGrid.map` and delegates every test to it; it adds no algorithm of its own.
+:class:`NodeLattice` is only a thin *view* of such a grid in the conventions of the BLE
+RSSI dataset's node lattices: ``occupied[ix, iy]`` indexed x first, ``origin`` the world
+position of node ``(0, 0)`` (the *centre* of the first cell), ``shape = (nx, ny)``. It
+stores the map grid in :attr:`NodeLattice.map` and delegates every test to it; it adds
+no algorithm of its own.
 """
 from __future__ import annotations
 
@@ -22,13 +22,15 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..linalg import Array
-from ..maps.grid import OccupancyGrid as MapGrid
+from dfusion.errors import ValidationError
+from dfusion.linalg import Array
+from dfusion.maps.grid import OccupancyGrid
+from dfusion.maps.io import read_occ
 
-__all__ = ["OccupancyGrid", "as_map_grid"]
+__all__ = ["NodeLattice", "as_map_grid"]
 
 
-class OccupancyGrid:
+class NodeLattice:
     """Node-lattice view (x-first, node-centred) of a :class:`dfusion.maps.OccupancyGrid`.
 
     Parameters
@@ -47,20 +49,19 @@ class OccupancyGrid:
     """
 
     def __init__(self, occupied: ArrayLike, cell: float, origin: ArrayLike = (0.0, 0.0)) -> None:
-        grid = MapGrid.from_nodes(occupied, cell, origin)
+        grid = OccupancyGrid.from_nodes(occupied, cell, origin)
         self._init_from_map(grid, np.array(origin, dtype=float).reshape(2))
 
-    def _init_from_map(self, grid: MapGrid, origin: Array | None = None) -> None:
+    def _init_from_map(self, grid: OccupancyGrid, origin: Array | None = None) -> None:
         self.map = grid
         self.cell = grid.resolution
         self.origin = grid.origin[:2] + 0.5 * grid.resolution if origin is None else origin
         self.shape = (grid.width, grid.height)
 
     @classmethod
-    def from_map(cls, grid: MapGrid) -> "OccupancyGrid":
+    def from_map(cls, grid: OccupancyGrid) -> "NodeLattice":
         """The node view of a map grid with yaw 0."""
         if grid.origin[2] != 0.0:
-            from ..errors import ValidationError  # noqa: PLC0415
 
             raise ValidationError("the node-lattice view needs a map origin with yaw 0")
         self = cls.__new__(cls)
@@ -68,14 +69,14 @@ class OccupancyGrid:
         return self
 
     def __repr__(self) -> str:
-        return (f"OccupancyGrid(shape={self.shape}, cell={self.cell}, origin={self.origin.tolist()}, "
+        return (f"NodeLattice(shape={self.shape}, cell={self.cell}, origin={self.origin.tolist()}, "
                 f"occupied={int(self.occupied.sum())}/{self.occupied.size})")
 
     # -------------------------------------------------------------- loading
     @classmethod
-    def from_occ_file(cls, path: str | Path, occupied_value: int = 1) -> "OccupancyGrid":
+    def from_occ_file(cls, path: str | Path, occupied_value: int = 1) -> "NodeLattice":
         """Read a ``.occ`` grid (see :meth:`dfusion.maps.OccupancyGrid.from_occ_file`)."""
-        return cls.from_map(MapGrid.from_occ_file(path, occupied_value))
+        return cls.from_map(read_occ(path, occupied_value))
 
     # ---------------------------------------------------------- conventions
     @property
@@ -119,21 +120,12 @@ class OccupancyGrid:
         """Exact segment test (:meth:`dfusion.maps.OccupancyGrid.segment_blocked`)."""
         return self.map.segment_blocked(p0, p1)
 
-    def _u1(self, v: Array, ax: int) -> Array:
-        """Continuous cell coordinate of world coordinates ``v`` along ``ax`` (0 = x, 1 = y)."""
-        return self.map._u1(np.asarray(v, dtype=float) - self.map.origin[ax], ax)  # noqa: SLF001
 
-    def _blocked_exact(self, ux0: Array, uy0: Array, ix0: np.ndarray, iy0: np.ndarray,
-                       ux1: Array, uy1: Array) -> np.ndarray:
-        return self.map._blocked_exact(ux0, uy0, ix0, iy0, ux1, uy1)  # noqa: SLF001
-
-
-def as_map_grid(grid: MapGrid | OccupancyGrid) -> MapGrid:
+def as_map_grid(grid: OccupancyGrid | NodeLattice) -> OccupancyGrid:
     """The :class:`dfusion.maps.OccupancyGrid` behind ``grid`` (itself, or a view's map)."""
-    if isinstance(grid, OccupancyGrid):
+    if isinstance(grid, NodeLattice):
         return grid.map
-    if isinstance(grid, MapGrid):
+    if isinstance(grid, OccupancyGrid):
         return grid
-    from ..errors import ValidationError  # noqa: PLC0415
 
     raise ValidationError("grid must be a dfusion.maps.OccupancyGrid (or its dfusion.pf node view)")

@@ -8,13 +8,13 @@ Constant velocity: the white-noise-acceleration model of
 :class:`dfusion.models.ConstantVelocity` (``q`` in m^2/s^3), with the speed of
 each particle optionally capped at ``max_speed``.
 
-**Map constraint (URUS).** With an occupancy grid (a :class:`dfusion.maps.OccupancyGrid`,
-or its node-lattice view :class:`dfusion.pf.OccupancyGrid`), a particle whose
+**Map constraint (URUS).** With an occupancy grid (a :class:`dfusion.maps.NodeLattice`,
+or its node-lattice view :class:`dfusion.pf.NodeLattice`), a particle whose
 move ends in an occupied cell or whose straight-line move passes through one is
 discarded: its weight becomes zero and it keeps its previous (free) position, so
 the particle set never contains a position inside an obstacle (occupied and unknown
 cells block, and so does everything off the map:
-:meth:`dfusion.maps.OccupancyGrid.segment_blocked`). Roughening
+:meth:`dfusion.maps.NodeLattice.segment_blocked`). Roughening
 jitters that would cross a wall are vetoed the same way (the particle keeps its
 resampled position). If every move of a step is refused the particles stay
 where they were (counted in ``n_all_refused``).
@@ -51,17 +51,24 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import NotInitializedError, ShapeError, ValidationError
-from ..gaussian import InformationGaussian
-from ..linalg import Array, as_spd, as_vector, spd_inverse, symmetrize
-from ..models.measurement import RSSISensor
-from ..models.motion import ConstantVelocity
-from ..maps.grid import OccupancyGrid as MapGrid
-from .occupancy import OccupancyGrid, as_map_grid
-from .radio_map import RadioMap
-from .particle_filter import ParticleDepletionError, ParticleFilter, weighted_mean_cov
+from dfusion.errors import NotInitializedError, ShapeError, ValidationError
+from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
+from dfusion.estimation.particle_filter import (
+    ParticleDepletionError,
+    ParticleFilter,
+    weighted_mean_cov,
+)
+from dfusion.linalg import Array, as_spd, as_vector, spd_inverse
+from dfusion.localization.radio_map import RadioMap
+from dfusion.maps.grid import OccupancyGrid as MapGrid
+from dfusion.maps.lattice import NodeLattice, as_map_grid
+from dfusion.models.measurement import RSSISensor
+from dfusion.models.motion import ConstantVelocity
 
-__all__ = ["WSNTracker", "project_psd_information", "MOTIONS"]
+__all__ = [
+    "WSNTracker",
+    "MOTIONS",
+]
 
 MOTIONS = ("random_walk", "constant_velocity")
 
@@ -86,25 +93,6 @@ def _rows_matmul(a: Array, b: Array) -> Array:
     return out
 
 
-def project_psd_information(Omega: ArrayLike, eta: ArrayLike, rtol: float = 1e-9) -> tuple[Array, Array, int]:
-    """Project an information pair onto the positive semi-definite cone.
-
-    With ``Omega = V diag(lam) V^T``: eigenvalues below ``rtol * max|lam|`` are set
-    to 0 (``Omega_+ = V diag(max(lam, 0)) V^T``, the nearest PSD matrix in the
-    Frobenius norm), and ``eta`` is projected onto the range of ``Omega_+``
-    (``eta_+ = V_+ V_+^T eta``): information a measurement can carry has
-    ``eta = H^T R^-1 z'`` in that range, and directions whose information was
-    dropped must not shift the mean either. Returns ``(Omega_+, eta_+, n_clipped)``.
-    """
-    Om = symmetrize(np.asarray(Omega, dtype=float))
-    e = np.asarray(eta, dtype=float)
-    lam, V = np.linalg.eigh(Om)
-    scale = float(np.max(np.abs(lam))) if lam.size else 0.0
-    keep = lam > rtol * scale if scale > 0 else np.zeros_like(lam, dtype=bool)
-    Vk = V[:, keep]
-    Om_p = symmetrize((Vk * lam[keep]) @ Vk.T)
-    eta_p = Vk @ (Vk.T @ e)
-    return Om_p, eta_p, int(np.count_nonzero(~keep & (lam < 0)))
 
 
 def _sensor_arrays(sensors: RSSISensor | Sequence[RSSISensor]) -> dict[str, Array]:
@@ -148,7 +136,7 @@ class WSNTracker:
         suits a walking person tracked packet by packet (docs/wsn.md).
     max_speed : float or None
         Constant velocity only: particle speeds are capped at this value (m/s).
-    grid : dfusion.maps.OccupancyGrid, dfusion.pf.OccupancyGrid or None
+    grid : dfusion.maps.NodeLattice, dfusion.pf.NodeLattice or None
         Map constraint (see the module docstring); also the initial support.
     bounds : (x_min, y_min, x_max, y_max) or None
         Initial support when there is no grid.
@@ -179,7 +167,7 @@ class WSNTracker:
         motion: str = "random_walk",
         q: float = 0.5,
         max_speed: float | None = None,
-        grid: MapGrid | OccupancyGrid | None = None,
+        grid: MapGrid | NodeLattice | None = None,
         bounds: ArrayLike | None = None,
         std_scale: float = 1.0,
         outlier_prob: float = 0.0,
@@ -204,8 +192,8 @@ class WSNTracker:
             raise ValidationError(f"rssi_span must be positive, got {rssi_span}")
         if max_speed is not None and not (np.isfinite(max_speed) and max_speed > 0):
             raise ValidationError(f"max_speed must be positive or None, got {max_speed}")
-        if grid is not None and not isinstance(grid, (MapGrid, OccupancyGrid)):
-            raise ValidationError("grid must be an OccupancyGrid or None")
+        if grid is not None and not isinstance(grid, (MapGrid, NodeLattice)):
+            raise ValidationError("grid must be an NodeLattice or None")
         if bounds is not None:
             bounds = as_vector(bounds, 4, "bounds (x_min, y_min, x_max, y_max)")
             if not (bounds[2] > bounds[0] and bounds[3] > bounds[1]):
@@ -301,6 +289,15 @@ class WSNTracker:
         self.pf.roughening_dims = (0, 1)  # jitter positions only
         self._prior_snap = self._snapshot()
         self._post_snap = self._prior_snap
+
+    @property
+    def rng(self) -> np.random.Generator:
+        """The random generator of every draw of the tracker (after :meth:`initialize`)."""
+        return self._require().rng
+
+    def set_particles(self, particles: ArrayLike) -> None:
+        """Replace the particles (equal weights), e.g. to draw velocities from a prior."""
+        self._require().set_particles(particles)
 
     def _require(self) -> ParticleFilter:
         if self.pf is None:

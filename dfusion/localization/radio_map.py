@@ -67,8 +67,8 @@ from numpy.typing import ArrayLike
 from scipy.ndimage import gaussian_filter
 from scipy.optimize import minimize_scalar
 
-from ..errors import ShapeError, ValidationError
-from ..linalg import Array
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.linalg import Array
 
 __all__ = ["RadioMap", "fit_radio_map", "fit_radio_maps", "kernel_residual_map", "binned_residual_stats",
            "split_normal_logpdf", "fit_split_normal", "path_loss_design", "fit_directional_path_loss"]

@@ -29,7 +29,7 @@ will be changed. At the same time, the problem component will be restarted".
 health callback returns false (or raises) or whose heartbeat is older than its
 timeout, and restarts a failed one (``error -> reset -> ready -> active``) once its
 ``restart_delay`` has passed. While a component is not active, and after a restart
-until it reports a new estimate, its :class:`~dfusion.fusion.policy.SourceEstimate`
+until it reports a new estimate, its :class:`~dfusion.fusion.policy.Estimate`
 carries ``healthy=False``: switching policies count it as reliability 0 and fusion
 policies leave it out, so it is off the candidates meanwhile.
 
@@ -45,8 +45,8 @@ import time
 from dataclasses import replace
 from typing import Callable, Iterable, NamedTuple
 
-from ..errors import DfusionError, ValidationError
-from ..fusion.policy import SourceEstimate
+from dfusion.errors import DfusionError, ValidationError
+from dfusion.estimation.estimate import Estimate
 
 log = logging.getLogger(__name__)
 
@@ -139,7 +139,7 @@ class Component:
         self.activated_at: float | None = None
         self.last_heartbeat: float | None = None
         self.last_report: float | None = None
-        self.estimate: SourceEstimate | None = None
+        self.estimate: Estimate | None = None
         self.failures = 0
         self.restarts = 0
         self._listeners: list[Callable[[LifecycleEvent], None]] = []
@@ -224,7 +224,7 @@ class Component:
         """The component is alive at ``t``."""
         self.last_heartbeat = self._t(t)
 
-    def report(self, estimate: SourceEstimate, t: float | None = None) -> None:
+    def report(self, estimate: Estimate, t: float | None = None) -> None:
         """The component's newest estimate (also a heartbeat). Ignored unless active."""
         if self.state is not State.ACTIVE:
             return
@@ -239,7 +239,7 @@ class Component:
     def active(self) -> bool:
         return self.state is State.ACTIVE
 
-    def source(self) -> SourceEstimate | None:
+    def source(self) -> Estimate | None:
         """The last estimate, ``healthy`` only if active and reported since the activation."""
         e = self.estimate
         if e is None:
@@ -346,7 +346,7 @@ class Supervisor:
             return f"no heartbeat for {now - c.last_heartbeat:.3g} s"
         return ""
 
-    def sources(self) -> list[SourceEstimate]:
+    def sources(self) -> list[Estimate]:
         """The components' latest estimates, ``healthy=False`` for those not usable now."""
         return [s for s in (c.source() for c in self.components.values()) if s is not None]
 

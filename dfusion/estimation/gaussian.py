@@ -19,8 +19,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import ShapeError
-from .linalg import Array, as_spd, as_vector, check_psd, as_matrix, cholesky, spd_inverse, symmetrize
+from dfusion.errors import ShapeError
+from dfusion.linalg import (
+    Array,
+    as_matrix,
+    as_spd,
+    as_vector,
+    check_psd,
+    cholesky,
+    spd_inverse,
+    symmetrize,
+)
 
 
 @dataclass(frozen=True)
@@ -103,3 +112,24 @@ class InformationGaussian:
         v = as_vector(value, given.size, "conditioning value")
         eta = self.eta[keep] - self.Omega[np.ix_(keep, given)] @ v
         return InformationGaussian(eta, self.Omega[np.ix_(keep, keep)])
+
+
+def project_psd_information(Omega: ArrayLike, eta: ArrayLike, rtol: float = 1e-9) -> tuple[Array, Array, int]:
+    """Project an information pair onto the positive semi-definite cone.
+
+    With ``Omega = V diag(lam) V^T``: eigenvalues below ``rtol * max|lam|`` are set
+    to 0 (``Omega_+ = V diag(max(lam, 0)) V^T``, the nearest PSD matrix in the
+    Frobenius norm), and ``eta`` is projected onto the range of ``Omega_+``
+    (``eta_+ = V_+ V_+^T eta``): information a measurement can carry has
+    ``eta = H^T R^-1 z'`` in that range, and directions whose information was
+    dropped must not shift the mean either. Returns ``(Omega_+, eta_+, n_clipped)``.
+    """
+    Om = symmetrize(np.asarray(Omega, dtype=float))
+    e = np.asarray(eta, dtype=float)
+    lam, V = np.linalg.eigh(Om)
+    scale = float(np.max(np.abs(lam))) if lam.size else 0.0
+    keep = lam > rtol * scale if scale > 0 else np.zeros_like(lam, dtype=bool)
+    Vk = V[:, keep]
+    Om_p = symmetrize((Vk * lam[keep]) @ Vk.T)
+    eta_p = Vk @ (Vk.T @ e)
+    return Om_p, eta_p, int(np.count_nonzero(~keep & (lam < 0)))

@@ -1,7 +1,7 @@
 r"""Switching policies beside fusion: greedy with a punishment, hysteresis, blending, a floor.
 
 Every class here is a :class:`dfusion.fusion.policy.Policy`: given the node's fused
-estimate and its candidate sources (:class:`SourceEstimate`), it returns the node's
+estimate and its candidate sources (:class:`Estimate`), it returns the node's
 output. A source with ``healthy=False`` (in error, see :mod:`dfusion.switching.lifecycle`)
 counts as reliability 0. Each policy keeps
 
@@ -68,9 +68,12 @@ from typing import Callable, Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from ..errors import ValidationError
-from ..fusion.policy import Policy, SourceEstimate
-from ..linalg import Array
+from dfusion.errors import ValidationError
+from dfusion.estimation.estimate import Estimate
+from dfusion.geometry import wrap_angle
+from dfusion.linalg import Array
+from dfusion.policies.base import Policy
+from dfusion.reliability import covariance_reliability
 
 __all__ = [
     "Switch",
@@ -93,7 +96,7 @@ class Switch(NamedTuple):
     to: object
 
 
-def effective_reliability(s: SourceEstimate) -> float:
+def effective_reliability(s: Estimate) -> float:
     """A source's reliability for switching: 0 while it is in error (not healthy)."""
     if not s.healthy:
         return 0.0
@@ -101,15 +104,13 @@ def effective_reliability(s: SourceEstimate) -> float:
     return r if math.isfinite(r) else 0.0
 
 
-def _now(fused: SourceEstimate | None, sources: Sequence[SourceEstimate]) -> float:
+def _now(fused: Estimate | None, sources: Sequence[Estimate]) -> float:
     ts = [float(s.t) for s in sources]
     if fused is not None:
         ts.append(float(fused.t))
     return max(ts) if ts else 0.0
 
 
-def _wrap(a):
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 class SwitchingPolicy(Policy):
@@ -169,7 +170,7 @@ class GreedySwitchingPolicy(SwitchingPolicy):
         self.fallback = fallback
         self.forced = 0
 
-    def decide(self, fused: SourceEstimate, sources: Sequence[SourceEstimate]) -> SourceEstimate:
+    def decide(self, fused: Estimate, sources: Sequence[Estimate]) -> Estimate:
         self.decisions += 1
         t = _now(fused, sources)
         by_name = {s.name: s for s in sources}
@@ -250,7 +251,7 @@ class HysteresisSwitchingPolicy(SwitchingPolicy):
         low: str = "coarse",
         upper: float = 0.75,
         lower: float = 0.65,
-        signal: str | Callable[[SourceEstimate, Sequence[SourceEstimate]], float | None] | None = None,
+        signal: str | Callable[[Estimate, Sequence[Estimate]], float | None] | None = None,
         window: int = 1,
         initial: str = "low",
     ) -> None:
@@ -324,7 +325,7 @@ class HysteresisSwitchingPolicy(SwitchingPolicy):
                 self.stage = new
         return self.stage
 
-    def decide(self, fused: SourceEstimate, sources: Sequence[SourceEstimate]) -> SourceEstimate:
+    def decide(self, fused: Estimate, sources: Sequence[Estimate]) -> Estimate:
         self.decisions += 1
         t = _now(fused, sources)
         stage = self.update_stage(self._read_signal(fused, sources), t)
@@ -342,18 +343,18 @@ class HysteresisSwitchingPolicy(SwitchingPolicy):
 
 
 # ---------------------------------------------------------------------------------- blending
-def _blend(a: SourceEstimate, b: SourceEstimate, w: float, angles: Sequence[int], name: str, t: float) -> SourceEstimate:
+def _blend(a: Estimate, b: Estimate, w: float, angles: Sequence[int], name: str, t: float) -> Estimate:
     xa = np.asarray(a.mean, dtype=float)
     xb = np.asarray(b.mean, dtype=float)
     d = xb - xa
     if angles:
-        d[list(angles)] = _wrap(d[list(angles)])
+        d[list(angles)] = wrap_angle(d[list(angles)])
     mean = xa + w * d
     if angles:
-        mean[list(angles)] = _wrap(mean[list(angles)])
+        mean[list(angles)] = wrap_angle(mean[list(angles)])
     cov = (1.0 - w) * np.asarray(a.cov, float) + w * np.asarray(b.cov, float) + w * (1.0 - w) * np.outer(d, d)
     rel = (1.0 - w) * effective_reliability(a) + w * effective_reliability(b)
-    return SourceEstimate(name, t, mean, 0.5 * (cov + cov.T), rel, a.healthy or b.healthy)
+    return Estimate(name, t, mean, 0.5 * (cov + cov.T), rel, a.healthy or b.healthy)
 
 
 class BlendedTransitionPolicy(SwitchingPolicy):
@@ -393,9 +394,9 @@ class BlendedTransitionPolicy(SwitchingPolicy):
         self.shape = shape
         self.angle_indices = tuple(int(i) for i in angle_indices)
         self._t0: float | None = None
-        self._from: SourceEstimate | str | None = None
+        self._from: Estimate | str | None = None
         self._to: str | None = None
-        self._last_out: SourceEstimate | None = None
+        self._last_out: Estimate | None = None
 
     def reset(self) -> None:
         super().reset()
@@ -412,7 +413,7 @@ class BlendedTransitionPolicy(SwitchingPolicy):
         u = min(max((t - self._t0) / self.duration, 0.0), 1.0)
         return u if self.shape == "linear" else u * u * (3.0 - 2.0 * u)
 
-    def decide(self, fused: SourceEstimate, sources: Sequence[SourceEstimate]) -> SourceEstimate:
+    def decide(self, fused: Estimate, sources: Sequence[Estimate]) -> Estimate:
         self.decisions += 1
         n_before = len(self.inner.switches)
         target = self.inner.decide(fused, sources)
@@ -427,7 +428,7 @@ class BlendedTransitionPolicy(SwitchingPolicy):
         out = target
         if self.blending:
             by_name = {s.name: s for s in sources}
-            old = self._from if isinstance(self._from, SourceEstimate) else by_name.get(self._from)
+            old = self._from if isinstance(self._from, Estimate) else by_name.get(self._from)
             w = self._weight(t)
             if w >= 1.0 or old is None or not old.healthy or target.name != self._to:
                 self._t0 = self._from = self._to = None
@@ -439,7 +440,7 @@ class BlendedTransitionPolicy(SwitchingPolicy):
 
 
 # ---------------------------------------------------------------------------------- fusion floor
-def information_fusion(estimates: Sequence[SourceEstimate], angle_indices: Sequence[int] = ()) -> tuple[Array, Array]:
+def information_fusion(estimates: Sequence[Estimate], angle_indices: Sequence[int] = ()) -> tuple[Array, Array]:
     """``(mean, cov)`` of the information-form sum of independent Gaussian estimates.
 
     ``Y = sum P_i^-1``, ``y = sum P_i^-1 x_i``; mean ``Y^-1 y``, covariance ``Y^-1``.
@@ -455,7 +456,7 @@ def information_fusion(estimates: Sequence[SourceEstimate], angle_indices: Seque
     for s in estimates:
         x = np.asarray(s.mean, dtype=float).copy()
         if idx:
-            x[idx] = ref[idx] + _wrap(x[idx] - ref[idx])
+            x[idx] = ref[idx] + wrap_angle(x[idx] - ref[idx])
         Lam = np.linalg.inv(np.asarray(s.cov, dtype=float))
         Lam = 0.5 * (Lam + Lam.T)
         Y += Lam
@@ -464,7 +465,7 @@ def information_fusion(estimates: Sequence[SourceEstimate], angle_indices: Seque
     cov = 0.5 * (cov + cov.T)
     mean = cov @ y
     if idx:
-        mean[idx] = _wrap(mean[idx])
+        mean[idx] = wrap_angle(mean[idx])
     return mean, cov
 
 
@@ -501,7 +502,7 @@ class FusionFloorPolicy(SwitchingPolicy):
         self.fallback = fallback
         self.angle_indices = tuple(int(i) for i in angle_indices)
 
-    def decide(self, fused: SourceEstimate, sources: Sequence[SourceEstimate]) -> SourceEstimate:
+    def decide(self, fused: Estimate, sources: Sequence[Estimate]) -> Estimate:
         self.decisions += 1
         t = _now(fused, sources)
         chosen = sorted((s for s in sources if s.healthy and effective_reliability(s) > self.floor),
@@ -518,11 +519,10 @@ class FusionFloorPolicy(SwitchingPolicy):
             return chosen[0]
         mean, cov = information_fusion(chosen, self.angle_indices)
         if cov.shape[0] >= 2:
-            v = cov[0, 0] + cov[1, 1]
-            rel = 1.0 / (math.sqrt(max(v, 0.0)) + 1.0)
+            rel = covariance_reliability(cov)
         else:
             rel = max(effective_reliability(s) for s in chosen)
-        return SourceEstimate("+".join(s.name for s in chosen), t, mean, cov, rel, True)
+        return Estimate("+".join(s.name for s in chosen), t, mean, cov, rel, True)
 
 
 # ---------------------------------------------------------------------------------- factories

@@ -1,15 +1,16 @@
-"""Scenario kinds for robot localizers (``docs/robots.md``).
+r"""Scenario kinds for robot localizers (``docs/robots.md``).
 
 ``sensor = "robot_mcl"``, ``"robot_icp"`` or ``"robot_env_camera"`` in a node table of a
 scenario file. In all three the scenario's *target is a robot* (state ``(x, y, vx, vy)``
 of a 2-D constant-velocity target; its heading is the direction of motion), and the
 node's front end runs a localizer and contributes the robot's position to the node
-(:mod:`dfusion.localization.robot_node`):
+(:mod:`dfusion.frontends.mcl`, :mod:`dfusion.frontends.icp`,
+:mod:`dfusion.frontends.env_camera`):
 
 ``robot_mcl``
     The simulated world measures a laser scan (:class:`LaserScanSensor`) in the node's
     map; :class:`MCLFrontEnd` runs Monte Carlo localization and adds the Gaussian fit of
-    its posterior minus that of its prediction (DESIGN.md sec. 4).
+    its posterior minus that of its prediction (:mod:`dfusion.frontends.base`).
 ``robot_icp``
     Same scan; :class:`ICPFrontEnd` matches it against the map (point-to-line ICP) and
     adds the match as a position measurement.
@@ -21,7 +22,7 @@ node's front end runs a localizer and contributes the robot's position to the no
 Node-table keys (besides the common ones of ``docs/scenarios.md``):
 
 * laser kinds: ``map`` (``"rooms"``, ``"corridor"``, ``"repetitive_corridor"`` -- the
-  generators of :class:`dfusion.maps.OccupancyGrid`, with the table ``map_args`` of
+  generators of :mod:`dfusion.maps.buildings`, with the table ``map_args`` of
   their keyword arguments -- or the path of a ROS map YAML file, relative to the
   scenario file), ``beams`` (61), ``fov`` (degrees, 360), ``max_range`` (m, 10),
   ``range_std`` (m, 0.05);
@@ -44,50 +45,62 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..errors import ValidationError
-from ..localization.env_camera import EnvironmentCameraLocalizer
-from ..localization.icp import ScanMatcher
-from ..localization.mcl import BeamErfcModel, LaserConfig, LikelihoodFieldModel, MonteCarloLocalization
-from ..localization.robot_node import EnvCameraFrontEnd, ICPFrontEnd, LaserScanSensor, MCLFrontEnd
-from ..maps.grid import OccupancyGrid
-from ..models.camera import PinholeCamera
-from ..sim.scenario import register_sensor
+from dfusion.errors import ValidationError
+from dfusion.frontends.env_camera import EnvCameraFrontEnd
+from dfusion.frontends.icp import ICPFrontEnd
+from dfusion.frontends.mcl import MCLFrontEnd
+from dfusion.localization.env_camera import EnvironmentCameraLocalizer
+from dfusion.localization.icp import ScanMatcher
+from dfusion.localization.mcl import MonteCarloLocalization
+from dfusion.maps.buildings import GENERATORS
+from dfusion.maps.grid import OccupancyGrid
+from dfusion.maps.io import read_map_yaml
+from dfusion.models.camera import PinholeCamera
+from dfusion.models.laser import (
+    BeamErfcModel,
+    LaserConfig,
+    LaserScanSensor,
+    LikelihoodFieldModel,
+)
+from dfusion.scenario.spec import NodeSpec, Scenario, SensorKind
 
-__all__ = ["load_map"]
+__all__ = ["load_map", "ROBOT_MCL", "ROBOT_ICP", "ROBOT_ENV_CAMERA"]
 
 _MAPS: dict[tuple, OccupancyGrid] = {}
-_GENERATORS = ("rooms", "corridor", "repetitive_corridor")
 
 
-def _check_target(sc: Any) -> None:
+def _check_target(sc: Scenario) -> None:
     if sc.target.motion.dim != 4 or getattr(sc.target, "axes", 2) != 2:
         raise ValidationError("robot sensor kinds need a 2-D constant-velocity target (x, y, vx, vy)")
 
 
 def load_map(table: Mapping[str, Any], base: str | Path | None = None) -> OccupancyGrid:
-    """The map of a node table (cached: every node naming the same map shares one grid)."""
+    """The map of a node table (cached: every node naming the same map shares one grid).
+
+    A relative YAML path starts from the directory ``base`` (the scenario file's).
+    """
     name = table.get("map", "rooms")
     args = table.get("map_args", {})
     if not isinstance(name, str):
         raise ValidationError("map must be a generator name or a YAML path")
     if not isinstance(args, dict):
         raise ValidationError("map_args must be a table")
-    if name in _GENERATORS:
+    if name in GENERATORS:
         key = (name, tuple(sorted((k, repr(v)) for k, v in args.items())))
         if key not in _MAPS:
             try:
-                _MAPS[key] = getattr(OccupancyGrid, name)(**args)
+                _MAPS[key] = GENERATORS[name](**args)
             except TypeError as exc:
                 raise ValidationError(f"map_args for {name}: {exc}") from None
         return _MAPS[key]
     path = Path(name)
     if not path.is_absolute() and base is not None:
-        path = Path(base).parent / path
+        path = Path(base) / path
     key = ("yaml", str(path.resolve()))
     if key not in _MAPS:
         if not path.is_file():
-            raise ValidationError(f"map file {path} not found (or map must be one of {_GENERATORS})")
-        _MAPS[key] = OccupancyGrid.load(path)
+            raise ValidationError(f"map file {path} not found (or map must be one of {sorted(GENERATORS)})")
+        _MAPS[key] = read_map_yaml(path)
     return _MAPS[key]
 
 
@@ -97,13 +110,13 @@ def _laser(table: Mapping[str, Any]) -> LaserConfig:
     return LaserConfig.uniform(beams, fov, float(table.get("max_range", 10.0)))
 
 
-def _laser_sensor(table: Mapping[str, Any], sc: Any) -> LaserScanSensor:
+def _laser_sensor(table: Mapping[str, Any], sc: Scenario) -> LaserScanSensor:
     _check_target(sc)
-    grid = load_map(table, sc.path if sc.path != "<scenario>" else None)
+    grid = load_map(table, sc.base_dir)
     return LaserScanSensor(grid, _laser(table), float(table.get("range_std", 0.05)))
 
 
-def _mcl_front_end(spec: Any, sc: Any, seed: int) -> MCLFrontEnd:
+def _mcl_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> MCLFrontEnd:
     p = spec.params
     sensor: LaserScanSensor = spec.sensor
     kind = p.get("sensor_model", "likelihood_field")
@@ -121,7 +134,7 @@ def _mcl_front_end(spec: Any, sc: Any, seed: int) -> MCLFrontEnd:
                        heading_std=float(p.get("heading_std", 0.5)))
 
 
-def _icp_front_end(spec: Any, sc: Any, seed: int) -> ICPFrontEnd:
+def _icp_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> ICPFrontEnd:
     p = spec.params
     sensor: LaserScanSensor = spec.sensor
     matcher = ScanMatcher.from_grid(sensor.grid, "point_to_line", max_correspondence_distance=0.5,
@@ -131,7 +144,7 @@ def _icp_front_end(spec: Any, sc: Any, seed: int) -> ICPFrontEnd:
                        max_rmse=float(p.get("max_rmse", 0.1)))
 
 
-def _camera(table: Mapping[str, Any], sc: Any) -> PinholeCamera:
+def _camera(table: Mapping[str, Any], sc: Scenario) -> PinholeCamera:
     _check_target(sc)
     if "camera_position" not in table or "camera_target" not in table:
         raise ValidationError("robot_env_camera needs camera_position and camera_target ([x, y, z])")
@@ -144,13 +157,23 @@ def _camera(table: Mapping[str, Any], sc: Any) -> PinholeCamera:
     )
 
 
-def _camera_front_end(spec: Any, sc: Any, seed: int) -> EnvCameraFrontEnd:
+def _camera_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> EnvCameraFrontEnd:
     p = spec.params
     k = p.get("k_pixels")
     loc = EnvironmentCameraLocalizer(spec.sensor, k_pixels=None if k is None else float(k))
     return EnvCameraFrontEnd(loc, min_reliability=float(p.get("min_reliability", 0.0)))
 
 
-register_sensor("robot_mcl", _laser_sensor, _mcl_front_end)
-register_sensor("robot_icp", _laser_sensor, _icp_front_end)
-register_sensor("robot_env_camera", _camera, _camera_front_end)
+#: Node-table keys of the laser kinds.
+LASER_KEYS = frozenset({"map", "map_args", "beams", "fov", "max_range", "range_std"})
+#: The ``robot_mcl`` sensor kind.
+ROBOT_MCL = SensorKind("robot_mcl", LASER_KEYS | {"particles", "min_particles", "sensor_model", "max_beams", "q_pos",
+                                                 "q_heading", "heading_std"},
+                       _laser_sensor, _mcl_front_end, "a robot localized by Monte Carlo localization (laser, map)")
+#: The ``robot_icp`` sensor kind.
+ROBOT_ICP = SensorKind("robot_icp", LASER_KEYS | {"cov_scale", "min_std", "max_rmse", "min_inliers"},
+                       _laser_sensor, _icp_front_end, "a robot localized by ICP scan matching against a map")
+#: The ``robot_env_camera`` sensor kind.
+ROBOT_ENV_CAMERA = SensorKind("robot_env_camera", frozenset({
+    "camera_position", "camera_target", "fx", "fy", "width", "height", "cx", "cy", "pixel_std", "point_height",
+    "k_pixels", "min_reliability"}), _camera, _camera_front_end, "a ceiling camera localizing a robot's marker")

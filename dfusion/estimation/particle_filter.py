@@ -29,13 +29,15 @@ is reproducible from its seed.
 """
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..errors import DfusionError, ShapeError, ValidationError
-from ..linalg import Array
+from dfusion.errors import DfusionError, ShapeError, ValidationError
+from dfusion.geometry import wrap_angle
+from dfusion.linalg import Array
 
 __all__ = [
     "ParticleFilter",
@@ -48,6 +50,7 @@ __all__ = [
     "roughening_std",
     "weighted_mean_cov",
     "RESAMPLERS",
+    "gaussian_summary",
 ]
 
 
@@ -386,3 +389,29 @@ class ParticleFilter:
         """Weighted mean and covariance of the particles (of components ``dims`` if given)."""
         x = self._x if dims is None else self._x[:, np.asarray(dims, dtype=int)]
         return weighted_mean_cov(x, np.exp(self._lw))
+
+
+def gaussian_summary(poses: ArrayLike, weights: ArrayLike | None = None) -> tuple[Array, Array]:
+    """Weighted mean (circular mean for theta) and covariance of poses ``(N, 3)``.
+
+    ``theta`` residuals are wrapped around the circular mean
+    ``atan2(sum w sin theta, sum w cos theta)``; the covariance is the weighted second
+    moment ``sum w_i r_i r_i^T`` (weights normalized to sum 1, no small-sample correction).
+    """
+    p = np.asarray(poses, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] == 0:
+        raise ShapeError(f"poses must have shape (N, 3), N >= 1, got {p.shape}")
+    if weights is None:
+        w = np.full(p.shape[0], 1.0 / p.shape[0])
+    else:
+        w = np.asarray(weights, dtype=float).reshape(-1)
+        if w.shape[0] != p.shape[0]:
+            raise ShapeError("weights must have one entry per pose")
+        w = w / w.sum()
+    mean = np.empty(3)
+    mean[:2] = w @ p[:, :2]
+    mean[2] = math.atan2(float(w @ np.sin(p[:, 2])), float(w @ np.cos(p[:, 2])))
+    r = p - mean
+    r[:, 2] = wrap_angle(r[:, 2])
+    cov = (r * w[:, None]).T @ r
+    return mean, 0.5 * (cov + cov.T)

@@ -72,8 +72,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
-from ..errors import ShapeError, ValidationError
-from ..linalg import Array
+from dfusion.errors import ShapeError, ValidationError
+from dfusion.geometry import NearestPointGrid, transform_points
+from dfusion.linalg import Array
 
 __all__ = [
     "SimilarityResult",
@@ -82,37 +83,13 @@ __all__ = [
     "trimmed_overlap_ratio",
     "similarity_rate",
     "overlap_ratio",
-    "relative_pose",
-    "transform_points",
 ]
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def relative_pose(current: ArrayLike, target: ArrayLike) -> Array:
-    """``target^-1 (+) current``: the current pose in the target's frame (SE(2)).
-
-    Moves points of a scan taken at ``current`` into the frame of a scan taken at
-    ``target`` (the paper's initial transformation from the current pose estimate and
-    the target pose). Poses are ``(x, y, theta)`` of the laser.
-    """
-    cx, cy, ct = np.asarray(current, dtype=float).reshape(3)
-    tx, ty, tt = np.asarray(target, dtype=float).reshape(3)
-    c, s = math.cos(tt), math.sin(tt)
-    dx, dy = cx - tx, cy - ty
-    return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(ct - tt)])
 
 
-def transform_points(points: ArrayLike, pose: ArrayLike) -> Array:
-    """``R(theta) p + (x, y)`` for every row ``p`` of ``points``."""
-    p = np.asarray(points, dtype=float)
-    x, y, th = np.asarray(pose, dtype=float).reshape(3)
-    c, s = math.cos(th), math.sin(th)
-    out = p @ np.array([[c, s], [-s, c]])
-    out += (x, y)
-    return out
 
 
 def correntropy_similarity(
@@ -247,37 +224,7 @@ class SimilarityRate:
             raise ValidationError("max_sigma must be positive")
         self.lam = float(lam)
         self.eta_min = float(eta_min)
-        if nearest == "grid":
-            self._build_grid(float(grid_resolution), float(grid_margin))
-
-    def _build_grid(self, res: float, margin: float) -> None:
-        """For every cell of a grid around the model: the model point nearest to its centre."""
-        from scipy.ndimage import distance_transform_edt
-
-        if not (res > 0 and margin >= 0):
-            raise ValidationError("grid_resolution must be positive and grid_margin >= 0")
-        lo = self.model.min(axis=0) - margin
-        hi = self.model.max(axis=0) + margin
-        shape = tuple(int(v) for v in np.ceil((hi - lo) / res).astype(int) + 1)
-        if shape[0] * shape[1] > 50_000_000:
-            raise ValidationError(f"grid of {shape} cells is too large: raise grid_resolution")
-        cells = np.floor((self.model - lo) / res).astype(np.intp)
-        owner = np.full(shape, -1, dtype=np.int32)
-        owner[cells[:, 0], cells[:, 1]] = np.arange(self.model.shape[0], dtype=np.int32)
-        _, (ix, iy) = distance_transform_edt(owner < 0, return_indices=True)
-        # the model point of the nearest occupied cell; refine: of the points in that
-        # cell only one is kept, which is within one cell diagonal of the true nearest
-        self._grid_owner = owner[ix, iy].astype(np.int32)
-        self._grid_lo = lo
-        self._grid_res = res
-        self._grid_shape = np.array(shape) - 1
-
-    def _nearest_grid_sq(self, q: Array) -> Array:
-        c = ((q - self._grid_lo) * (1.0 / self._grid_res)).astype(np.intp)
-        np.clip(c, 0, self._grid_shape, out=c)
-        diff = q - self.model[self._grid_owner[c[:, 0], c[:, 1]]]
-        diff *= diff
-        return diff[:, 0] + diff[:, 1]
+        self.lookup = NearestPointGrid(m, grid_resolution, margin=grid_margin) if nearest == "grid" else None
 
     def squared_distances(self, data: ArrayLike, pose: ArrayLike = (0.0, 0.0, 0.0)) -> Array:
         """Sorted squared nearest-model distances of the data points moved by ``pose``."""
@@ -285,8 +232,8 @@ class SimilarityRate:
         if x.ndim != 2 or x.shape[1] != 2 or x.shape[0] < 3:
             raise ShapeError(f"data must be (N, 2) with N >= 3, got {x.shape}")
         q = transform_points(x, pose)
-        if self.nearest == "grid":
-            d2 = self._nearest_grid_sq(q)
+        if self.lookup is not None:
+            d2, _ = self.lookup.nearest(q)
         else:
             d, _ = self.tree.query(q, k=1)
             d2 = d * d

@@ -1,0 +1,80 @@
+"""The built-in sensor kinds, policies and motion models of scenario files, as explicit tables.
+
+Nothing registers itself on import: :func:`builtin_kinds` lists every kind dfusion
+ships, and a user's own kinds come from plug-in modules (:mod:`dfusion.scenario.plugins`).
+
+========================  =====================================================
+sensor kind               what
+========================  =====================================================
+``position``              a position sensor ``z = [I 0] x + v`` (``std``, metres)
+``camera``                :mod:`dfusion.scenario.camera_kind`
+``wsn_rssi``              :mod:`dfusion.scenario.wsn_kind`
+``robot_mcl``             :mod:`dfusion.scenario.robot_kinds`
+``robot_icp``             :mod:`dfusion.scenario.robot_kinds`
+``robot_env_camera``      :mod:`dfusion.scenario.robot_kinds`
+========================  =====================================================
+
+Policies: ``fusion`` (the default, :class:`~dfusion.policies.InformationFusionPolicy`),
+``greedy``, ``hysteresis``, ``blend``, ``fusion_floor`` (:mod:`dfusion.policies.switching`).
+Motion models: ``constant_velocity``.
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.models.measurement import PositionSensor
+from dfusion.models.motion import ConstantVelocity
+from dfusion.policies.base import InformationFusionPolicy
+from dfusion.policies.switching import (
+    make_blend,
+    make_fusion_floor,
+    make_greedy,
+    make_hysteresis,
+)
+from dfusion.scenario.camera_kind import CAMERA
+from dfusion.scenario.robot_kinds import ROBOT_ENV_CAMERA, ROBOT_ICP, ROBOT_MCL
+from dfusion.scenario.spec import Kinds, MotionKind, Scenario, SensorKind
+from dfusion.scenario.values import check_keys, number
+from dfusion.scenario.wsn_kind import WSN_RSSI
+
+__all__ = ["POSITION", "CONSTANT_VELOCITY", "SENSOR_KINDS", "POLICY_KINDS", "MOTION_KINDS", "builtin_kinds"]
+
+
+def _position_sensor(table: Mapping[str, Any], sc: Scenario) -> MeasurementModel:
+    return PositionSensor(dim=sc.target.axes, std=number(table, "std", 1.0, positive=True))
+
+
+#: The ``position`` sensor kind: ``z = [I 0] x + v``, ``v ~ N(0, std^2 I)``.
+POSITION = SensorKind("position", frozenset({"std"}), _position_sensor, None,
+                      "a position sensor z = [I 0] x + v (std, metres)")
+
+
+def _constant_velocity(table: Mapping[str, Any]) -> MotionModel:
+    mean = table.get("initial_mean")
+    axes = len(mean) // 2 if isinstance(mean, list) and mean else 2
+    return ConstantVelocity(dim=axes, q=number(table, "q", 0.1, positive=True))
+
+
+def _fusion_policy(params: Mapping[str, Any]) -> InformationFusionPolicy:
+    check_keys(params, (), "policy 'fusion'")
+    return InformationFusionPolicy()
+
+
+#: Built-in sensor kinds by name.
+SENSOR_KINDS: dict[str, SensorKind] = {k.name: k for k in (POSITION, CAMERA, WSN_RSSI, ROBOT_MCL, ROBOT_ICP,
+                                                           ROBOT_ENV_CAMERA)}
+#: Built-in policies: ``name -> factory(params)``.
+POLICY_KINDS = {"fusion": _fusion_policy, "greedy": make_greedy, "hysteresis": make_hysteresis,
+                "blend": make_blend, "fusion_floor": make_fusion_floor}
+#: The ``constant_velocity`` motion model (``q``: acceleration noise density, m^2 s^-3).
+CONSTANT_VELOCITY = MotionKind("constant_velocity", frozenset({"q"}), _constant_velocity,
+                               "constant velocity in 2-D or 3-D (q)")
+#: Built-in motion models of ``[target]`` by name.
+MOTION_KINDS: dict[str, MotionKind] = {CONSTANT_VELOCITY.name: CONSTANT_VELOCITY}
+
+
+def builtin_kinds() -> Kinds:
+    """dfusion's own sensor kinds, policies and motion models."""
+    return Kinds(dict(SENSOR_KINDS), dict(POLICY_KINDS), dict(MOTION_KINDS))
+

@@ -1,0 +1,195 @@
+"""What a scenario file describes, as plain data: the target, the nodes, the links, the kinds.
+
+:func:`dfusion.scenario.load_scenario` builds a :class:`Scenario` from a TOML file;
+``docs/scenarios.md`` documents every key.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Mapping
+
+import networkx as nx
+import numpy as np
+
+from dfusion.errors import ScenarioError
+from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.transport.simulated import LinkSpec
+
+if TYPE_CHECKING:   # type names only: no import at run time
+    from dfusion.frontends.base import FrontEnd
+    from dfusion.policies.base import Policy
+
+__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "FUSION_MODES", "COMMON_NODE_KEYS"]
+
+#: Values of the top-level key ``fusion``.
+FUSION_MODES = ("channel", "naive")
+
+#: Keys every ``[[nodes]]`` table may have, whatever its sensor kind.
+COMMON_NODE_KEYS = frozenset({"name", "sensor", "rate", "send_period", "delay", "phase", "active", "detection",
+                              "policy"})
+
+
+@dataclass(frozen=True)
+class SensorKind:
+    """A sensor kind a scenario file can name (``sensor = "<name>"`` in a node table).
+
+    Attributes
+    ----------
+    name : str
+        The name scenario files use.
+    keys : frozenset of str
+        The node-table keys this kind accepts besides :data:`COMMON_NODE_KEYS`; any
+        other key is an error.
+    sensor : callable
+        ``sensor(table, scenario) -> MeasurementModel``: the model the simulated world
+        measures with (``h``, ``R``; and ``in_view``, ``clutter_rate`` when it has them).
+        It validates the table and raises :class:`~dfusion.errors.ValidationError` with a
+        one-line message naming the key.
+    front_end : callable or None
+        ``front_end(spec, scenario, seed) -> FrontEnd``: what fuses the sensor's
+        measurements into the node (``None``: an EIF update with the sensor's model,
+        :class:`~dfusion.frontends.EIFFrontEnd`).
+    doc : str
+        One line for error messages and listings.
+    """
+
+    name: str
+    keys: frozenset[str]
+    sensor: Callable[[Mapping[str, Any], "Scenario"], MeasurementModel]
+    front_end: Callable[["NodeSpec", "Scenario", int], "FrontEnd"] | None = None
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class MotionKind:
+    """A motion model a scenario's ``[target]`` table can name (``motion = "<name>"``).
+
+    ``model(target_table) -> MotionModel``; ``keys`` are the ``[target]`` keys it reads
+    besides ``motion``, ``initial_mean`` and ``initial_cov_diag``.
+    """
+
+    name: str
+    keys: frozenset[str]
+    model: Callable[[Mapping[str, Any]], MotionModel]
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Kinds:
+    """The sensor kinds, policies and motion models a scenario may name.
+
+    :func:`dfusion.scenario.builtin_kinds` holds dfusion's own; plug-ins add theirs
+    (:func:`dfusion.scenario.load_plugins`). Nothing is registered globally: each
+    scenario carries the kinds it was loaded with.
+    """
+
+    sensors: Mapping[str, SensorKind]
+    policies: Mapping[str, Callable[[Mapping[str, Any]], "Policy"]]
+    motions: Mapping[str, MotionKind]
+    plugins: tuple[str, ...] = ()
+
+    def merged(self, other: "Kinds", source: str) -> "Kinds":
+        """These kinds plus ``other``'s; a name defined twice is an error."""
+        for mine, theirs, what in ((self.sensors, other.sensors, "sensor kind"),
+                                   (self.policies, other.policies, "policy"),
+                                   (self.motions, other.motions, "motion model")):
+            clash = sorted(set(mine) & set(theirs))
+            if clash:
+                raise ScenarioError(f"{source}: {what} {clash[0]!r} is already defined")
+        return Kinds({**self.sensors, **other.sensors}, {**self.policies, **other.policies},
+                     {**self.motions, **other.motions}, self.plugins + other.plugins)
+
+
+@dataclass
+class TargetSpec:
+    """The tracked target: its motion model and the common prior."""
+
+    motion_kind: str
+    motion: MotionModel
+    initial_mean: np.ndarray
+    initial_cov: np.ndarray
+
+    @property
+    def axes(self) -> int:
+        return getattr(self.motion, "axes", 2)
+
+
+@dataclass
+class NodeSpec:
+    """One fusion node: its sensor and its timing.
+
+    Attributes
+    ----------
+    rate : float
+        Measurements per second (0: the node measures nothing).
+    send_period : float
+        Seconds between two messages to each neighbour.
+    delay : float
+        Measurements reach the filter a uniform ``[0, delay]`` seconds late.
+    phase : float
+        Offset of the measurement times ``phase + k / rate``.
+    active : list of (start, end)
+        Intervals in which the sensor produces measurements (default: always).
+    detection : float
+        Probability that a measurement is produced when active.
+    params : dict
+        The node table's kind-specific keys.
+    """
+
+    name: str
+    sensor_kind: str
+    sensor: MeasurementModel | None
+    rate: float
+    send_period: float
+    policy: Any = None
+    delay: float = 0.0
+    phase: float = 0.0
+    active: list[tuple[float, float]] = field(default_factory=list)
+    detection: float = 1.0
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def is_active(self, t: float) -> bool:
+        return not self.active or any(a <= t <= b for a, b in self.active)
+
+
+@dataclass
+class Scenario:
+    """A parsed, validated scenario (see ``docs/scenarios.md``).
+
+    Attributes
+    ----------
+    kinds : Kinds
+        The sensor kinds, policies and motion models it was loaded with (built-in and
+        plug-ins).
+    warnings : list of str
+        Degenerate settings found while loading (also logged).
+    """
+
+    path: str
+    duration: float
+    dt: float
+    seed: int
+    window: int | None
+    horizon: float | None
+    fusion: str
+    target: TargetSpec
+    nodes: dict[str, NodeSpec]
+    links: dict[tuple[str, str], LinkSpec]
+    graph: nx.Graph
+    raw: dict[str, Any]
+    kinds: Kinds | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.duration / self.dt))
+
+    @property
+    def base_dir(self) -> str | None:
+        """Directory of the scenario file (relative paths in it start there); None for a mapping."""
+        return None if self.path.startswith("<") else str(Path(self.path).parent)
+
+    def outages(self) -> list[tuple[str, str, float, float]]:
+        """Every outage interval as ``(a, b, start, end)``."""
+        return [(a, b, s, e) for (a, b), spec in self.links.items() for s, e in spec.outages]
