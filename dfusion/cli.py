@@ -22,7 +22,7 @@ def _simulate(args: argparse.Namespace) -> int:
     from dfusion.scenario.loader import load_scenario
     from dfusion.sim.runner import run_scenario
 
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
     result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet)
     print(result.table())
     if args.json:
@@ -57,7 +57,7 @@ def _run(args: argparse.Namespace) -> int:
             run_dir=args.run_dir, network=args.network, network_key_file=args.network_key_file,
             restarts=[Restart.parse(r) for r in args.restart], emulate_links=args.emulate_links,
             round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
-            startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None,
+            startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
         )
         launcher = Launcher(opts)
         if stop:
@@ -105,6 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     s.add_argument("--json", metavar="OUT", help="write the figures as JSON")
     s.add_argument("--plot", metavar="OUT.png", help="write a PNG of every node against the centralized EKF")
+    s.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                   help="load sensor kinds / policies from this module or .py file (repeatable; docs/new-sensor-kind.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_simulate)
 
@@ -127,6 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--network", default=None, help="Zenoh network name (default: unique per run)")
     r.add_argument("--startup-timeout", type=float, default=60.0, help="seconds to wait for every node to be ready")
     r.add_argument("--compare", action="store_true", help="also run simulate and compare RMSE and final gaps")
+    r.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                   help="load sensor kinds / policies from this module or .py file (repeatable; every node process loads it too)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_run)
     return p

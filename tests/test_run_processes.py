@@ -270,7 +270,7 @@ between = ["a", "b"]
 
 
 def test_node_program_stops_on_sigterm_even_with_a_frozen_neighbour(tmp_path):
-    """nodes/fusion_node.py: SIGTERM stops the node within 2 s with status 0 although its
+    """The node program (python -m dfusion.run.node_process): SIGTERM stops the node within 2 s with status 0 although its
     neighbour is frozen (SIGSTOP). (A close blocked by a full send queue towards a frozen
     peer is tested in test_zenoh_transport.)"""
     from dfusion.transport.zenoh import free_tcp_endpoints
@@ -285,7 +285,7 @@ def test_node_program_stops_on_sigterm_even_with_a_frozen_neighbour(tmp_path):
         for name, me, other in (("a", ea, eb), ("b", eb, ea)):
             logs[name] = (tmp_path / f"{name}.log").open("w")
             procs[name] = subprocess.Popen(
-                [sys.executable, str(ROOT / "nodes" / "fusion_node.py"), "--scenario", str(scenario), "--node", name,
+                [sys.executable, "-m", "dfusion.run.node_process", "--scenario", str(scenario), "--node", name,
                  "--network", f"pair{os.getpid()}", "--listen", me, "--connect", other, "--start-time", repr(start),
                  "--speed", "5"],
                 stdout=logs[name], stderr=subprocess.STDOUT, start_new_session=True)

@@ -3,19 +3,17 @@
 A *motion model* describes ``x_k = f(x_{k-1}, dt, u) + w``, ``w ~ N(0, Q(dt))``;
 a *measurement model* ``z = h(x) + v``, ``v ~ N(0, R)``. Filters only use the
 methods below, so any model that implements them can be plugged in.
-Jacobians are analytic; ``tests/test_models.py`` checks every one of them
-against central finite differences.
+Jacobians are analytic; the test suite checks every one of them against central
+finite differences.
 """
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
 import numpy as np
-from numpy.typing import NDArray
 
 from dfusion.geometry import wrap_angle
-
-Array = NDArray[np.float64]
+from dfusion.linalg import Array
 
 
 class MotionModel(ABC):

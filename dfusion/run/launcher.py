@@ -102,6 +102,7 @@ class RunOptions:
     keep_run_dir: bool = False
     python: str = sys.executable
     node_args: list[str] = field(default_factory=list)
+    plugins: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -121,7 +122,8 @@ class Launcher:
         if not (opts.speed > 0 and math.isfinite(opts.speed)):
             raise DfusionError(f"--speed must be a positive number, got {opts.speed}")
         self.opts = opts
-        self.sc = load_scenario(opts.scenario, seed=opts.seed, fusion=opts.fusion, duration=opts.duration)
+        self.sc = load_scenario(opts.scenario, seed=opts.seed, fusion=opts.fusion, duration=opts.duration,
+                                plugins=opts.plugins)
         for name in self.sc.nodes:
             check_name(name)
         for r in opts.restarts:
@@ -168,6 +170,8 @@ class Launcher:
             cmd += ["--network-key-file", str(Path(o.network_key_file).resolve())]
         if o.emulate_links:
             cmd.append("--emulate-links")
+        for plugin in o.plugins:
+            cmd += ["--plugin", _absolute_plugin(plugin)]
         return cmd + list(o.node_args)
 
     def _spawn(self, name: str) -> None:
@@ -365,6 +369,11 @@ class Launcher:
             else:
                 log.warning("node %s published no final estimate", name)
         return finals
+
+
+def _absolute_plugin(plugin: str) -> str:
+    """A ``.py`` plug-in path made absolute (node processes may start elsewhere); module names as they are."""
+    return str(Path(plugin).resolve()) if plugin.endswith(".py") else plugin
 
 
 def _preload() -> None:

@@ -365,6 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mode", choices=("peer", "client"), default="peer")
     p.add_argument("--network-key-file", default=None)
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds to wait for every final estimate")
+    p.add_argument("--plugin", action="append", default=[], metavar="MODULE", help="plug-in module or .py file")
     p.add_argument("--json", default=None)
     p.add_argument("--plot", default=None)
     args = p.parse_args(argv)
@@ -372,7 +373,8 @@ def main(argv: list[str] | None = None) -> int:
     stop: list[int] = []
     signal.signal(signal.SIGTERM, lambda s, f: stop.append(s))
     signal.signal(signal.SIGINT, lambda s, f: stop.append(s))
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
+                       plugins=args.plugin)
     cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else ())
     with Monitor(sc, args.network, cfg, network_key=load_network_key(args.network_key_file)) as mon:
         deadline = time.monotonic() + args.timeout

@@ -1,7 +1,7 @@
 """One fusion node as an OS process, talking to its neighbours over Zenoh.
 
-``python -m dfusion.run.node_process --scenario F --node NAME [options]`` (or
-``python nodes/fusion_node.py ...``). The node
+``python -m dfusion.run.node_process --scenario F --node NAME [options]`` (what
+``dfusion run`` starts for every node). The node
 
 1. loads the scenario and takes its own measurements from the simulated world
    of the scenario's seed (the same world ``dfusion simulate`` uses), or from a
@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError
-from dfusion.fusion.node import FusionNode
 from dfusion.run.common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
 from dfusion.run.measurements import (
     MeasurementLog,
@@ -49,7 +48,7 @@ from dfusion.run.measurements import (
     save_recording,
     world_measurements,
 )
-from dfusion.scenario.build import build_front_end
+from dfusion.scenario.build import build_front_end, build_node
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.runner import records_output
@@ -149,9 +148,7 @@ class NodeProcess:
         # the same front end as in `dfusion simulate` (EIF update, camera gate, WSN particle filter...)
         self.front = build_front_end(sc, name)
         self.send_period = spec.send_period
-        self.node = FusionNode(name, self.neighbors, sc.target.motion, window=sc.window, horizon=sc.horizon,
-                               prior=(0.0, sc.target.initial_mean, sc.target.initial_cov), fusion=sc.fusion,
-                               policy=spec.policy, network_key=network_key)   # a random epoch: a new one per incarnation
+        self.node = build_node(sc, name, network_key=network_key)   # a random epoch: a new one per incarnation
         self.counters = {"skipped_not_alive": 0, "dropped_emulated": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
                          "max_lag_ms": 0}
@@ -446,6 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is no longer the parent")
     p.add_argument("--ready-timeout", type=float, default=5.0,
                    help="report ready after this many seconds even if a neighbour is not up")
+    p.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                   help="load sensor kinds / policies from this module or .py file (repeatable)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
 
@@ -481,7 +480,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, stream=sys.stderr,
                         format=f"%(asctime)s %(levelname)s [{args.node}] %(name)s: %(message)s")
     try:
-        sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration)
+        sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
+                           plugins=args.plugin)
         if args.record:
             path = save_recording(args.record, args.node, world_measurements(sc, args.node))
             print(f"wrote {path}")

@@ -227,6 +227,19 @@ def _node(src: str, i: int, tbl: Mapping[str, Any], sc: Scenario, kinds: Kinds) 
     return spec
 
 
+def _undeclared_link_end(src: str, raw: Mapping[str, Any]) -> ScenarioError | None:
+    """The error for the first link end that has no ``[[nodes]]`` table, if any."""
+    named = {tbl.get("name") for tbl in raw.get("nodes", [])}
+    for i, tbl in enumerate(raw.get("links", [])):
+        between = tbl.get("between")
+        if isinstance(between, list):
+            for end in between:
+                if isinstance(end, str) and end not in named:
+                    return _fail(src, f"links[{i}].between", f"names node {end!r}, which has no [[nodes]] table"
+                                                             f"{suggest(end, [n for n in named if isinstance(n, str)])}")
+    return None
+
+
 def _plugin_names(src: str, raw: Mapping[str, Any]) -> list[str]:
     names = raw.get("plugins", [])
     if not (isinstance(names, list) and all(isinstance(n, str) and n for n in names)):
@@ -263,18 +276,16 @@ def load_scenario(
         raise _fail(src, "spanning_tree", f"must be true or false, got {spanning!r}")
     for i, tbl in enumerate(raw.get("links", [])):
         _check_table_keys(src, f"links[{i}]", tbl, LINK_KEYS, "[[links]]")
+    undeclared = _undeclared_link_end(src, raw)
     try:
         graph = load_topology(raw, source=src, spanning_tree=spanning)
     except TopologyError as exc:
+        # a misspelt node name in a link usually shows as a disconnected graph: name the cause
+        if undeclared is not None and "cycle" not in str(exc):
+            raise undeclared from None
         raise ScenarioError(str(exc)) from None
-    named = {tbl.get("name") for tbl in raw.get("nodes", [])}
-    for i, tbl in enumerate(raw.get("links", [])):
-        between = tbl.get("between")
-        if isinstance(between, list):
-            for end in between:
-                if isinstance(end, str) and end not in named:
-                    raise _fail(src, f"links[{i}].between", f"names node {end!r}, which has no [[nodes]] table"
-                                                             f"{suggest(end, [n for n in named if n])}")
+    if undeclared is not None:
+        raise undeclared
     if graph.number_of_nodes() < 2:
         raise _fail(src, "nodes", f"a scenario needs at least two fusion nodes, got {graph.number_of_nodes()}")
 
