@@ -4,7 +4,7 @@ Run:  .venv/bin/python benchmarks/localizers.py [--repeats N | --quick]
 
 Tables:
 
-1. MCL update = ``add_odometry`` + ``add_scan`` (sampled odometry motion, laser likelihood
+1. MCL update = ``predict`` (odometry) + ``update`` (scan) (sampled odometry motion, laser likelihood
    of 60 beams, resampling after every scan, Augmented-MCL bookkeeping) for 1,000 /
    5,000 / 20,000 particles, fixed particle count, for the URUS erfc beam model with the
    precomputed ray-cast table, the likelihood field, and the erfc beam model with exact
@@ -165,7 +165,7 @@ def timing(R: int) -> list[str]:
             grid, laser, sensor=sensor, adaptive=False, n_particles=n, resample_threshold=1.0,
             max_beams=60, rng=1, ray_table=ray_table if isinstance(sensor, BeamErfcModel) and sensor.raycast == "table" else None,
         )
-        m.add_odometry(0.0, np.zeros(3))
+        m.predict(0.0, np.zeros(3))
         m.initialize_gaussian(truth, np.diag([0.5, 0.5, 0.3]) ** 2)
         return m
 
@@ -184,8 +184,8 @@ def timing(R: int) -> list[str]:
             def step():
                 state["k"] += 1
                 k = state["k"]
-                m.add_odometry(0.1 * k, np.array([0.01 * k, 0.0, 0.001 * k]))
-                m.add_scan(0.1 * k, scan)
+                m.predict(0.1 * k, np.array([0.01 * k, 0.0, 0.001 * k]))
+                m.update(0.1 * k, scan)
 
             reps = R if "exact" not in name else max(3, R // 5)
             t = timed(step, reps, warmup=1)
@@ -211,7 +211,7 @@ def timing(R: int) -> list[str]:
             t_res = timed(resample, reps, 1)
             split_rows.append([name, f"{n:,}", f"{t_mot * 1e3:.2f}", f"{t_lik * 1e3:.2f}", f"{t_res * 1e3:.2f}"])
     table(
-        "MCL update (add_odometry + add_scan, 60 beams, resampling every scan), ms",
+        "MCL update (predict + update, 60 beams, resampling every scan), ms",
         ["sensor model", "particles", "ms/update", "goal <= 10 ms @ 5,000 (beam)"],
         rows,
     )
@@ -220,11 +220,11 @@ def timing(R: int) -> list[str]:
 
     # KLD (adaptive) update from a broad cloud
     m = MonteCarloLocalization(grid, laser, sensor=BeamErfcModel(0.1), max_particles=20000, ray_table=ray_table, rng=2)
-    m.add_odometry(0.0, np.zeros(3))
+    m.predict(0.0, np.zeros(3))
     m.initialize_gaussian(truth, np.diag([0.5, 0.5, 0.3]) ** 2)
     t0 = time.perf_counter()
-    m.add_odometry(0.1, np.array([0.01, 0, 0]))
-    m.add_scan(0.1, scan)
+    m.predict(0.1, np.array([0.01, 0, 0]))
+    m.update(0.1, scan)
     print(f"\nKLD: one update of a 20,000-particle cloud took {1e3 * (time.perf_counter() - t0):.1f} ms, kept {m.particles.shape[0]:,} particles")
 
     # ---------------------------------------------------------------- ray casting

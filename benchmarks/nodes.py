@@ -91,13 +91,13 @@ def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True,
                        radio_map=rmap)
         t.initialize(mean=truth[0], cov=np.eye(2))
         for k in range(20):  # warm-up (allocations, caches)
-            t.step(dt, readings[k])
+            t.update(t.time + dt, readings[k])
         tp, tu = np.empty(steps), np.empty(steps)
         for k in range(steps):
             a = time.perf_counter()
-            t.predict(dt)
+            t.predict(t.time + dt)
             b = time.perf_counter()
-            t.update(readings[20 + k])
+            t.update(t.time, readings[20 + k])
             c = time.perf_counter()
             tp[k], tu[k] = b - a, c - b
         tot = tp + tu
@@ -105,7 +105,7 @@ def bench_wsn(n_particles: int, steps: int, repeats: int, with_map: bool = True,
                "median_ms": 1e3 * np.median(tot),
                "p90_ms": 1e3 * np.percentile(tot, 90), "predict_ms": 1e3 * np.median(tp),
                "update_ms": 1e3 * np.median(tu), "resamples": t.pf.n_resamples,
-               "error_m": float(np.linalg.norm(t.estimate() - truth[19 + steps]))}
+               "error_m": float(np.linalg.norm(t.estimate().mean - truth[19 + steps]))}
         if best is None or res["median_ms"] < best["median_ms"]:
             best = res
     return best

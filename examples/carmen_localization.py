@@ -112,8 +112,8 @@ def ekf_predict(ekf: OdometryEKF, o0: np.ndarray, o1: np.ndarray, t: float) -> N
         rot1 = float(wrap_angle(rot1 + math.pi))
         trans = -trans
     rot2 = float(wrap_angle(d[2] - rot1))
-    ekf.predict(0.0, rot1, Sigma_u=np.diag([1e-12, 1e-12]))
-    ekf.predict(trans, rot2, Sigma_u=ekf.odometry_covariance(abs(trans), float(d[2])), t=t)
+    ekf.predict(None, (0.0, rot1), Sigma_u=np.diag([1e-12, 1e-12]))
+    ekf.predict(t, (trans, rot2), Sigma_u=ekf.odometry_covariance(abs(trans), float(d[2])))
 
 
 def pose_errors(est: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -167,13 +167,13 @@ def run(args: argparse.Namespace) -> dict:
         grid, laser, sensor=LikelihoodFieldModel(), motion=OdometryMotionModel(a1, a2, a3, a4),
         min_particles=500, max_particles=5000, max_beams=60, rng=args.seed,
     )
-    mcl.add_odometry(times[k0], odom[k0])
+    mcl.predict(times[k0], odom[k0])
     mcl.initialize_gaussian(poses[k0], P0, t=times[k0])
     mcl_est = []
     for k in range(k0, len(scans)):
-        mcl.add_odometry(times[k], odom[k])
+        mcl.predict(times[k], odom[k])
         if k % 2 == 1:
-            mcl.add_scan(times[k], ranges[k])
+            mcl.update(times[k], ranges[k])
             mcl_est.append(mcl.estimate().mean)
     mcl_est = np.array(mcl_est)
     t_mcl = time.perf_counter() - t0
@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> dict:
         else:
             if res.converged or res.iterations >= 40:
                 C = 4.0 * res.covariance + np.diag([0.05**2, 0.05**2, 0.02**2])
-                ekf.update(res.pose, C)
+                ekf.update(times[k], res.pose, C)
             else:
                 icp_fail += 1
         sm_est.append(ekf.x)

@@ -233,8 +233,8 @@ def run_trial(case: Case, grid, coarse_grid, dt: float, seed: int):
         pts = scan_to_points(scans[k], LASER.angles, LASER.max_range)
         # ---- coarse only
         t0 = time.perf_counter()
-        mcl_only.add_odometry(t, odo[k])
-        mcl_only.add_scan(t, scans[k])
+        mcl_only.predict(t, odo[k])
+        mcl_only.update(t, scans[k])
         e = mcl_only.estimate()
         r = runs["SA-MCL (coarse only)"]
         r.t_loc.append(time.perf_counter() - t0)
@@ -247,8 +247,8 @@ def run_trial(case: Case, grid, coarse_grid, dt: float, seed: int):
         r.est.append(sm_pose)
         # ---- switching (and the blended variant): coarse in the background
         t0 = time.perf_counter()
-        mcl_bg.add_odometry(t, odo[k])
-        mcl_bg.add_scan(t, scans[k])
+        mcl_bg.predict(t, odo[k])
+        mcl_bg.update(t, scans[k])
         eb = mcl_bg.estimate()
         t_mcl = time.perf_counter() - t0
         coarse = Estimate("coarse", t, eb.mean, eb.cov, eb.reliability)

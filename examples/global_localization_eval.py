@@ -116,13 +116,13 @@ def run_test(grid: OccupancyGrid, laser: LaserConfig, start: np.ndarray, args, s
         grid, laser, motion=OdometryMotionModel(0.05, 0.05, 0.05, 0.05), min_particles=300,
         max_particles=args.particles, max_beams=60, alpha_slow=0.001, alpha_fast=0.1, rng=seed,
     )
-    mcl.add_odometry(0.0, odom[0])
+    mcl.predict(0.0, odom[0])
     mcl.initialize_global(t=0.0)
     est = np.empty_like(truth)
     for k in range(truth.shape[0]):
         if k:
-            mcl.add_odometry(float(k), odom[k])
-        mcl.add_scan(float(k), scans[k])
+            mcl.predict(float(k), odom[k])
+        mcl.update(float(k), scans[k])
         est[k] = mcl.estimate().mean
     dist = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))])
     pos_err = np.hypot(*(est[:, :2] - truth[:, :2]).T)

@@ -315,11 +315,11 @@ def run(args: argparse.Namespace) -> dict:
             r = ds.robots[o]
             z = np.array([r.meas_range[i], r.meas_bearing[i]])
             ekf = ekfs[o]
-            ekf.predict_to(t)
+            ekf.predict(t)
             joint.predict_to(t)
             if kind == 0:
                 sensor = LandmarkRangeBearing(landmarks[int(r.meas_subject[i])], args.range_std, args.bearing_std)
-                ok = ekf.update(z, sensor)
+                ok = ekf.update(t, z, sensor)
                 counts[o]["landmarks"] += 1
                 counts[o]["landmarks_rejected"] += int(not ok)
                 joint.update_landmark(o, z, sensor)
@@ -352,7 +352,7 @@ def run(args: argparse.Namespace) -> dict:
             node = nodes[o]
             advance(node, tg, k)
             rec_nodes[o][ke] = node.estimate(tg)[0][:2]
-            ekfs[o].predict_to(tg)
+            ekfs[o].predict(tg)
             rec_loc[o][ke] = ekfs[o].x
         joint.predict_to(tg)
         rec_joint[ke] = joint.x[:2]

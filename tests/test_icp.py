@@ -173,7 +173,7 @@ def test_odometry_ekf_against_filterpy_driven_directly():
     x, P = x0.reshape(3, 1).copy(), P0.copy()
     for k in range(40):
         d, dth = rng.uniform(0.05, 0.3), rng.normal(0, 0.1)
-        ekf.predict(d, dth)
+        ekf.predict(None, (d, dth))
         # reference: eq. 5 for the mean, filterpy's predict for eq. 6
         th = x[2, 0]
         Fx = np.array([[1, 0, -d * math.sin(th)], [0, 1, d * math.cos(th)], [0, 0, 1.0]])
@@ -188,7 +188,7 @@ def test_odometry_ekf_against_filterpy_driven_directly():
             R = np.diag([0.05, 0.05, 0.02]) ** 2
             R[0, 1] = R[1, 0] = 0.3 * 0.05 * 0.05
             prior_x, prior_P = x.copy(), P.copy()
-            assert ekf.update(z, R)
+            assert ekf.update(None, z, R)
             x, P = kf_update(x, P, z.reshape(3, 1), R, np.eye(3))
             np.testing.assert_allclose(ekf.x, x[:, 0], atol=1e-12)
             np.testing.assert_allclose(ekf.P, P, rtol=1e-9, atol=1e-14)
@@ -203,22 +203,22 @@ def test_odometry_ekf_against_filterpy_driven_directly():
 
 def test_odometry_ekf_wraps_the_heading_innovation():
     ekf = OdometryEKF([0.0, 0.0, math.pi - 0.05], np.diag([0.01, 0.01, 0.01]))
-    ekf.update([0.0, 0.0, -math.pi + 0.05], np.diag([0.01, 0.01, 0.01]))
+    ekf.update(None, [0.0, 0.0, -math.pi + 0.05], np.diag([0.01, 0.01, 0.01]))
     assert abs(abs(ekf.x[2]) - math.pi) < 1e-12  # not 0, as eq. 7 on raw angles would give
     assert ekf.P[2, 2] == pytest.approx(0.005)
 
 
 def test_odometry_ekf_gate_and_increments():
     ekf = OdometryEKF([0.0, 0.0, 0.0], np.diag([0.01, 0.01, 0.01]), gate=chi2_3_999())
-    assert not ekf.update([1.0, 0.0, 0.0], np.diag([0.01, 0.01, 0.01]))  # 5 sigma away
+    assert not ekf.update(None, [1.0, 0.0, 0.0], np.diag([0.01, 0.01, 0.01]))  # 5 sigma away
     assert ekf.rejected == 1
-    assert ekf.update([0.05, 0.0, 0.0], np.diag([0.01, 0.01, 0.01]))
+    assert ekf.update(None, [0.05, 0.0, 0.0], np.diag([0.01, 0.01, 0.01]))
     with pytest.raises(NotPositiveDefiniteError):
-        ekf.update([0.0, 0.0, 0.0], np.diag([0.01, -0.01, 0.01]))
+        ekf.update(None, [0.0, 0.0, 0.0], np.diag([0.01, -0.01, 0.01]))
     d, dth = odometry_increment([1.0, 1.0, math.pi / 2], [1.0, 0.5, math.pi / 2 + 0.1])
     assert d == pytest.approx(-0.5) and dth == pytest.approx(0.1)  # driving backwards
     ekf2 = OdometryEKF([0.0, 0.0, 0.0], np.eye(3) * 1e-4)
-    ekf2.predict_odometry([1.0, 1.0, 0.5], se2_compose([1.0, 1.0, 0.5], [0.3, 0.0, 0.2]), t=1.0)
+    ekf2.predict(1.0, odometry_increment([1.0, 1.0, 0.5], se2_compose([1.0, 1.0, 0.5], [0.3, 0.0, 0.2])))
     np.testing.assert_allclose(ekf2.x, [0.3, 0.0, 0.2], atol=1e-12)
     assert ekf2.estimate().t == 1.0
 

@@ -50,8 +50,8 @@ def world():
 def _run(mcl, path, scans, odo, start=1, dt=0.1):
     err = []
     for k in range(start, len(path)):
-        mcl.add_odometry(k * dt, odo[k])
-        mcl.add_scan(k * dt, scans[k])
+        mcl.predict(k * dt, odo[k])
+        mcl.update(k * dt, scans[k])
         e = mcl.estimate()
         err.append((math.hypot(*(e.mean[:2] - path[k, :2])), abs(float(wrap_angle(e.mean[2] - path[k, 2])))))
     return np.array(err)
@@ -207,7 +207,7 @@ def test_likelihood_field_against_direct_computation(world):
 def test_mcl_tracks_from_a_known_ish_start(world, sensor):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, sensor=sensor, max_particles=5000, rng=1)
-    mcl.add_odometry(0.0, odo[0])
+    mcl.predict(0.0, odo[0])
     mcl.initialize_gaussian(path[0] + [0.3, -0.2, 0.1], np.diag([0.3, 0.3, 0.2]) ** 2)
     err = _run(mcl, path, scans, odo)
     assert err[15:, 0].mean() < 0.05 and err[15:, 0].max() < 0.2
@@ -221,7 +221,7 @@ def test_mcl_tracks_from_a_known_ish_start(world, sensor):
 def test_mcl_global_localization_from_uniform_prior(world):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, sensor="likelihood_field", max_particles=20000, rng=2)
-    mcl.add_odometry(0.0, odo[0])
+    mcl.predict(0.0, odo[0])
     mcl.initialize_global()
     assert mcl.estimate().n_particles == 20000 and mcl.estimate().reliability < 0.3
     err = _run(mcl, path, scans, odo)
@@ -232,19 +232,19 @@ def test_adaptive_tempering_keeps_the_ess_floor(world):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, adaptive=False, n_particles=2000, resample_threshold=0.0, ess_floor=0.05, rng=3)
     mcl.initialize_global()
-    assert mcl.add_scan(0.0, scans[0])
+    assert mcl.update(0.0, scans[0])
     assert 0 < mcl.last_beta < 1
     assert mcl.n_eff == pytest.approx(0.05 * 2000, rel=1e-3)
     plain = MonteCarloLocalization(g, LASER, adaptive=False, n_particles=2000, resample_threshold=0.0, ess_floor=0.0, rng=3)
     plain.initialize_global()
-    plain.add_scan(0.0, scans[0])
+    plain.update(0.0, scans[0])
     assert plain.last_beta == 1.0 and plain.n_eff < 2
 
 
 def test_mcl_global_localization_erfc(world):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, sensor=BeamErfcModel(0.1, theta_bins=180), max_particles=20000, rng=3)
-    mcl.add_odometry(0.0, odo[0])
+    mcl.predict(0.0, odo[0])
     mcl.initialize_global()
     err = _run(mcl, path, scans, odo)
     # the averaged erfc likelihood discriminates less per scan: allow 45 scans
@@ -268,7 +268,7 @@ def test_mcl_recovers_from_kidnapping_only_with_augmented_mcl(world):
     results = {}
     for a_s, a_f in ((0.001, 0.1), (0.0, 0.0)):
         mcl = MonteCarloLocalization(g, LASER, max_particles=10000, alpha_slow=a_s, alpha_fast=a_f, rng=4)
-        mcl.add_odometry(0.0, odo2[0])
+        mcl.predict(0.0, odo2[0])
         mcl.initialize_gaussian(path2[0], np.diag([0.1, 0.1, 0.05]) ** 2)
         results[a_f] = (_run(mcl, path2, scans2, odo2), mcl.stats["injected"])
     err, injected = results[0.1]
@@ -296,18 +296,18 @@ def test_late_scans_equal_in_order_processing_without_motion_noise(world):
             ess_floor=0.0,  # tempering depends on the current weights, hence on the order
             rng=8,
         )
-        mcl.add_odometry(0.0, odo[0])
+        mcl.predict(0.0, odo[0])
         mcl.initialize_gaussian(path[0], np.diag([0.2, 0.2, 0.1]) ** 2)
         for k in (1, 2, 3):
-            mcl.add_odometry(0.1 * k, odo[k])
+            mcl.predict(0.1 * k, odo[k])
         if order == "in_order":
-            mcl.add_scan(0.1, scans[1])
-            mcl.add_scan(0.2, scans[2])
-            mcl.add_scan(0.3, scans[3])
+            mcl.update(0.1, scans[1])
+            mcl.update(0.2, scans[2])
+            mcl.update(0.3, scans[3])
         else:
-            mcl.add_scan(0.3, scans[3])
-            mcl.add_scan(0.1, scans[1])  # late by 0.2 s
-            mcl.add_scan(0.2, scans[2])  # late by 0.1 s
+            mcl.update(0.3, scans[3])
+            mcl.update(0.1, scans[1])  # late by 0.2 s
+            mcl.update(0.2, scans[2])  # late by 0.1 s
             assert mcl.stats["late_scans"] == 2
         assert mcl.time == pytest.approx(0.3)
         filters.append(mcl)
@@ -318,19 +318,19 @@ def test_late_scans_equal_in_order_processing_without_motion_noise(world):
 def test_delayed_and_out_of_order_scans_keep_tracking(world):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, max_particles=5000, rng=5)
-    mcl.add_odometry(0.0, odo[0])
+    mcl.predict(0.0, odo[0])
     mcl.initialize_gaussian(path[0], np.diag([0.1, 0.1, 0.05]) ** 2)
     delay = 3  # scans arrive 0.3 s late, pairs swapped
     pending = []
     err = []
     for k in range(1, len(path)):
-        mcl.add_odometry(0.1 * k, odo[k])
+        mcl.predict(0.1 * k, odo[k])
         pending.append(k)
         if len(pending) > delay + 1:
             # the two oldest pending scans, newer one first: the older one is then late
             # (stamped before the filter time)
             for j in (pending[1], pending[0]):
-                mcl.add_scan(0.1 * j, scans[j])
+                mcl.update(0.1 * j, scans[j])
             del pending[:2]
             e = mcl.estimate()  # refers to the filter time, 0.1 * (k - delay)
             err.append(math.hypot(*(e.mean[:2] - path[k - delay, :2])))
@@ -342,35 +342,35 @@ def test_time_errors_leave_the_filter_unchanged(world):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, max_particles=1000, odom_window=0.5, rng=6)
     with pytest.raises(NotInitializedError):
-        mcl.add_scan(0.0, scans[0])
+        mcl.update(0.0, scans[0])
     mcl.initialize_gaussian(path[0], np.diag([0.1, 0.1, 0.05]) ** 2)
     for k in range(12):
-        mcl.add_odometry(0.1 * k, odo[k])
-    mcl.add_scan(1.1, scans[11])
+        mcl.predict(0.1 * k, odo[k])
+    mcl.update(1.1, scans[11])
     before = (mcl.particles, mcl.weights, mcl.time)
     with pytest.raises(OutsideWindowError):
-        mcl.add_scan(0.2, scans[2])  # older than the 0.5 s odometry buffer
+        mcl.update(0.2, scans[2])  # older than the 0.5 s odometry buffer
     with pytest.raises(OutsideWindowError):
-        mcl.add_scan(1.5, scans[11])  # 0.4 s ahead of the newest odometry
+        mcl.update(1.5, scans[11])  # 0.4 s ahead of the newest odometry
     with pytest.raises(TimeError):
-        mcl.add_odometry(0.5, odo[5])
+        mcl.predict(0.5, odo[5])
     with pytest.raises(ShapeError):
-        mcl.add_scan(1.1, scans[11][:10])
+        mcl.update(1.1, scans[11][:10])
     np.testing.assert_array_equal(mcl.particles, before[0])
     np.testing.assert_array_equal(mcl.weights, before[1])
     assert mcl.time == before[2]
     # a scan slightly ahead of the odometry is applied at the newest odometry time
-    assert mcl.add_scan(1.15, scans[11]) and mcl.time == pytest.approx(1.1)
+    assert mcl.update(1.15, scans[11]) and mcl.time == pytest.approx(1.1)
 
 
 def test_update_thresholds_skip_scans_while_standing_still(world):
     g, path, scans, odo = world
     mcl = MonteCarloLocalization(g, LASER, max_particles=1000, update_min_d=0.2, update_min_a=0.5, rng=7)
-    mcl.add_odometry(0.0, odo[0])
+    mcl.predict(0.0, odo[0])
     mcl.initialize_gaussian(path[0], np.diag([0.1, 0.1, 0.05]) ** 2)
-    assert mcl.add_scan(0.0, scans[0])
-    mcl.add_odometry(0.1, odo[0])
-    assert not mcl.add_scan(0.1, scans[0])  # no motion: skipped
-    mcl.add_odometry(0.2, odo[2])  # 0.3 m
-    assert mcl.add_scan(0.2, scans[2])
+    assert mcl.update(0.0, scans[0])
+    mcl.predict(0.1, odo[0])
+    assert not mcl.update(0.1, scans[0])  # no motion: skipped
+    mcl.predict(0.2, odo[2])  # 0.3 m
+    assert mcl.update(0.2, scans[2])
     assert mcl.stats["skipped_scans"] == 1

@@ -154,7 +154,7 @@ def test_tracker_combines_outlier_floor_and_radio_map():
     trk.initialize()
     z, j = np.array([-66.0, -90.0]), np.array([0, 1])
     np.testing.assert_allclose(trk.log_likelihood(z, j), rm.log_likelihood(z, j, trk.particles, 1.0, 0.05, 50.0))
-    assert trk.update(z, j) == 2
+    assert trk.update(trk.time, z, j) == 2
     with pytest.raises(ValidationError):
         rm.log_likelihood(z, j, trk.particles, outlier_prob=1.0)
 

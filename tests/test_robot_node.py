@@ -146,13 +146,13 @@ def test_landmark_ekf_localizes_and_gates_outliers():
     errs = []
     for k in range(1, 60):
         x_true, _, _ = true_odo.propagate(x_true, k - 1.0, float(k))
-        ekf.predict_to(float(k))
+        ekf.predict(float(k))
         for j, lm in enumerate(lms):
             s = LandmarkRangeBearing(lm, 0.1, 0.02)
             z = s.h(x_true) + [0.1 * rng.standard_normal(), 0.02 * rng.standard_normal()]
             if k == 30 and j == 0:
                 z[0] += 5.0  # an outlier
-            ekf.update(z, s)
+            ekf.update(float(k), z, s)
         errs.append(np.hypot(*(ekf.x[:2] - x_true[:2])))
     assert ekf.rejected >= 1 and ekf.accepted > 200
     assert np.sqrt(np.mean(np.square(errs))) < 0.15
@@ -202,7 +202,8 @@ def test_env_camera_localizer_position_covariance_heading():
     assert loc.reliability(cam.h([3.0, 0.5])) == pytest.approx(camera_reliability_at(cam, [3.0, 0.5]), rel=1e-9)
     p_true = np.array([3.0, 0.5])
     px = cam.h(p_true)
-    est = loc.update(0.0, px)
+    assert loc.update(0.0, px)
+    est = loc.estimate()
     np.testing.assert_allclose(est.mean[:2], p_true, atol=1e-9)
     assert est.cov[2, 2] == pytest.approx(math.pi**2 / 3)  # no heading yet
     # covariance: Monte Carlo of the pixel noise through the back-projection
@@ -211,12 +212,14 @@ def test_env_camera_localizer_position_covariance_heading():
     emp = np.cov(pts.T)
     np.testing.assert_allclose(est.cov[:2, :2], emp, rtol=0.06, atol=0.03 * emp.max())
     # farther from the camera: larger covariance, lower reliability
-    far = loc.update(10.0, cam.h([6.0, 0.5]))
+    assert loc.update(10.0, cam.h([6.0, 0.5]))
+    far = loc.estimate()
     assert far.reliability < est.reliability and np.trace(far.cov[:2, :2]) > np.trace(est.cov[:2, :2])
     # heading from the displacement of two fixes less than max_gap apart
-    e2 = loc.update(11.0, cam.h([6.0, 1.5]))
+    assert loc.update(11.0, cam.h([6.0, 1.5]))
+    e2 = loc.estimate()
     assert e2.mean[2] == pytest.approx(math.pi / 2, abs=0.01) and e2.cov[2, 2] < 0.01
-    assert loc.update(12.0, [-5.0, 10.0]) is None  # outside the image
+    assert not loc.update(12.0, [-5.0, 10.0])  # outside the image
 
 
 # --------------------------------------------------------------------------- front ends and fusion

@@ -165,7 +165,7 @@ def test_large_particle_sets_match_direct_computations():
     x0 = t.particles.copy()
     draws = copy.deepcopy(t.pf.rng).standard_normal((n, 4))
     dt = 0.4
-    t.predict(dt)
+    t.predict(t.time + dt)
     L = np.linalg.cholesky(ConstantVelocity(2, 0.05).Q(dt))
     want = x0 + np.hstack([dt * x0[:, 2:], np.zeros((n, 2))]) + np.einsum("ij,nj->ni", L, draws)
     np.testing.assert_allclose(t.particles, want, rtol=1e-12, atol=1e-12)
@@ -179,7 +179,7 @@ def test_large_particle_sets_match_direct_computations():
         std = np.array([s.std[0] for s in sensors])
         assert ll[i] == pytest.approx(-0.5 * np.sum(((z[ok] - mu[ok]) / std[ok]) ** 2), rel=1e-9)
     # ESS = 1 / sum w^2, summed exactly
-    t.update(z)
+    t.update(t.time, z)
     w = np.exp(t.pf.log_weights)
     assert t.pf.ess == pytest.approx(1.0 / math.fsum((w / math.fsum(w)) ** 2), rel=1e-9)
 

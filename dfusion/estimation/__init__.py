@@ -1,21 +1,22 @@
 """Estimators: the estimate type, information-form Gaussians, EIF, delayed-state EIF, centralized EKF, the particle-filter engine."""
 from dfusion.estimation.centralized import CentralizedEKF, History
-from dfusion.estimation.delayed_state import DelayedStateEIF, measurement_information
+from dfusion.estimation.delayed_state import measurement_information, DelayedStateEIF
 from dfusion.estimation.eif import ExtendedInformationFilter
 from dfusion.estimation.estimate import Estimate, Estimator
 from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
 from dfusion.estimation.particle_filter import (
-    RESAMPLERS,
-    ParticleDepletionError,
     ParticleFilter,
+    ParticleDepletionError,
     effective_sample_size,
-    gaussian_summary,
     normalize_log_weights,
-    roughening_std,
-    stratified_resample,
     systematic_counts,
     systematic_resample,
+    stratified_resample,
+    multinomial_resample,
+    roughening_std,
     weighted_mean_cov,
+    RESAMPLERS,
+    gaussian_summary,
 )
 from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
 
@@ -36,6 +37,7 @@ __all__ = [
     "systematic_counts",
     "systematic_resample",
     "stratified_resample",
+    "multinomial_resample",
     "roughening_std",
     "weighted_mean_cov",
     "RESAMPLERS",

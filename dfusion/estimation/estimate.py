@@ -49,7 +49,8 @@ class Estimate:
     n_eff : float
         Their effective sample size (particle filters; 0 otherwise).
 
-    An estimate unpacks as ``mean, cov = estimate``.
+    An estimate behaves as the pair ``(mean, cov)`` where one is expected:
+    ``mean, cov = estimate``, ``estimate[0]``, ``len(estimate) == 2``.
     """
 
     name: str
@@ -64,6 +65,12 @@ class Estimate:
     def __iter__(self) -> Iterator[Array]:
         yield self.mean
         yield self.cov
+
+    def __getitem__(self, i: int) -> Array:
+        return (self.mean, self.cov)[i]
+
+    def __len__(self) -> int:
+        return 2
 
 
 @runtime_checkable

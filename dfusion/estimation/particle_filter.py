@@ -47,6 +47,7 @@ __all__ = [
     "systematic_counts",
     "systematic_resample",
     "stratified_resample",
+    "multinomial_resample",
     "roughening_std",
     "weighted_mean_cov",
     "RESAMPLERS",
@@ -145,9 +146,24 @@ def stratified_resample(weights: ArrayLike, rng: np.random.Generator, n: int | N
     return np.searchsorted(_cumulative(w), pointers, side="right").clip(max=w.shape[0] - 1)
 
 
+def multinomial_resample(weights: ArrayLike, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
+    """Indices of ``n`` i.i.d. draws from the weights (``weights`` need not be normalized).
+
+    The draws are ``u_k ~ U[0, 1)`` scaled to the total weight and located in the
+    cumulative weights, so a prefix of the result is itself a multinomial sample: KLD
+    sampling (:class:`dfusion.localization.MonteCarloLocalization`) stops drawing once
+    enough bins are filled.
+    """
+    w = np.asarray(weights, dtype=float)
+    n = w.shape[0] if n is None else int(n)
+    cdf = np.cumsum(w)
+    return np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"), cdf.size - 1)
+
+
 RESAMPLERS: dict[str, Callable[..., np.ndarray]] = {
     "systematic": systematic_resample,
     "stratified": stratified_resample,
+    "multinomial": multinomial_resample,
 }
 
 

@@ -36,7 +36,7 @@ class EnvCameraFrontEnd(FrontEnd):
 
     def process(self, node: FusionNode, t: float, z: Array) -> bool:
         self.stats.processed += 1
-        est = self.localizer.update(t, z)
+        est = self.localizer.estimate() if self.localizer.update(t, z) else None
         self.last = est
         if est is None or est.reliability < self.min_reliability:
             self.stats.rejected += 1

@@ -34,7 +34,7 @@ class MCLFrontEnd(FrontEnd):
     ``heading_std`` around the direction of motion. Then:
 
     1. prediction fit ``(m0, P0)`` of the positions (weights before the scan);
-    2. the scan weights the particles (``MonteCarloLocalization.add_scan``, no resampling
+    2. the scan weights the particles (``MonteCarloLocalization.update``, no resampling
        inside);
     3. posterior fit ``(m1, P1)``; the node receives ``fit_difference_information`` --
        the scan's information only, whatever the prior was (module docstring);
@@ -81,7 +81,7 @@ class MCLFrontEnd(FrontEnd):
         w0 = mcl.weights
         parts = mcl.particles
         prior = gaussian_summary(parts, w0)
-        if not mcl.add_scan(t, z):
+        if not mcl.update(t, z):
             self.stats.rejected += 1
             return False
         post_pose = gaussian_summary(parts, mcl.weights)

@@ -45,6 +45,7 @@ from dfusion.frontends.base import FrontEnd, FrontEndStats
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
 from dfusion.localization.wsn_tracker import WSNTracker
+from dfusion.estimation.estimate import Estimate
 
 __all__ = ["WSNFrontEnd", "WSNStats"]
 
@@ -96,17 +97,20 @@ class WSNFrontEnd(FrontEnd):
         self.prior_mean = np.asarray(prior[1], dtype=float)
         self.prior_cov = np.asarray(prior[2], dtype=float)
         self.axes = int(axes)
-        #: Time of the particles (None before the first measurement).
-        self.time: float | None = None
         self.stats = WSNStats()
 
     def __repr__(self) -> str:
         return f"WSNFrontEnd({self.tracker!r}, time={self.time}, {self.stats})"
 
+    @property
+    def time(self) -> float | None:
+        """Time of the particles (None before the first measurement)."""
+        return self.tracker.time
+
     def _initialize(self) -> None:
         trk = self.tracker
         m, C = self.prior_mean, self.prior_cov
-        trk.initialize(mean=m[:2], cov=C[:2, :2])
+        trk.initialize(mean=m[:2], cov=C[:2, :2], t=self.t0)
         if trk.dim == 4:
             # velocities drawn from the prior conditioned on the drawn positions
             iv = [self.axes, self.axes + 1]
@@ -118,7 +122,6 @@ class WSNFrontEnd(FrontEnd):
             L = np.linalg.cholesky(0.5 * (Cc + Cc.T) + 1e-12 * np.eye(2))
             x[:, 2:] = m[iv] + (x[:, :2] - m[ip]) @ K.T + trk.rng.standard_normal((x.shape[0], 2)) @ L.T
             trk.set_particles(x)
-        self.time = self.t0
 
     def process(self, node: FusionNode, t: float, z: Array) -> bool:
         """Predict the particles to ``t``, weight them by the readings ``z``, fuse the contribution.
@@ -129,18 +132,18 @@ class WSNFrontEnd(FrontEnd):
         if t < f.oldest_time - f.time_tol:
             self.stats.refused += 1
             raise OutsideWindowError(f"RSSI measurement at t={t} is older than the window start {f.oldest_time}")
-        if self.time is None:
+        trk = self.tracker
+        if trk.time is None:
             self._initialize()
-        if t < self.time - f.time_tol:
+        if t < trk.time - f.time_tol:
             self.stats.late += 1
             self.stats.rejected += 1
             return False
         self.stats.processed += 1
-        self.tracker.predict(max(t - self.time, 0.0))
-        self.time = max(self.time, float(t))
-        used = self.tracker.update(z)
+        trk.predict(max(float(t), trk.time))
+        used = trk.update(trk.time, z)
         self.stats.readings += used
-        info = self.tracker.information_contribution()
+        info = trk.information_contribution()
         if used == 0 or not np.any(info.Omega):
             self.stats.empty += 1
             self.stats.rejected += 1
@@ -154,6 +157,6 @@ class WSNFrontEnd(FrontEnd):
         self.stats.contributed += 1
         return True
 
-    def estimate(self) -> tuple[Array, Array]:
+    def estimate(self) -> Estimate:
         """The particle filter's own Gaussian fit of ``(x, y)`` (its readings only)."""
-        return self.tracker.gaussian_summary()
+        return self.tracker.estimate()

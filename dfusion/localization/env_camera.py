@@ -37,6 +37,7 @@ from dfusion.estimation.estimate import Estimate
 from dfusion.linalg import as_vector, symmetrize
 from dfusion.models.camera import PinholeCamera
 from dfusion.reliability import camera_geometry, camera_reliability
+from dfusion.errors import NotInitializedError
 
 __all__ = ["EnvironmentCameraLocalizer"]
 
@@ -84,18 +85,20 @@ class EnvironmentCameraLocalizer:
         S = symmetrize(cam.pixel_std**2 * J @ J.T)
         return p, S
 
-    def update(self, t: float, pixel: ArrayLike) -> Estimate | None:
-        """A fix from the marker's pixel at time ``t``: ``Estimate`` with mean
-        ``(x, y, heading)``, 3 x 3 covariance and ``R_c``; ``None`` if the pixel is outside
-        the image or its ray misses the marker plane."""
-        z = as_vector(pixel, 2, "pixel")
+    def predict(self, t: float, u: None = None) -> None:
+        """Nothing to do: every fix stands on its own (the heading comes from two fixes)."""
+
+    def update(self, t: float, z: ArrayLike) -> bool:
+        """A fix from the marker's pixel ``z`` at time ``t`` (:meth:`estimate` then returns it);
+        ``False`` if the pixel is outside the image or its ray misses the marker plane."""
+        z = as_vector(z, 2, "pixel")
         cam = self.camera
         if not (0.0 <= z[0] < cam.width and 0.0 <= z[1] < cam.height):
-            return None
+            return False
         try:
             p, S = self.position(z)
         except (ValidationError, np.linalg.LinAlgError):
-            return None
+            return False
         heading, var_h = 0.0, math.pi**2 / 3.0
         if self._prev is not None and 0.0 < float(t) - self._prev[0] <= self.max_gap:
             d = p - self._prev[1]
@@ -107,6 +110,11 @@ class EnvironmentCameraLocalizer:
         cov = np.zeros((3, 3))
         cov[:2, :2] = S
         cov[2, 2] = var_h
-        est = Estimate("env_camera", float(t), np.array([p[0], p[1], heading]), cov, self.reliability(z))
-        self.last = est
-        return est
+        self.last = Estimate("env_camera", float(t), np.array([p[0], p[1], heading]), cov, self.reliability(z))
+        return True
+
+    def estimate(self) -> Estimate:
+        """The latest fix: mean ``(x, y, heading)``, 3 x 3 covariance and the reliability ``R_c``."""
+        if self.last is None:
+            raise NotInitializedError("no fix yet: call update() with a pixel in the image first")
+        return self.last

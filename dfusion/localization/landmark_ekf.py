@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.linalg import cho_factor, cho_solve
 
 from dfusion.estimation.estimate import Estimate
 from dfusion.geometry import wrap_angle
@@ -48,25 +49,27 @@ class LandmarkEKF:
         self.accepted = 0
         self.rejected = 0
 
-    def predict_to(self, t: float) -> None:
-        """Propagate the pose to ``t >= self.t`` with the odometry."""
+    def predict(self, t: float, u: None = None) -> None:
+        """Propagate the pose to ``t`` with the odometry (nothing happens for ``t <= self.t``)."""
         if t <= self.t:
             return
         self.x, F, Q = self.odometry.propagate(self.x, self.t, float(t))
         self.P = symmetrize(F @ self.P @ F.T + Q)
         self.t = float(t)
 
-    def update(self, z: ArrayLike, sensor: MeasurementModel) -> bool:
-        """EKF update with a measurement of the pose (``False`` if gated out)."""
+    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> bool:
+        """EKF update with a measurement ``z`` of the pose taken at ``t`` by ``sensor`` (the pose
+        is first propagated to ``t``); ``False`` if gated out."""
+        self.predict(t)
         zz = np.asarray(z, dtype=float).reshape(-1)
         H = sensor.H(self.x)
         nu = sensor.residual(zz, sensor.h(self.x))
-        S = H @ self.P @ H.T + sensor.R
-        Sinv = np.linalg.inv(S)
-        if self.gate is not None and float(nu @ Sinv @ nu) > self.gate:
+        S = symmetrize(H @ self.P @ H.T + sensor.R)
+        c = cho_factor(S)
+        if self.gate is not None and float(nu @ cho_solve(c, nu)) > self.gate:
             self.rejected += 1
             return False
-        K = self.P @ H.T @ Sinv
+        K = cho_solve(c, H @ self.P).T          # P H^T S^-1 (P and S symmetric)
         self.x = self.x + K @ nu
         self.x[2] = float(wrap_angle(self.x[2]))
         IKH = np.eye(3) - K @ H

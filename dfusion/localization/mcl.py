@@ -117,6 +117,7 @@ from dfusion.models.laser import (
 )
 from dfusion.models.odometry import OdometryMotionModel
 from dfusion.reliability import covariance_reliability
+from dfusion.estimation.particle_filter import effective_sample_size, multinomial_resample, systematic_resample
 
 logger = logging.getLogger(__name__)
 
@@ -325,7 +326,7 @@ class MonteCarloLocalization:
     @property
     def n_eff(self) -> float:
         self._require_init()
-        return float(1.0 / np.sum(self._weights**2))
+        return effective_sample_size(self._weights)
 
     def _require_init(self) -> None:
         if self._particles is None:
@@ -389,8 +390,8 @@ class MonteCarloLocalization:
             self._odom_at_time = None
 
     # -- odometry ------------------------------------------------------------------------
-    def add_odometry(self, t: float, pose: ArrayLike) -> None:
-        """Buffer an odometry pose ``(x, y, theta)`` (odometry frame) stamped ``t``.
+    def predict(self, t: float, u: ArrayLike) -> None:
+        """Buffer the odometry pose ``u = (x, y, theta)`` (odometry frame) stamped ``t``.
 
         Time stamps must not decrease (:class:`TimeError`); an equal stamp replaces the
         newest entry. Particles are not moved here (see the module docstring).
@@ -398,7 +399,7 @@ class MonteCarloLocalization:
         t = float(t)
         if not math.isfinite(t):
             raise TimeError(f"odometry time must be finite, got {t}")
-        pose = as_vector(pose, 3, "odometry pose")
+        pose = as_vector(u, 3, "odometry pose")
         if self._odom and t < self._odom[-1][0]:
             raise TimeError(f"odometry time {t} is older than the newest one {self._odom[-1][0]}")
         if self._odom and t == self._odom[-1][0]:
@@ -427,8 +428,8 @@ class MonteCarloLocalization:
         return out
 
     # -- scans ---------------------------------------------------------------------------
-    def add_scan(self, t: float, ranges: ArrayLike) -> bool:
-        """Integrate a laser scan stamped ``t`` (ranges for all ``laser.angles``).
+    def update(self, t: float, z: ArrayLike) -> bool:
+        """Integrate a laser scan ``z`` stamped ``t`` (ranges for all ``laser.angles``).
 
         Returns ``False`` if the scan was skipped (``update_min_d`` / ``update_min_a``),
         ``True`` otherwise. Non-finite ranges and ranges below ``min_range`` are ignored.
@@ -439,7 +440,7 @@ class MonteCarloLocalization:
         t = float(t)
         if not math.isfinite(t):
             raise TimeError(f"scan time must be finite, got {t}")
-        z = np.asarray(ranges, dtype=float).reshape(-1)
+        z = np.asarray(z, dtype=float).reshape(-1)
         if z.size != self.laser.angles.size:
             raise ShapeError(f"scan must have {self.laser.angles.size} ranges, got {z.size}")
         late = False
@@ -553,13 +554,11 @@ class MonteCarloLocalization:
             # i.i.d. draws (with injection) until the KLD bound is met; drawn in growing
             # chunks so that a converged filter does not draw max_particles candidates
             M = self.max_particles
-            cdf = np.cumsum(self._weights)
             cands, injs = [], []
             total = 0
             chunk = min(M, max(self.min_particles, 2 * self._weights.size))
             while True:
-                idx = np.minimum(np.searchsorted(cdf, rng.random(chunk) * cdf[-1], side="right"), cdf.size - 1)
-                c = self._particles[idx]
+                c = self._particles[multinomial_resample(self._weights, rng, chunk)]
                 inj = rng.random(chunk) < p_inject if p_inject > 0 else np.zeros(chunk, dtype=bool)
                 if inj.any():
                     c[inj] = self.grid.sample_free_poses(int(inj.sum()), rng)
@@ -577,10 +576,7 @@ class MonteCarloLocalization:
         else:
             N = self.n_particles
             n_inj = int(rng.binomial(N, p_inject)) if p_inject > 0 else 0
-            cdf = np.cumsum(self._weights)
-            u = (rng.random() + np.arange(N - n_inj)) / max(N - n_inj, 1)  # systematic
-            idx = np.minimum(np.searchsorted(cdf, u * cdf[-1], side="right"), cdf.size - 1)
-            new = self._particles[idx]
+            new = self._particles[systematic_resample(self._weights, rng, N - n_inj)]
             fresh = None
             if n_inj:
                 new = np.concatenate([new, self.grid.sample_free_poses(n_inj, rng)])

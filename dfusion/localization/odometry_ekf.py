@@ -23,7 +23,8 @@ average ``+179 deg`` and ``-179 deg`` to ``0``.
 
 Odometry noise: by default ``Sigma_u = diag(k_d^2 Delta d^2 + s_d^2, k_theta^2 Delta theta^2 +
 k_dtheta^2 Delta d^2 + s_theta^2)`` (error growing with the motion, plus a floor); pass
-``Sigma_u`` to :meth:`OdometryEKF.predict` to override it.
+``Sigma_u`` to :meth:`OdometryEKF.predict` to override it. The filter follows the
+:class:`~dfusion.estimation.Estimator` protocol: ``predict(t, u)``, ``update(t, z, R)``, ``estimate()``.
 
 Optionally a scan-matching pose whose squared Mahalanobis distance to the prediction
 exceeds ``gate`` (chi-square, 3 degrees of freedom) is rejected.
@@ -40,7 +41,6 @@ from dfusion.errors import ShapeError, ValidationError
 from dfusion.estimation.estimate import Estimate
 from dfusion.geometry import wrap_angle
 from dfusion.linalg import Array, as_spd, as_vector, symmetrize
-from dfusion.models.odometry import odometry_increment
 from dfusion.reliability import covariance_reliability
 
 __all__ = [
@@ -127,9 +127,13 @@ class OdometryEKF:
         th = x[2, 0]
         self.ekf.x = np.array([[x[0, 0] + d * math.cos(th)], [x[1, 0] + d * math.sin(th)], [wrap_angle(th + dth)]])
 
-    def predict(self, delta_d: float, delta_theta: float, Sigma_u: ArrayLike | None = None, t: float | None = None) -> None:
-        """Eq. 5-6 with the odometry increment ``(delta_d, delta_theta)``."""
-        d, dth = float(delta_d), float(delta_theta)
+    def predict(self, t: float | None, u: ArrayLike, Sigma_u: ArrayLike | None = None) -> None:
+        """Eq. 5-6 with the odometry increment ``u = (delta_d, delta_theta)`` that ends at time ``t``
+        (``None``: the filter's time does not change, for an increment split in parts).
+
+        :func:`dfusion.models.odometry_increment` gives ``u`` from two odometry poses.
+        """
+        d, dth = (float(v) for v in np.asarray(u, dtype=float).reshape(2))
         if not (math.isfinite(d) and math.isfinite(dth)):
             raise ValidationError("odometry increment must be finite")
         Su = self.odometry_covariance(d, dth) if Sigma_u is None else np.asarray(Sigma_u, dtype=float)
@@ -144,16 +148,12 @@ class OdometryEKF:
         if t is not None:
             self.t = float(t)
 
-    def predict_odometry(self, odom0: ArrayLike, odom1: ArrayLike, t: float | None = None) -> None:
-        """Predict with the increment between two odometry poses (:func:`odometry_increment`)."""
-        d, dth = odometry_increment(odom0, odom1)
-        self.predict(d, dth, t=t)
-
     # -- update (eq. 7-8) --------------------------------------------------------------
-    def update(self, pose: ArrayLike, cov: ArrayLike) -> bool:
-        """Fuse a scan-matching pose ``x_s`` with covariance ``Sigma_s``; ``False`` if gated out."""
-        z = as_vector(pose, 3, "scan-matching pose")
-        R = as_spd(cov, 3, "scan-matching covariance")
+    def update(self, t: float | None, z: ArrayLike, R: ArrayLike) -> bool:
+        """Fuse a scan-matching pose ``z = x_s`` with covariance ``R = Sigma_s`` matched at time ``t``
+        (the filter's time: odometry moves the pose, not the match); ``False`` if gated out."""
+        z = as_vector(z, 3, "scan-matching pose")
+        R = as_spd(R, 3, "scan-matching covariance")
         if self.gate is not None:
             nu = z - self.x
             nu[2] = wrap_angle(nu[2])

@@ -398,20 +398,22 @@ def weighted_centroid(track: Track, receiver_positions: Array, window: float = 2
 
 
 def run_tracker(track: Track, tracker, initialize: bool = True) -> Array:
-    """Run a :class:`dfusion.pf.WSNTracker` over a track packet by packet.
+    """Run a :class:`dfusion.localization.WSNTracker` over a track packet by packet.
 
-    For each row: predict over the time since the previous row, update with that
-    row's single reading, record the weighted-mean position. Returns ``(K, 2)``.
+    For each row: predict to its time, update with that row's single reading, record the
+    weighted-mean position. The tracker starts at the first row's time (initialized
+    here, uniformly over its map, unless ``initialize=False``). Returns ``(K, 2)``.
     """
     if initialize:
-        tracker.initialize()
+        tracker.initialize(t=float(track.t[0]))
+    else:
+        tracker.time = float(track.t[0])
     est = np.empty((len(track), 2))
-    t_prev = track.t[0]
     for k in range(len(track)):
-        tracker.predict(track.t[k] - t_prev)
-        t_prev = track.t[k]
-        tracker.update(track.rssi[k:k + 1], track.receiver[k:k + 1])
-        est[k] = tracker.estimate()
+        t = float(track.t[k])
+        tracker.predict(t)
+        tracker.update(t, track.rssi[k:k + 1], track.receiver[k:k + 1])
+        est[k] = tracker.estimate().mean
     return est
 
 

@@ -64,6 +64,8 @@ from dfusion.maps.grid import OccupancyGrid as MapGrid
 from dfusion.maps.lattice import NodeLattice, as_map_grid
 from dfusion.models.measurement import RSSISensor
 from dfusion.models.motion import ConstantVelocity
+from dfusion.estimation.estimate import Estimate
+from dfusion.reliability import covariance_reliability
 
 __all__ = [
     "WSNTracker",
@@ -246,6 +248,8 @@ class WSNTracker:
         #: Moves refused by the map (cumulative) and steps in which every move was refused.
         self.n_refused = 0
         self.n_all_refused = 0
+        #: Time of the particles (set by :meth:`initialize`).
+        self.time: float | None = None
 
     def __repr__(self) -> str:
         return (f"WSNTracker(receivers={self.n_receivers}, n_particles={self.n_particles}, motion={self.motion!r}, "
@@ -253,8 +257,8 @@ class WSNTracker:
 
     # ------------------------------------------------------------ set-up
     def initialize(self, mean: ArrayLike | None = None, cov: ArrayLike | None = None,
-                   speed_std: float = 0.5) -> None:
-        """Draw the initial particles.
+                   speed_std: float = 0.5, t: float = 0.0) -> None:
+        """Draw the initial particles, at time ``t``.
 
         Without ``mean``: uniform over the grid's free area (or ``bounds``). With
         ``mean`` and ``cov`` (2 x 2): Gaussian positions; with a grid, samples in
@@ -289,6 +293,7 @@ class WSNTracker:
         self.pf.roughening_dims = (0, 1)  # jitter positions only
         self._prior_snap = self._snapshot()
         self._post_snap = self._prior_snap
+        self.time = float(t)
 
     @property
     def rng(self) -> np.random.Generator:
@@ -306,12 +311,12 @@ class WSNTracker:
 
     def _fit(self) -> tuple[Array, Array]:
         pf = self._require()
-        return weighted_mean_cov(pf._x[:, :2], np.exp(pf._lw))
+        return weighted_mean_cov(pf.particles[:, :2], pf.weights)
 
     def _snapshot(self) -> tuple[Array, Array]:
         # The filter replaces its arrays instead of writing into them, so references suffice.
         pf = self._require()
-        return pf._x, pf._lw
+        return pf.particles, pf.log_weights
 
     # -------------------------------------------------------- prediction
     def _accept(self, old: Array, new: Array) -> np.ndarray:
@@ -319,19 +324,22 @@ class WSNTracker:
             return np.ones(old.shape[0], dtype=bool)
         return ~self._map.segment_blocked(old[:, :2], new[:, :2])
 
-    def predict(self, dt: float) -> int:
-        """Move the particles over ``dt`` seconds; returns how many moves the map refused.
+    def predict(self, t: float, u: None = None) -> int:
+        """Move the particles to time ``t`` (not before their time); returns how many moves
+        the map refused.
 
         The Gaussian fit of the prediction (after the map constraint, which is part
         of the motion model) is stored for :meth:`information_contribution`.
         """
         pf = self._require()
-        dt = float(dt)
+        t = float(t)
+        dt = t - self.time
         if not (np.isfinite(dt) and dt >= 0):
-            raise ValidationError(f"dt must be finite and >= 0, got {dt}")
+            raise ValidationError(f"cannot predict the particles from t={self.time} back to t={t}")
+        self.time = t
         refused = 0
         if dt > 0:
-            x = pf._x
+            x = pf.particles
             n = x.shape[0]
             if self.motion == "random_walk":
                 new = x + pf.rng.standard_normal((n, 2)) * np.sqrt(self.q * dt)
@@ -368,7 +376,7 @@ class WSNTracker:
         receivers. ``particles`` defaults to the filter's own.
         """
         z, j = self._readings(rssi, receivers)
-        x = self._require()._x if particles is None else np.asarray(particles, dtype=float)
+        x = self._require().particles if particles is None else np.asarray(particles, dtype=float)
         if x.ndim != 2 or x.shape[1] < 2:
             raise ShapeError(f"particles must have shape (N, >= 2), got {x.shape}")
         if j.size == 0:
@@ -419,14 +427,17 @@ class WSNTracker:
         keep = np.isfinite(z)
         return z[keep], j[keep].astype(np.int64)
 
-    def update(self, rssi: ArrayLike, receivers: ArrayLike | None = None) -> int:
-        """Weight the particles by RSSI readings (see :meth:`log_likelihood`), then resample if needed.
+    def update(self, t: float, rssi: ArrayLike, receivers: ArrayLike | None = None) -> int:
+        """Weight the particles by RSSI readings taken at ``t`` (see :meth:`log_likelihood`),
+        then resample if needed.
 
-        Returns the number of readings used (missing ones are skipped). The Gaussian
-        fit of the posterior (before resampling) is stored for
-        :meth:`information_contribution`.
+        The particles are first predicted to ``t`` if they are older. Returns the number of
+        readings used (0: none; missing ones are skipped). The Gaussian fit of the
+        posterior (before resampling) is stored for :meth:`information_contribution`.
         """
         pf = self._require()
+        if t > self.time:
+            self.predict(t)
         z, j = self._readings(rssi, receivers)
         if j.size:
             pf.update(self.log_likelihood(z, j))
@@ -449,17 +460,12 @@ class WSNTracker:
         pf = self._require()
         if not isinstance(info, InformationGaussian) or info.dim != 2:
             raise ShapeError("reweight_information needs a 2-D InformationGaussian over (x, y)")
-        p = pf._x[:, :2]
+        p = pf.particles[:, :2]
         ll = p @ info.eta - 0.5 * np.einsum("ij,jk,ik->i", p, info.Omega, p)
         pf.update(ll)
         # Not a measurement of this node: fold it into the prediction side of the contribution.
         self._prior_snap = self._post_snap = self._snapshot()
         pf.resample_if_needed(accept=self._accept if self.grid is not None else None)
-
-    def step(self, dt: float, rssi: ArrayLike, receivers: ArrayLike | None = None) -> int:
-        """:meth:`predict` then :meth:`update`."""
-        self.predict(dt)
-        return self.update(rssi, receivers)
 
     # ----------------------------------------------------------- outputs
     @property
@@ -472,14 +478,11 @@ class WSNTracker:
         """Normalized particle weights."""
         return self._require().weights
 
-    def gaussian_summary(self) -> tuple[Array, Array]:
-        """Weighted mean and covariance of the position ``(x, y)``."""
-        return self._fit()
-
-    def estimate(self) -> Array:
-        """Weighted mean position ``(x, y)``."""
+    def estimate(self) -> Estimate:
+        """Weighted mean and covariance of the position ``(x, y)`` (the tracker's own readings only)."""
         pf = self._require()
-        return np.exp(pf._lw) @ pf._x[:, :2]
+        mean, cov = self._fit()
+        return Estimate("wsn", self.time, mean, cov, covariance_reliability(cov), n_particles=pf.n, n_eff=pf.ess)
 
     def information_contribution(self, rtol: float = 1e-9) -> InformationGaussian:
         """What this node's RSSI readings added, as information on ``(x, y)`` (DESIGN.md sec. 4).
