@@ -35,11 +35,9 @@ import platform
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import filterpy  # noqa: E402
 from filterpy.kalman import KalmanFilter  # noqa: E402

@@ -33,6 +33,7 @@ Only the accuracy tables:  ``--no-timing``. ``--strict``: exit status 1 when the
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 import statistics
@@ -43,13 +44,22 @@ from pathlib import Path
 import numpy as np
 from dfusion.maps.buildings import rooms
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.models import BeamErfcModel, LaserConfig, LikelihoodFieldModel  # noqa: E402
 from dfusion.localization import MonteCarloLocalization  # noqa: E402
 from dfusion.localization import scan_to_points, ScanMatcher  # noqa: E402
 from dfusion.models.laser import _laser_poses_grid  # noqa: E402
-from dfusion.maps import cast_rays, OccupancyGrid, RayCastTable  # noqa: E402
+from dfusion.maps import cast_rays, RayCastTable  # noqa: E402
+
+
+
+def _load_example(name: str):
+    """``examples/<name>.py`` as a module (the benchmark reuses the examples' pipelines)."""
+    spec = importlib.util.spec_from_file_location(f"example_{name}", Path(__file__).resolve().parents[1] / "examples" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def timed(fn, repeats: int, warmup: int = 2) -> float:
@@ -98,8 +108,7 @@ def main() -> int:
 
 
 def carmen_table(log: Path) -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    import carmen_localization as ex  # noqa: PLC0415
+    ex = _load_example("carmen_localization")
 
     ap = argparse.Namespace(log=log, max_scans=None, seed=0, resolution=0.05, map_range=30.0, laser_range=30.0,
                             odom_noise=1.0)
@@ -116,8 +125,7 @@ def carmen_table(log: Path) -> None:
 
 
 def mrclam_table(root: Path, duration: float) -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    import mrclam_tracking as ex  # noqa: PLC0415
+    ex = _load_example("mrclam_tracking")
 
     res = {}
     for model in ("cv", "odometry"):

@@ -46,7 +46,6 @@ from dfusion.maps.buildings import rooms
 from dfusion.geometry import se2_between
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.estimation import Estimate  # noqa: E402
@@ -334,7 +333,7 @@ def similarity(n: int, batches: int) -> list[tuple[str, float]]:
     from scipy.spatial import cKDTree
 
     from dfusion.localization import scan_to_points
-    from dfusion.maps import cast_rays, OccupancyGrid
+    from dfusion.maps import cast_rays
     
     g = rooms(16.0, 10.0, 3, 2, seed=2)
     ang = np.linspace(-math.pi, math.pi, 720, endpoint=False)

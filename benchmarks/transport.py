@@ -48,7 +48,6 @@ import msgpack
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.models import ConstantVelocity, PositionSensor  # noqa: E402

@@ -65,14 +65,12 @@ from pathlib import Path
 import numpy as np
 from dfusion.maps.mapping import grid_from_scans
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.datasets import read_carmen  # noqa: E402
 from dfusion.errors import DfusionError, ValidationError  # noqa: E402
 from dfusion.models import LaserConfig, LikelihoodFieldModel, OdometryMotionModel
 from dfusion.localization import MonteCarloLocalization, OdometryEKF, scan_to_points, ScanMatcher
 from dfusion.geometry import se2_between, se2_compose  # noqa: E402
-from dfusion.maps import OccupancyGrid  # noqa: E402
 from dfusion.geometry import wrap_angle  # noqa: E402
 
 #: Simulated odometry noise: translation scale error (fraction), heading error per radian

@@ -49,14 +49,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.estimation import Estimate  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402

@@ -51,14 +51,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from dfusion.maps.buildings import corridor, repetitive_corridor
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.models import LaserConfig, OdometryMotionModel  # noqa: E402
 from dfusion.localization import MonteCarloLocalization  # noqa: E402

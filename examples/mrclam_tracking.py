@@ -81,7 +81,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.datasets import integrate_odometry, mean_velocities, read_mrclam  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -36,7 +35,6 @@ from scipy.stats import spearmanr
 from dfusion.maps.buildings import rooms
 from dfusion.geometry import se2_between
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.localization import scan_to_points  # noqa: E402
 from dfusion.maps import cast_rays, OccupancyGrid  # noqa: E402

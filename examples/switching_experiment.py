@@ -55,7 +55,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,7 +62,6 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.estimation import Estimate  # noqa: E402

@@ -1,10 +1,6 @@
 import os
-import sys
-from pathlib import Path
 
 from hypothesis import settings
-
-sys.path.insert(0, str(Path(__file__).parent))
 
 # CI runs the property tests on a fixed sequence of examples (derandomize) so that a
 # rare random draw cannot turn a clean clone red; a developer's `make test` explores

@@ -22,7 +22,7 @@ from dfusion.errors import ValidationError
 from dfusion.models import fit_path_loss, RSSISensor
 from dfusion.localization import fit_radio_map, kernel_residual_map, RadioMap, WSNTracker
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SLICE = ROOT / "tests" / "data" / "ble_rssi"
 TRACK = SLICE / "trk" / "straight_03_all_sensors.mbd"
 EXAMPLE = ROOT / "examples" / "ble_rssi_tracking.py"

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from tests.helpers.examples import load_example
+
+ROOT = Path(__file__).resolve().parents[2]
 SLICE = ROOT / "tests" / "data" / "carmen" / "intel-160scans.log.gz"
 EXAMPLE = ROOT / "examples" / "carmen_localization.py"
-sys.path.insert(0, str(ROOT / "examples"))
-
-import carmen_localization as carmen  # noqa: E402
+carmen = load_example("carmen_localization")
 
 
 @pytest.fixture(scope="module")

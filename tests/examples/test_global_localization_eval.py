@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
-EXAMPLE = ROOT / "examples" / "global_localization_eval.py"
-sys.path.insert(0, str(ROOT / "examples"))
+from tests.helpers.examples import load_example
 
-import global_localization_eval as gle  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "global_localization_eval.py"
+gle = load_example("global_localization_eval")
 
 
 def test_score_follows_the_protocol():

@@ -19,7 +19,7 @@ import pytest
 from dfusion.datasets import integrate_odometry, mean_velocities, read_mrclam
 from dfusion.errors import ValidationError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SLICE = ROOT / "tests" / "data" / "mrclam"
 EXAMPLE = ROOT / "examples" / "mrclam_tracking.py"
 

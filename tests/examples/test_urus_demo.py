@@ -13,7 +13,7 @@ import pytest
 from dfusion.scenario import load_scenario
 from dfusion.sim import simulate_world
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "topologies" / "urus.scenario.toml"
 
 

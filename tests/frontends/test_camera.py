@@ -101,7 +101,7 @@ WORLD_DIGESTS = {
 def test_existing_scenarios_produce_the_same_worlds_as_before_clutter(path):
     from pathlib import Path
 
-    w = simulate_world(load_scenario(Path(__file__).parent.parent / path))
+    w = simulate_world(load_scenario(Path(__file__).resolve().parents[2] / path))
     assert not any(m.clutter for m in w.measurements)
     assert _digest(w) == WORLD_DIGESTS[path]
 

@@ -23,7 +23,7 @@ from dfusion.sim import run_scenario
 from dfusion.scenario import load_scenario
 from dfusion.sim import simulate_world
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 RECEIVERS = [[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [0.0, 12.0], [10.0, 12.0], [20.0, 12.0]]
 
 

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from dfusion.fusion import FusionNode
 from dfusion.models import ConstantVelocity, PositionSensor
 
-from fusion_harness import P0, Q_PSD, central_kalman
+from tests.helpers.fusion_harness import P0, Q_PSD, central_kalman
 
 DT = 0.1
 STEPS = 20

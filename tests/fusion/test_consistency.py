@@ -14,7 +14,7 @@ from dfusion.metrics import nees
 from dfusion.sim import run_scenario
 from dfusion.scenario import load_scenario
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 RUNS = 12
 
 

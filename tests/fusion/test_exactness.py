@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fusion_harness import Schedule, central_kalman, random_tree, run_network
+from tests.helpers.fusion_harness import Schedule, central_kalman, random_tree, run_network
 
 
 def rel_err(a, b):

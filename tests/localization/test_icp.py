@@ -14,7 +14,7 @@ from dfusion.geometry import se2_compose
 from dfusion.localization import estimate_normals, icp, scan_to_points, ScanMatcher
 from dfusion.localization import OdometryEKF
 from dfusion.models import odometry_increment
-from dfusion.maps import cast_rays, OccupancyGrid
+from dfusion.maps import cast_rays
 from dfusion.geometry import wrap_angle
 from dfusion.maps.buildings import rooms
 

@@ -15,7 +15,7 @@ from dfusion.localization import kld_sample_size, MonteCarloLocalization
 from dfusion.estimation import gaussian_summary
 from dfusion.reliability import covariance_reliability
 from dfusion.geometry import se2_between, se2_compose, se2_inverse
-from dfusion.maps import cast_rays, OccupancyGrid
+from dfusion.maps import cast_rays
 from dfusion.geometry import wrap_angle
 from dfusion.maps.buildings import rooms
 

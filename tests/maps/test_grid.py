@@ -17,7 +17,7 @@ from dfusion.maps.buildings import corridor, repetitive_corridor, rooms
 from dfusion.maps.mapping import grid_from_scans
 from dfusion.maps.io import read_map_yaml, write_map_yaml
 
-DATA = Path(__file__).parent / "data" / "carmen"
+DATA = Path(__file__).resolve().parents[1] / "data" / "carmen"
 
 
 # ----------------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from dfusion.sim import run_scenario  # noqa: E402
 from dfusion.scenario import load_scenario  # noqa: E402
 from dfusion.transport.zenoh import link_key, open_session, ZenohConfig  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 CHAIN3 = """
 duration = {duration}

@@ -129,7 +129,7 @@ def test_the_command_line_prints_one_line_and_exits_2(tmp_path, capsys):
 
 
 def test_shipped_scenarios_are_strictly_valid():
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     for path in sorted((root / "topologies").glob("*.scenario.toml")) + sorted((root / "tests" / "data").rglob("*.scenario.toml")):
         sc = load_scenario(path)
         assert sc.nodes, path

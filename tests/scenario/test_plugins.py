@@ -17,9 +17,8 @@ from dfusion.cli import main
 from dfusion.errors import ScenarioError
 from dfusion.scenario import builtin_kinds, load_plugin, load_scenario
 from dfusion.scenario import plugins as plugins_module
-from dfusion.sim import run_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PLUGIN = ROOT / "tests" / "data" / "plugins" / "range_beacon.py"
 SCENARIO = ROOT / "tests" / "data" / "plugins" / "beacons.scenario.toml"
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # A camera node (its front end reports the source "camera" after each fused detection,
 # with the eq. 1-9 reliability) and a relay; the target crosses the camera's view.

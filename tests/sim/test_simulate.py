@@ -16,7 +16,7 @@ from dfusion.sim import run_scenario
 from dfusion.scenario import load_scenario
 from dfusion.sim import simulate_world
 
-ROOT = Path(__file__).parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted((ROOT / "topologies").glob("*.scenario.toml"))
 
 

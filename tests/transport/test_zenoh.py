@@ -18,7 +18,7 @@ from dfusion.errors import ValidationError  # noqa: E402
 from dfusion.transport.zenoh import ZenohConfig, ZenohTransport  # noqa: E402
 from dfusion.transport.zenoh import free_tcp_endpoints, link_key, open_session  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 _count = iter(range(10**6))
 
 
