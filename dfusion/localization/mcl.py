@@ -104,7 +104,12 @@ from dfusion.errors import (
     ValidationError,
 )
 from dfusion.estimation.estimate import Estimate
-from dfusion.estimation.particle_filter import gaussian_summary
+from dfusion.estimation.particle_filter import (
+    effective_sample_size,
+    gaussian_summary,
+    multinomial_resample,
+    systematic_resample,
+)
 from dfusion.geometry import se2_between, se2_compose, se2_inverse, wrap_angle
 from dfusion.linalg import Array, as_vector
 from dfusion.maps.grid import OccupancyGrid
@@ -113,11 +118,10 @@ from dfusion.models.laser import (
     BeamErfcModel,
     LaserConfig,
     LikelihoodFieldModel,
-    _laser_poses_grid,
+    laser_grid_poses,
 )
 from dfusion.models.odometry import OdometryMotionModel
 from dfusion.reliability import covariance_reliability
-from dfusion.estimation.particle_filter import effective_sample_size, multinomial_resample, systematic_resample
 
 logger = logging.getLogger(__name__)
 
@@ -474,7 +478,7 @@ class MonteCarloLocalization:
         zb, ab = zb[ok], ab[ok]
         if zb.size == 0:
             return False
-        lp = _laser_poses_grid(self.grid, eval_poses, self.laser.offset)
+        lp = laser_grid_poses(self.grid, eval_poses, self.laser.offset)
         ll, n_terms = self.sensor.log_likelihood(lp, zb, ab)
         self._apply_likelihood(ll, n_terms)
         if not late:

@@ -38,7 +38,7 @@ casts rays.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -145,6 +145,14 @@ class OccupancyGrid:
     def size(self) -> tuple[float, float]:
         """Map extent ``(width_m, height_m)`` in metres."""
         return self.width * self.resolution, self.height * self.resolution
+
+    def cached(self, key: str, build: Callable[[], Any]) -> Any:
+        """``build()``, computed once per grid and kept under ``key`` (for tables derived
+        from the grid by other modules, such as the ray caster's distance field; the grid's
+        cells must not change afterwards)."""
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self._cache[key]
 
     @property
     def occupied(self) -> np.ndarray:

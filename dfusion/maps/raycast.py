@@ -84,16 +84,13 @@ def _poses_and_angles(poses: ArrayLike, angles: ArrayLike) -> tuple[Array, Array
 
 def _blocking_field(grid: OccupancyGrid, unknown_blocks: bool) -> tuple[np.ndarray, np.ndarray]:
     """Flat blocking mask and flat distance field (cells) to the nearest blocking centre."""
-    key = f"_raycast_fields_{bool(unknown_blocks)}"
-    cache = grid._cache  # noqa: SLF001  (cache owned by the grid, keyed per module)
-    if key not in cache:
+
+    def build() -> tuple[np.ndarray, np.ndarray]:
         blk = grid.blocking(unknown_blocks)
-        if blk.any():
-            df = distance_transform_edt(~blk)
-        else:
-            df = np.full(blk.shape, np.inf)
-        cache[key] = (blk.reshape(-1).copy(), df.reshape(-1).astype(np.float64))
-    return cache[key]
+        df = distance_transform_edt(~blk) if blk.any() else np.full(blk.shape, np.inf)
+        return blk.reshape(-1).copy(), df.reshape(-1).astype(np.float64)
+
+    return grid.cached(f"raycast_fields_{bool(unknown_blocks)}", build)
 
 
 def cast_rays(

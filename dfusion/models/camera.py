@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from dfusion.errors import ValidationError
-from dfusion.linalg import Array, as_matrix, as_vector
+from dfusion.linalg import Array, as_finite, as_matrix, as_positive, as_vector
 from dfusion.models.base import MeasurementModel
-from dfusion.models.measurement import _finite, _position_state, _positive
+from dfusion.models.measurement import position_state
 
 
 def _image_size(value: int, name: str) -> int:
@@ -94,15 +94,15 @@ class PinholeCamera(MeasurementModel):
         if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6 or np.linalg.det(R) <= 0:
             raise ValidationError("PinholeCamera R_wc must be a rotation matrix (orthonormal, det = +1)")
         self.R_wc = R
-        self.fx = _positive(fx, "PinholeCamera fx")
-        self.fy = _positive(fy, "PinholeCamera fy")
-        self.cx = _finite(cx, "PinholeCamera cx")
-        self.cy = _finite(cy, "PinholeCamera cy")
+        self.fx = as_positive(fx, "PinholeCamera fx")
+        self.fy = as_positive(fy, "PinholeCamera fy")
+        self.cx = as_finite(cx, "PinholeCamera cx")
+        self.cy = as_finite(cy, "PinholeCamera cy")
         self.width = _image_size(width, "PinholeCamera width")
         self.height = _image_size(height, "PinholeCamera height")
-        self.pixel_std = _positive(pixel_std, "PinholeCamera pixel_std")
-        self.point_height = _finite(point_height, "PinholeCamera point_height")
-        self.min_depth = _positive(min_depth, "PinholeCamera min_depth")
+        self.pixel_std = as_positive(pixel_std, "PinholeCamera pixel_std")
+        self.point_height = as_finite(point_height, "PinholeCamera point_height")
+        self.min_depth = as_positive(min_depth, "PinholeCamera min_depth")
         self._R = self.pixel_std**2 * np.eye(2)
 
     @classmethod
@@ -160,7 +160,7 @@ class PinholeCamera(MeasurementModel):
 
     def camera_point(self, x: Array) -> Array:
         """The observed point in the camera frame, ``p_c = R_wc^T (p_w - C)`` (m)."""
-        x = _position_state(x, "PinholeCamera")
+        x = position_state(x, "PinholeCamera")
         p_w = np.array([x[0], x[1], self.point_height])
         return self.R_wc.T @ (p_w - self.position)
 
@@ -179,7 +179,7 @@ class PinholeCamera(MeasurementModel):
         return self._pixel(p_c)
 
     def H(self, x: Array) -> Array:
-        n = _position_state(x, "PinholeCamera").shape[0]
+        n = position_state(x, "PinholeCamera").shape[0]
         X, Y, Z = p_c = self.camera_point(x)
         self._check_depth(p_c)
         J_proj = np.array([[self.fx / Z, 0.0, -self.fx * X / Z**2], [0.0, self.fy / Z, -self.fy * Y / Z**2]])

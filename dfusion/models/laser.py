@@ -46,7 +46,7 @@ from dfusion.maps.grid import OccupancyGrid
 from dfusion.maps.raycast import RayCastTable, cast_rays
 from dfusion.models.base import MeasurementModel
 
-__all__ = ["LaserConfig", "BeamErfcModel", "LikelihoodFieldModel", "LaserScanSensor"]
+__all__ = ["LaserConfig", "BeamErfcModel", "LikelihoodFieldModel", "LaserScanSensor", "laser_grid_poses"]
 
 
 @dataclass(frozen=True)
@@ -93,8 +93,9 @@ class LaserConfig:
         return cls(angles, max_range, **kw)
 
 
-def _laser_poses_grid(grid: OccupancyGrid, particles: Array, offset: Array) -> Array:
-    """Grid-frame laser poses for robot particles (world frame)."""
+def laser_grid_poses(grid: OccupancyGrid, particles: Array, offset: Array) -> Array:
+    """Poses of a laser mounted at ``offset`` (robot frame) on robots at ``particles`` (world
+    frame, ``(N, 3)``), in the grid frame of ``grid``."""
     if np.any(offset != 0.0):
         particles = se2_compose(particles, offset)
     return grid.pose_to_grid(particles)

@@ -41,9 +41,7 @@ from numpy.typing import ArrayLike
 
 from dfusion.errors import ShapeError, ValidationError
 from dfusion.geometry import wrap_angle
-from dfusion.linalg import Array, as_positive, as_spd, as_vector, symmetrize
-from dfusion.linalg import as_finite as _finite
-from dfusion.linalg import as_positive as _positive
+from dfusion.linalg import Array, as_finite, as_positive, as_spd, as_vector, symmetrize
 from dfusion.models.base import MeasurementModel
 
 
@@ -87,7 +85,7 @@ class PositionSensor(MeasurementModel):
         return self._R
 
 
-def _position_state(x: Array, who: str) -> Array:
+def position_state(x: Array, who: str) -> Array:
     """``x`` as a finite float vector with at least two (position) components."""
     x = as_vector(x, name=f"{who} state x")
     if x.shape[0] < 2:
@@ -130,8 +128,8 @@ class RangeBearing(MeasurementModel):
 
     def __init__(self, sensor_pose: Array, range_std: float, bearing_std: float) -> None:
         self.sensor_pose = as_vector(sensor_pose, 3, "RangeBearing sensor_pose (x, y, theta)")
-        self.range_std = _positive(range_std, "RangeBearing range_std")
-        self.bearing_std = _positive(bearing_std, "RangeBearing bearing_std")
+        self.range_std = as_positive(range_std, "RangeBearing range_std")
+        self.bearing_std = as_positive(bearing_std, "RangeBearing bearing_std")
         self._R = np.diag([self.range_std**2, self.bearing_std**2])
 
     def __repr__(self) -> str:
@@ -141,12 +139,12 @@ class RangeBearing(MeasurementModel):
         )
 
     def h(self, x: Array) -> Array:
-        x = _position_state(x, "RangeBearing")
+        x = position_state(x, "RangeBearing")
         dx, dy = x[0] - self.sensor_pose[0], x[1] - self.sensor_pose[1]
         return np.array([np.hypot(dx, dy), wrap_angle(np.arctan2(dy, dx) - self.sensor_pose[2])])
 
     def H(self, x: Array) -> Array:
-        x = _position_state(x, "RangeBearing")
+        x = position_state(x, "RangeBearing")
         dx, dy = x[0] - self.sensor_pose[0], x[1] - self.sensor_pose[1]
         r2 = dx * dx + dy * dy
         r = np.sqrt(r2)
@@ -221,11 +219,11 @@ class RSSISensor(MeasurementModel):
             raise ValidationError("RSSISensor receivers contain NaN or inf")
         self.dim_z = rec.shape[0]
         self.receivers = rec
-        self.p0 = _finite(p0, "RSSISensor p0")
-        self.exponent = _positive(exponent, "RSSISensor exponent")
-        self.d0 = _positive(d0, "RSSISensor d0")
-        self.height = _finite(height, "RSSISensor height")
-        self.d_min = _positive(d_min, "RSSISensor d_min")
+        self.p0 = as_finite(p0, "RSSISensor p0")
+        self.exponent = as_positive(exponent, "RSSISensor exponent")
+        self.d0 = as_positive(d0, "RSSISensor d0")
+        self.height = as_finite(height, "RSSISensor height")
+        self.d_min = as_positive(d_min, "RSSISensor d_min")
         try:
             s = np.broadcast_to(np.asarray(std, dtype=float), (self.dim_z,)).copy()
         except (TypeError, ValueError):
@@ -246,7 +244,7 @@ class RSSISensor(MeasurementModel):
 
     def _offsets(self, x: Array) -> tuple[int, Array, Array, Array]:
         """State length, horizontal offsets ``(m, 2)``, clamped distances ``(m,)``, clamp mask."""
-        x = _position_state(x, "RSSISensor")
+        x = position_state(x, "RSSISensor")
         diff = x[:2] - self.receivers[:, :2]
         d = np.sqrt(np.einsum("ij,ij->i", diff, diff) + self._dz2)
         clamped = d < self.d_min
@@ -294,7 +292,7 @@ def fit_path_loss(distances: Array, rssi: Array, d0: float = 1.0) -> tuple[float
     """
     d = as_vector(distances, name="fit_path_loss distances")
     z = as_vector(rssi, d.shape[0], "fit_path_loss rssi")
-    d0 = _positive(d0, "fit_path_loss d0")
+    d0 = as_positive(d0, "fit_path_loss d0")
     if np.any(d <= 0):
         raise ValidationError("fit_path_loss distances must be positive")
     if d.shape[0] < 3:
