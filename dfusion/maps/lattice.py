@@ -75,7 +75,7 @@ class NodeLattice:
     # -------------------------------------------------------------- loading
     @classmethod
     def from_occ_file(cls, path: str | Path, occupied_value: int = 1) -> "NodeLattice":
-        """Read a ``.occ`` grid (see :meth:`dfusion.maps.OccupancyGrid.from_occ_file`)."""
+        """Read a ``.occ`` grid (see :func:`dfusion.maps.io.read_occ`)."""
         return cls.from_map(read_occ(path, occupied_value))
 
     # ---------------------------------------------------------- conventions

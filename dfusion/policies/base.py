@@ -6,7 +6,7 @@ quantity (its own localizers, say). A :class:`Policy` decides the node's output
 from them. :class:`InformationFusionPolicy`, the default, outputs the fused
 estimate. Switching policies (the switching paper's greedy rule with a
 punishment, hysteresis on a similarity rate, blending) implement the same
-interface (DESIGN.md sec. 7).
+interface (``docs/background.md#6-policies-switching-alongside-fusion``).
 """
 from __future__ import annotations
 
