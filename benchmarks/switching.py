@@ -6,7 +6,7 @@
    current one by more than ``P``), then calls ``output()``; the delay is the wall time
    from the first ``report_source`` to ``output()`` returning the new source
    (``time.perf_counter``). Also: the same without a switch, each policy's ``decide``,
-   and a failure detected by the :class:`~dfusion.switching.Supervisor` (health callback
+   and a failure detected by the :class:`~dfusion.policies.Supervisor` (health callback
    false -> error -> forced switch at the node's output). Goal: below 1 ms (the
    switching paper measured 135 ms for reconnecting an RT-middleware data port).
 2. **Switch delay, across processes, over Zenoh** (peer mode, loopback, express, the
