@@ -134,7 +134,7 @@ def resolve(name: str, module: str, cls: type | None = None) -> bool:
     if "<" in name:  # "text <target>" form
         name = name.rsplit("<", 1)[1].rstrip(">")
     if name.startswith("."):  # relative to the package (of a module docstring's module)
-        base = module if hasattr(sys.modules[module], "__path__") else module.rpartition(".")[0]
+        base = module if hasattr(importlib.import_module(module), "__path__") else module.rpartition(".")[0]
         while name.startswith(".."):
             name, base = name[1:], base.rpartition(".")[0]
         name = base + name
@@ -144,13 +144,13 @@ def resolve(name: str, module: str, cls: type | None = None) -> bool:
     scopes: list[object] = []
     if cls is not None:
         scopes.append(cls)
-    mod = sys.modules[module]
+    mod = importlib.import_module(module)
     scopes.append(mod)
     scopes.append(builtins)
     pkg = module
     while "." in pkg:
         pkg = pkg.rpartition(".")[0]
-        scopes.append(sys.modules[pkg])
+        scopes.append(importlib.import_module(pkg))
     if any(_getattr_chain(scope, parts) is not _MISSING for scope in scopes):
         return True
     # a name quoted as a string value of the module (an entry-point group, a logger name)
@@ -210,6 +210,28 @@ def unresolved_names_in_markdown(paths: list[Path]) -> list[str]:
             for name in _MD_QUALIFIED.findall(line):
                 if name not in constants and _import_path(name) is _MISSING:
                     bad.append(f"{path}:{lineno}: {name}")
+    return bad
+
+
+#: Repository paths in Markdown code spans: ``dfusion/x.py``, ``tests/t.py::test_name``, ``docs/a.md#part``.
+_MD_PATH = re.compile(r"`((?:dfusion|tests|examples|benchmarks|docs|topologies|nodes)/[\w./-]+?"
+                      r"\.(?:py|md|toml|gz|log|npz|json))(?:::(\w+))?(?:#[\w-]+)?`")
+
+
+def missing_paths_in_markdown(paths: list[Path], root: Path) -> list[str]:
+    """``"file:line: path"`` for every repository file quoted in a Markdown code span that
+    does not exist (or whose ``::name`` is not defined in it). Placeholders such as
+    ``topologies/x.toml`` are the caller's to leave out."""
+    bad = []
+    for path in paths:
+        for lineno, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+            for rel, name in _MD_PATH.findall(line):
+                target = Path(root) / rel
+                if not target.is_file():
+                    bad.append(f"{path}:{lineno}: {rel}")
+                elif name and not re.search(rf"^\s*(?:async\s+)?(?:def|class)\s+{name}\b",
+                                            target.read_text(encoding="utf-8"), re.MULTILINE):
+                    bad.append(f"{path}:{lineno}: {rel}::{name}")
     return bad
 
 

@@ -5,7 +5,8 @@
   public package gets a page that carries its own docstring.
 * The reference checker is not vacuous: it rejects a stale module path and accepts the
   names a docstring may use (relative to its module, builtins, attributes set in methods).
-* Every ``dfusion.``-qualified name quoted in the Markdown docs exists.
+* Every ``dfusion.``-qualified name and every repository file (and ``file::test``) quoted
+  in the Markdown docs exists.
 * No tracked text file points outside the repository (design notes, research-paper
   files by their storage name, absolute paths of one machine).
 """
@@ -116,10 +117,18 @@ def test_names_quoted_in_the_markdown_docs_exist() -> None:
     assert build_api.unresolved_names_in_markdown(files) == []
 
 
-def test_checker_catches_a_stale_name_in_markdown(tmp_path: Path) -> None:
+def test_repository_files_quoted_in_the_markdown_docs_exist() -> None:
+    assert build_api.missing_paths_in_markdown(_markdown_files(), ROOT) == []
+
+
+def test_checkers_catch_stale_names_and_paths_in_markdown(tmp_path: Path) -> None:
     md = tmp_path / "x.md"
-    md.write_text("Use `dfusion.pf.WSNTracker` or `dfusion.localization.WSNTracker`.\n", encoding="utf-8")
+    md.write_text("Use `dfusion.pf.WSNTracker` or `dfusion.localization.WSNTracker`.\n"
+                  "Tested in `tests/test_wire.py::test_round_trip_is_bit_exact`, `tests/test_wire.py::test_gone`,\n"
+                  "`nodes/gone.py` and `docs/background.md#2-fusion-on-a-tree`.\n", encoding="utf-8")
     assert build_api.unresolved_names_in_markdown([md]) == [f"{md}:1: dfusion.pf.WSNTracker"]
+    assert build_api.missing_paths_in_markdown([md], ROOT) == [
+        f"{md}:2: tests/test_wire.py::test_gone", f"{md}:3: nodes/gone.py"]
 
 
 # Built by concatenation so that this file does not match itself.
