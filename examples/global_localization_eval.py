@@ -6,8 +6,9 @@ Usage::
     python examples/global_localization_eval.py [--quick] [--json OUT] [--plot OUT.png]
                                                 [--waypoints W] [--trials T] [--seed S]
 
-Zhang et al.'s survey of global localization in repetitive environments ("Infrastructure-Free
-Global Localization in Repetitive Environments: An Overview", sec. IV.B) evaluates a localizer by repeated global localizations from waypoints
+Zhang et al.'s survey of global localization in repetitive environments
+("Infrastructure-Free Global Localization in Repetitive Environments: An Overview",
+sec. IV.B) evaluates a localizer by repeated global localizations from waypoints
 (10 waypoints x 10 tests), with three criteria:
 
 * **robustness** -- the *success rate*: the fraction of tests in which the robot

@@ -117,6 +117,17 @@ def test_names_quoted_in_the_markdown_docs_exist() -> None:
     assert build_api.unresolved_names_in_markdown(files) == []
 
 
+def test_docs_index_lists_every_page_and_examples_readme_every_example() -> None:
+    index = (ROOT / "docs" / "index.md").read_text(encoding="utf-8")
+    pages = sorted(p.name for p in (ROOT / "docs").glob("*.md") if p.name != "index.md")
+    assert len(pages) > 15
+    assert [p for p in pages if f"]({p})" not in index] == []
+    readme = (ROOT / "examples" / "README.md").read_text(encoding="utf-8")
+    examples = sorted(p.name for p in (ROOT / "examples").glob("*.py"))
+    assert len(examples) >= 8
+    assert [e for e in examples if f"| `{e}` |" not in readme or f"examples/{e}" not in readme] == []
+
+
 def test_repository_files_quoted_in_the_markdown_docs_exist() -> None:
     assert build_api.missing_paths_in_markdown(_markdown_files(), ROOT) == []
 
