@@ -1,8 +1,8 @@
 """The docking paper's experiment in simulation: coarse MCL, precise scan matching, similarity-rate switching.
 
 The paper (Yilmaz and Temeltas, *Robotica* 2024; ``docs/background.md#references``)
-drives an AMR to a docking target: a particle filter (SA-MCL) localizes it coarsely during the *delivery* stage, a scan matcher
-precisely during the *docking* stage, and a decision node switches between them with
+drives an AMR to a docking target: a particle filter (SA-MCL) localizes it coarsely
+during the *delivery* stage, a scan matcher precisely during the *docking* stage, and a decision node switches between them with
 hysteresis on the correntropy similarity rate between the current scan and the
 reference scan taken at the target (upper bound 0.75, lower 0.65). Here, simulated:
 

@@ -56,7 +56,8 @@ References:
 * ``centralized``: one EKF over the joint state (robot 1's state, pose or constant velocity, and
   the four observers' poses, 15 or 16 numbers) given every odometry row and every landmark and
   robot-1 measurement of the four observers (same models, same gate): the reference every
-  decentralized result is compared against (``docs/centralized.md``). It knows the correlations between the observers' poses and their
+  decentralized result is compared against (``docs/centralized.md``). It knows the
+  correlations between the observers' poses and their
   robot-1 measurements, which the nodes approximate with ``R_eff``.
 * ``centralized_tracking``: a :class:`~dfusion.estimation.CentralizedEKF` on robot 1's
   state given the union of the measurements the nodes accepted, with their ``R_eff``:

@@ -9,7 +9,8 @@ a product of factors:
   information, added up;
 * *motion* factors ``x_{k+1} = F_k x_k + c_k + w``, ``w ~ N(0, Q_k)``.
 
-Its information matrix is block-tridiagonal (URUS paper, sec. 6; ``docs/background.md#1-delayed-state-information-filter``)::
+Its information matrix is block-tridiagonal (URUS paper, sec. 6;
+``docs/background.md#1-delayed-state-information-filter``)::
 
     Omega[k,k]   = [B]_{k=0} + L_k + Q_{k-1}^-1 + F_k^T Q_k^-1 F_k
     Omega[k,k+1] = -F_k^T Q_k^-1

@@ -334,7 +334,8 @@ class FusionNode:
 
         For sensors whose measurements are not fused by the EIF itself, such as a
         particle filter (the Gaussian fit of its posterior minus that of its
-        prediction, in information form; ``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The information counts as
+        prediction, in information form;
+        ``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The information counts as
         this node's own, exactly like a measurement: it is shared with the
         neighbours and never double counted. ``info_matrix`` must be symmetric
         positive semi-definite, of the state's dimension.

@@ -329,7 +329,7 @@ def calibrate_radio_map(tracks: list[Track], receiver_positions: Array, macs: li
                         exclude: str | None = None, order: int = 0, ridge: float = 100.0,
                         noise: str | tuple[float, float, float] | None = "gaussian"
                         ) -> tuple[RadioMap, PathLossCalibration]:
-    """Per-receiver (directional) path-loss fit plus a kernel-smoothed residual map (:func:`dfusion.localization.radio_map.fit_radio_map`).
+    """Per-receiver (directional) path-loss fit plus a kernel-smoothed residual map (:func:`~.radio_map.fit_radio_map`).
 
     The nodes are ``(0, 0) + cell (ix, iy)`` up to the first multiple of ``cell`` at or beyond
     ``limits = [x_min, y_min, x_max, y_max]`` (the layout of the dataset's ``.occ`` grids).

@@ -39,7 +39,8 @@ map's noise law (Gaussian, or a left-skewed split normal,
 :func:`~dfusion.localization.radio_map.split_normal_logpdf`). With ``outlier_prob = eps > 0``
 each reading's density ``f`` (annulus or map) becomes ``(1 - eps) f + eps / rssi_span``.
 
-**Information contribution** (``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The Gaussian fit of the
+**Information contribution**
+(``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The Gaussian fit of the
 posterior minus the Gaussian fit of the prediction, in information form,
 ``(Omega_post - Omega_pred, eta_post - eta_pred)`` over the position
 ``(x, y)``, made positive semi-definite: see :meth:`WSNTracker.information_contribution`.

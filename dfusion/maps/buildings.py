@@ -138,7 +138,8 @@ def repetitive_corridor(
 
     The map is periodic along x (only the two ends break the symmetry), the kind of
     repetitive environment in which global localization is ambiguous (Zhang et al.,
-    "Infrastructure-Free Global Localization in Repetitive Environments: An Overview"). Deterministic: no random elements.
+    "Infrastructure-Free Global Localization in Repetitive Environments: An Overview").
+    Deterministic: no random elements.
     """
     res = float(resolution)
     data, pad = _canvas(length, width + 2 * alcove_depth, res, wall + 0.5)

@@ -311,7 +311,8 @@ class OccupancyGrid:
         """``n`` world points ``(n, 2)`` uniform over the free cells.
 
         A free cell is drawn uniformly (cells enumerated column by column, i.e. x-major:
-        the order of :class:`dfusion.maps.NodeLattice`, so seeded draws are the same through either), then a
+        the node-lattice order of the BLE grids, kept so that seeded draws did not change
+        when the grid classes were merged), then a
         point uniformly inside it.
         """
         rng = np.random.default_rng(rng)
