@@ -5,7 +5,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed-stamp
 OUT ?= out
 
-.PHONY: demo test bench clean venv
+.PHONY: demo test bench docs clean venv
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -20,6 +20,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
+
+# API reference from the docstrings (pdoc; warnings and unresolved cross-references
+# are errors): HTML in $(OUT)/api/, start at $(OUT)/api/index.html. See docs/api-reference.md.
+docs: $(STAMP)
+	$(VENV)/bin/python docs/build_api.py $(OUT)/api
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/estimation.py --quick

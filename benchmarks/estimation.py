@@ -51,7 +51,7 @@ STD = 0.5
 WINDOWS = (10, 50, 200)
 AXES = (2, 3)  # ConstantVelocity dim: state dimension 4 and 6
 
-#: Goals checked at the end (DESIGN: the cycle must not grow with the window).
+#: Goals checked at the end (the cycle must not grow with the window: docs/estimation.md).
 GOAL_WINDOW_RATIO = 20.0   # cycle(window 200) <= 20 x cycle(window 10)
 GOAL_FILTERPY_RATIO = 5.0  # cycle(window 50) <= 5 x filterpy predict+update
 
@@ -140,7 +140,7 @@ def filterpy_cycle(d: int, rng) -> Case:
     kf.F, kf.Q = mo.F(DT), mo.Q(DT)
     kf.H = np.hstack([np.eye(d), np.zeros((d, d))])
     kf.R = STD**2 * np.eye(d)
-    zs = rng.normal(0.0, 1.0, (4096, d, 1))  # (d, 1) columns: see ZENOH_NOTES, filterpy pitfalls
+    zs = rng.normal(0.0, 1.0, (4096, d, 1))  # (d, 1) columns: docs/background.md sec. 9, filterpy pitfalls
 
     def run(k: int) -> None:
         for i in range(k):

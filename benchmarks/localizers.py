@@ -19,11 +19,11 @@ Times are the median of ``--repeats`` runs after a warm-up, wall clock, one thre
 Accuracy on real data, when the data paths are given (``docs/robots.md``):
 
 4. ``--carmen LOG``: ``examples/carmen_localization.py`` on a CARMEN log (e.g.
-   ``/work/shared/data/carmen/intel-corrected.log.gz``, about 10 s): position and heading
+   ``DATA/carmen/intel-corrected.log.gz``, see ``tests/data/carmen/README.md``; about 10 s): position and heading
    RMSE of MCL and of scan matching + odometry EKF against the corrected poses, beside the
    simulated odometry.
 5. ``--mrclam DIR``: ``examples/mrclam_tracking.py`` on an MRCLAM dataset directory (e.g.
-   ``/work/shared/data/mrclam/dataset6``) for both target models (``cv``, ``odometry``),
+   ``DATA/mrclam/dataset6``, see ``tests/data/mrclam/README.md``) for both target models (``cv``, ``odometry``),
    over ``--mrclam-duration`` seconds (300; about 35 s): robot 1's RMSE per node, for the
    centralized references and dead reckoning, and each observer's self-localization RMSE.
 

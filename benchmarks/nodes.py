@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmarks of node filters: the WSN particle filter (dfusion.pf.WSNTracker) and the camera node.
+"""Benchmarks of node filters: the WSN particle filter (dfusion.localization.WSNTracker) and the camera node.
 
 Usage::
 
@@ -17,7 +17,7 @@ Usage::
    at 5,000 particles.
 2. Update time of a camera node: one detection of the URUS demo's ``cam_left``
    camera (topologies/urus.scenario.toml: pinhole, 640 x 480, fx = 800, 3 px noise)
-   processed by :class:`dfusion.sensors.camera.CameraFrontEnd` on a
+   processed by :class:`dfusion.frontends.camera.CameraFrontEnd` on a
    :class:`FusionNode` (delayed-state EIF, windows of 10, 50 and 150 states; 150 is
    the demo's): the Mahalanobis gate against the prediction at the detection's time,
    the EIF update with the projective model (``h``, ``H`` at the window state), the

@@ -6,7 +6,7 @@
    current one by more than ``P``), then calls ``output()``; the delay is the wall time
    from the first ``report_source`` to ``output()`` returning the new source
    (``time.perf_counter``). Also: the same without a switch, each policy's ``decide``,
-   and a failure detected by the :class:`~dfusion.switching.Supervisor` (health callback
+   and a failure detected by the :class:`~dfusion.policies.Supervisor` (health callback
    false -> error -> forced switch at the node's output). Goal: below 1 ms (the
    switching paper measured 135 ms for reconnecting an RT-middleware data port).
 2. **Switch delay, across processes, over Zenoh** (peer mode, loopback, express, the
@@ -148,7 +148,7 @@ def in_process(n: int) -> list[tuple[str, float, float]]:
 
     # a failure found by the supervisor: health false -> error -> forced switch at the output
     # (its log.warning is silenced: writing it to the terminal would be timed too)
-    logging.getLogger("dfusion.switching.lifecycle").setLevel(logging.ERROR)
+    logging.getLogger("dfusion.policies.lifecycle").setLevel(logging.ERROR)
     delays = []
     for rep in range(max(n // 10, 20)):
         ok = {"laser": True}

@@ -300,7 +300,8 @@ def covariance_error(cov: ArrayLike) -> float:
 def covariance_reliability(cov: ArrayLike) -> float:
     """Eq. (11)-(12): ``R_l = 1 / (sqrt(c_xx + c_yy) + 1)``.
 
-    Same value as :func:`dfusion.localization.reliability` (which the localizers use).
+    The reliability the covariance-based localizers report in their
+    :class:`dfusion.estimation.Estimate` (MCL, ICP, the odometry and landmark EKFs).
     """
     E = covariance_error(cov)
     return 0.0 if math.isinf(E) else 1.0 / (E + 1.0)

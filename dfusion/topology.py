@@ -403,7 +403,7 @@ def minimum_window(
     ``send_period`` for the next message and ``max_latency`` for delivery, and
     the farthest node is ``diameter`` hops away. States must stay in every
     window until that information has reached every node, otherwise
-    marginalization makes the fused estimate inexact (DESIGN.md section 3).
+    marginalization makes the fused estimate inexact (``docs/background.md#2-fusion-on-a-tree``).
 
     Raises :class:`TopologyError` if ``graph`` is not a tree and
     :class:`ValidationError` for negative or non-finite times.

@@ -12,7 +12,7 @@ citation). ``DIR`` is the dataset directory (``cnf/``, ``occ/``, ``trk/``); by
 default the directory that holds ``TRACK_FILE``'s ``trk/`` folder. The dataset is
 not bundled: give its path. ``tests/data/ble_rssi`` is a one-track slice.
 
-For each track the tracker (dfusion.pf.WSNTracker) runs packet by packet and, in
+For each track the tracker (dfusion.localization.WSNTracker) runs packet by packet and, in
 the same run and at the same instants, a causal weighted-centroid baseline
 (RSSI averaged over the last ``--window`` s per receiver, weights
 ``10^(rssi/10)``). Both are compared with the ground truth of every row.
@@ -20,7 +20,7 @@ the same run and at the same instants, a causal weighted-centroid baseline
 Measurement model (``--model``): ``radio-map`` (default) is a per-receiver
 log-distance fit with azimuthal harmonics (a directional gain) plus a kernel-smoothed map
 of its residuals over the floor, with a spatial spread and a split-normal (left-skewed)
-noise law (dfusion.pf.radio_map; docs/wsn.md sec. 3); ``path-loss`` is the log-distance
+noise law (dfusion.localization.radio_map; docs/wsn.md sec. 3); ``path-loss`` is the log-distance
 fit alone. Calibration is never taken from the track being evaluated:
 ``--path-loss FILE`` / ``--radio-map FILE`` if given (refused if the file lists the
 track); otherwise fitted on the *other* tracks in ``DIR/trk`` (leave-one-track-out);

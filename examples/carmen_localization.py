@@ -5,15 +5,16 @@ Usage::
 
     python examples/carmen_localization.py LOG.gz [--json OUT] [--max-scans N] [--seed S]
 
-``LOG`` is a CARMEN log with corrected poses, e.g.
-``/work/shared/data/carmen/intel-corrected.log.gz`` (read with
+``LOG`` is a CARMEN log with corrected poses, e.g. ``DATA/carmen/intel-corrected.log.gz``
+(where to get it: ``tests/data/carmen/README.md``; the slice
+``tests/data/carmen/intel-160scans.log.gz`` runs as is) (read with
 :func:`dfusion.datasets.carmen.read_carmen`, which handles the log's pitfalls: repeated
 ``ODOM`` copies after each scan, backward time stamps, 81.83 m "no return" readings).
 
 Protocol (scans in time order, the first ``--max-scans`` of them if given):
 
 1. **Map**: the even-numbered scans (0, 2, 4, ...) at their corrected poses build an
-   occupancy grid (:meth:`dfusion.maps.OccupancyGrid.from_scans`, 5 cm cells, readings
+   occupancy grid (:func:`dfusion.maps.grid_from_scans`, 5 cm cells, readings
    below ``--map-range`` = 30 m are hits, longer ones clear the cells up to 30 m).
 2. **Localization**: the odd-numbered scans, none of them in the map, are localized
    against it. The ground truth is their corrected pose.

@@ -1,8 +1,8 @@
 """The docking paper's experiment in simulation: coarse MCL, precise scan matching, similarity-rate switching.
 
-The paper (``003_4c9e8a9f5c1173be.txt``) drives an AMR to a docking target: a particle
-filter (SA-MCL) localizes it coarsely during the *delivery* stage, a scan matcher
-precisely during the *docking* stage, and a decision node switches between them with
+The paper (Yilmaz and Temeltas, *Robotica* 2024; ``docs/background.md#references``)
+drives an AMR to a docking target: a particle filter (SA-MCL) localizes it coarsely
+during the *delivery* stage, a scan matcher precisely during the *docking* stage, and a decision node switches between them with
 hysteresis on the correntropy similarity rate between the current scan and the
 reference scan taken at the target (upper bound 0.75, lower 0.65). Here, simulated:
 
@@ -26,14 +26,14 @@ reference scan taken at the target (upper bound 0.75, lower 0.65). Here, simulat
 * **Precise** ("SM"): point-to-line ICP (:class:`~dfusion.localization.ScanMatcher`) of
   the current scan against the *reference scan* taken at the target, started from the
   current pose estimate moved by odometry; the pose is ``target (+) match``.
-* **Switching** ("SW"): :class:`~dfusion.switching.HysteresisSwitchingPolicy` (0.75 / 0.65)
-  on :class:`~dfusion.switching.SimilarityRate` (grid lookup, built once per target),
+* **Switching** ("SW"): :class:`~dfusion.policies.HysteresisSwitchingPolicy` (0.75 / 0.65)
+  on :class:`~dfusion.localization.SimilarityRate` (grid lookup, built once per target),
   computed from the current scan and the transform implied by the previous output
   moved by odometry. Only the localizer the decision needs is run for the output; the
   MCL keeps running in the background in this simulation (so that a switch back, and
   the blended variant, have a coarse estimate; its cost is not counted in the docking
   region, as the paper deactivates it). Also: the same with a 1 s blended transition
-  (:class:`~dfusion.switching.BlendedTransitionPolicy`, the paper's remedy (2) for jumps).
+  (:class:`~dfusion.policies.BlendedTransitionPolicy`, the paper's remedy (2) for jumps).
 
 Outputs (the paper's Tables I and II): localization frequency from the measured compute
 time per step of what each method runs (Table I); errors in x, y, xy [cm] and theta

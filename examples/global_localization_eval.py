@@ -6,7 +6,8 @@ Usage::
     python examples/global_localization_eval.py [--quick] [--json OUT] [--plot OUT.png]
                                                 [--waypoints W] [--trials T] [--seed S]
 
-Zhang et al.'s survey of global localization in repetitive environments (seed 001,
+Zhang et al.'s survey of global localization in repetitive environments
+("Infrastructure-Free Global Localization in Repetitive Environments: An Overview",
 sec. IV.B) evaluates a localizer by repeated global localizations from waypoints
 (10 waypoints x 10 tests), with three criteria:
 

@@ -5,13 +5,14 @@ Usage::
 
     python examples/mrclam_tracking.py DATASET_DIR [--duration S] [--json OUT]
 
-``DATASET_DIR`` is an MRCLAM dataset directory (e.g. ``/work/shared/data/mrclam/dataset6``
-or the slice ``tests/data/mrclam``). Robots 2, 3, 4 and 5 are fusion nodes of a tree
+``DATASET_DIR`` is an MRCLAM dataset directory (e.g. ``DATA/mrclam/dataset6``, the
+folder ``MRCLAM_Dataset6``, see ``tests/data/mrclam/README.md`` for where to get it; or
+the slice ``tests/data/mrclam``). Robots 2, 3, 4 and 5 are fusion nodes of a tree
 (chain 2 - 3 - 4 - 5 by default); robot 1 is the target.
 
 Each observer robot ``k``:
 
-1. **localizes itself** with a pose EKF (:class:`dfusion.localization.robot_node.LandmarkEKF`):
+1. **localizes itself** with a pose EKF (:class:`dfusion.localization.LandmarkEKF`):
    its velocity odometry integrated with the :class:`~dfusion.models.Unicycle` model
    (noise densities ``--std-v`` m/sqrt(s), ``--std-w`` rad/sqrt(s)) and its range-bearing
    measurements of the 15 landmarks at their surveyed positions (``--range-std``,
@@ -32,7 +33,7 @@ Each observer robot ``k``:
      better than dead reckoning (0.50 m against 0.81 m, ``docs/robots.md``).
 
    Each of its range-bearing measurements ``(r, b)`` of robot 1 is fused as a position fix
-   (:meth:`~dfusion.localization.robot_node.TargetRangeBearing.position_fix`),
+   (:meth:`~dfusion.models.TargetRangeBearing.position_fix`),
    ``p = s_xy + r (cos(theta_s + b), sin(theta_s + b))`` from the robot's estimated
    pose ``s``, which carries the robot's own pose uncertainty ``P_pose`` into the noise:
    ``R_eff = G R G^T + J P_pose J^T`` (``G = dp/d(r, b)``, ``J = dp/ds``; the polar form
@@ -54,8 +55,9 @@ References:
 
 * ``centralized``: one EKF over the joint state (robot 1's state, pose or constant velocity, and
   the four observers' poses, 15 or 16 numbers) given every odometry row and every landmark and
-  robot-1 measurement of the four observers (same models, same gate): the reference of
-  DESIGN.md sec. 1. It knows the correlations between the observers' poses and their
+  robot-1 measurement of the four observers (same models, same gate): the reference every
+  decentralized result is compared against (``docs/centralized.md``). It knows the
+  correlations between the observers' poses and their
   robot-1 measurements, which the nodes approximate with ``R_eff``.
 * ``centralized_tracking``: a :class:`~dfusion.estimation.CentralizedEKF` on robot 1's
   state given the union of the measurements the nodes accepted, with their ``R_eff``:

@@ -1,7 +1,7 @@
 """The correntropy similarity rate against the true overlap (the docking paper's Fig. 3, in spirit).
 
-Set-up as the paper's Fig. 2 (``003_4c9e8a9f5c1173be.txt``, sec. 3.4), on a generated map
-instead of theirs: a 720-beam laser (360 deg, 0.5 deg steps, 30 m range) scans the map
+Set-up as the docking paper's Fig. 2 (Yilmaz and Temeltas, *Robotica* 2024, sec. 3.4), on
+a generated map instead of theirs: a 720-beam laser (360 deg, 0.5 deg steps, 30 m range) scans the map
 ``rooms(16, 10, 3, 2, seed=2)`` from pose A; uniform noise (+-2 cm) is added to every
 point and 5 % Gaussian clutter points (sigma 2 m) are appended: the *data* set. A box
 is added to the map and the laser scans it from a nearby pose B (20 cm, 6 deg away): the

@@ -1,6 +1,6 @@
 """The switching paper's experiments in simulation: Fig. 8 (switches and error against P) and Table II.
 
-The paper (``000_2c7cfc349439030c.txt``, sec. 4-5) drives a robot at 0.5 m/s for 30
+The paper (Hu et al.; ``docs/background.md#references``; sec. 4-5) drives a robot at 0.5 m/s for 30
 minutes through an indoor room, a corridor, a big hall and an outdoor square, with three
 ceiling cameras, a laser (AMCL) and a depth camera (NDT) as localization components;
 a configuration component switches greedily with a changing punishment ``P``. Here:
@@ -22,10 +22,10 @@ scale; every source reports the reliability its own model gives):
   underestimates its spread). Reliability: eq. (11)-(12).
 * ``depth`` (Kinect + NDT): 10 cm in the room, 12 cm in the hall, 0.35 m in the corridor,
   1 m next to a crowd, 1.5 m outdoors (sunlight). Crashes (error state) at random, once
-  per 8 minutes on average; the :class:`~dfusion.switching.Supervisor` restarts it after
+  per 8 minutes on average; the :class:`~dfusion.policies.Supervisor` restarts it after
   3 s (``error -> reset -> ready -> active``), and it is off the candidates meanwhile.
   Reliability: the NDT score is simulated as ``5000 exp(-2.5 |e|)`` times log-normal
-  noise (sigma 0.2, AR(1) with coefficient 0.9), and converted by a :class:`~dfusion.reliability_models.ScoreErrorTable`
+  noise (sigma 0.2, AR(1) with coefficient 0.9), and converted by a :class:`~dfusion.reliability.ScoreErrorTable`
   calibrated on a separate 10-minute run (eq. 17-18, "a lookup table").
 * ``cam_room``, ``cam_corridor``, ``cam_square``: ceiling cameras (eq. 1-9 of
   :mod:`dfusion.reliability`, ``N = 900`` rows, ``theta = 58`` deg, detector error ``k = 15``
@@ -36,9 +36,9 @@ Policies compared on the same recorded data (the paper also "collected the data 
 the components" and applied "different punishment values" afterwards): each single
 localizer alone, greedy switching for ``P`` from 0 to 0.4 (Fig. 8), greedy with ``P = 0.15``
 (the paper's range), greedy with the ``P`` selected by
-:func:`~dfusion.switching.select_punishment` (largest ``P`` with a mean error within 5 % of
+:func:`~dfusion.policies.select_punishment` (largest ``P`` with a mean error within 5 % of
 the sweep's best; with and without a 1 s blended transition), information fusion of every healthy source with ``R > 0``, and fusion of
-those with ``R > 0.6`` (:class:`~dfusion.switching.FusionFloorPolicy`). A *lost
+those with ``R > 0.6`` (:class:`~dfusion.policies.FusionFloorPolicy`). A *lost
 situation* starts when the output error has stayed above 1 m for 1 s and ends when it
 has stayed below 0.5 m for 5 s. The chosen configuration runs inside a :class:`~dfusion.FusionNode`
 (``report_source`` + ``output`` every step); the *switch delay* is the wall time from the
@@ -421,7 +421,7 @@ def main(argv=None) -> int:
     minutes = a.minutes or (10.0 if a.quick else 30.0)
     dt = a.dt or (0.2 if a.quick else 0.1)
     t_start = time.perf_counter()
-    logging.getLogger("dfusion.switching.lifecycle").setLevel(logging.ERROR)   # crashes are expected here
+    logging.getLogger("dfusion.policies.lifecycle").setLevel(logging.ERROR)   # crashes are expected here
 
     # calibration of the depth camera's score table on a separate run (eq. 17-18)
     _, calib = simulate(600.0, 0.5, a.seed + 1000, None)

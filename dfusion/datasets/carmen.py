@@ -7,8 +7,8 @@ http://carmen.sourceforge.net/logger_playback.html)::
     ODOM x y theta tv rv accel ipc_timestamp hostname logger_timestamp
     PARAM name value [host timestamp]
 
-Pitfalls handled (documented for the Intel Research Lab log in
-``/work/shared/data/carmen/README.md``):
+Pitfalls handled (found in the Intel Research Lab log; an excerpt, its source and
+where to get the full logs are in ``tests/data/carmen/README.md``):
 
 * Each ``FLASER`` line is followed by an ``ODOM`` line that only *repeats the scan pose*
   with a meaningless time stamp (0 or ``1e-153``). Such an ``ODOM`` line (the one right

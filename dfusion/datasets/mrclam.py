@@ -15,7 +15,8 @@ with a ``.gz`` suffix, which the reader detects, as in the test slice)::
     Robot<n>_Odometry.dat      time  v  omega                 (velocities, not poses)
     Robot<n>_Measurement.dat   time  barcode  range  bearing
 
-Pitfalls handled (``/work/shared/data/mrclam/README.md``):
+Pitfalls handled (found in Dataset 6; a slice, its source and where to get the full
+dataset are in ``tests/data/mrclam/README.md``):
 
 * ``Robot<n>_Measurement.dat`` names the target by its **barcode**, not its subject
   number (its header says "Subject #"): converted with ``Barcodes.dat``. Rows with a

@@ -92,7 +92,7 @@ def measurement_information(
     ``Lam = H^T R^-1 H`` and ``y = H^T R^-1 (z - h(x_lin) + H x_lin)``
     (EIF measurement update; Thrun et al. 2005, Table 3.6, lines 6-7), computed
     with the Cholesky factor of ``R``. Raises :class:`ShapeError`,
-    :class:`NonFiniteError` or :class:`NotPositiveDefiniteError` on bad input.
+    :class:`~dfusion.errors.NonFiniteError` or :class:`~dfusion.errors.NotPositiveDefiniteError` on bad input.
     """
     zv = as_vector(z, sensor.dim_z, "measurement z")
     if sensor.is_linear and not x_lin.any():

@@ -9,13 +9,14 @@ a product of factors:
   information, added up;
 * *motion* factors ``x_{k+1} = F_k x_k + c_k + w``, ``w ~ N(0, Q_k)``.
 
-Its information matrix is block-tridiagonal (URUS paper, sec. 6; DESIGN.md sec. 2)::
+Its information matrix is block-tridiagonal (URUS paper, sec. 6;
+``docs/background.md#1-delayed-state-information-filter``)::
 
     Omega[k,k]   = [B]_{k=0} + L_k + Q_{k-1}^-1 + F_k^T Q_k^-1 F_k
     Omega[k,k+1] = -F_k^T Q_k^-1
     eta[k]       = [b]_{k=0} + y_k + Q_{k-1}^-1 c_{k-1} - F_k^T Q_k^-1 c_k
 
-and :meth:`TrajectoryInformation.dense` / :meth:`blocks` assemble it.
+and :meth:`TrajectoryInformation.dense` / :meth:`TrajectoryInformation.blocks` assemble it.
 
 **Evaluation.** Forward block elimination of this matrix,
 ``S_k = Omega[k,k] - Omega[k,k-1] S_{k-1}^-1 Omega[k-1,k]``, is algebraically the

@@ -14,8 +14,8 @@ of ``j``'s belief that ``i`` now shares. Node ``i`` sends ``j``
 
     msg_{i->j}(t) = T_i(t) - M_ij(t),   T_i(t) = own_i(t) + sum_k M_ik(t),
 
-that is, everything it knows that did not come from ``j`` (DESIGN.md sec. 3,
-"the equivalent view on trees"). When ``j`` receives it, the block of time ``t``
+that is, everything it knows that did not come from ``j`` (``docs/background.md#2-fusion-on-a-tree``,
+"an equivalent view on trees"). When ``j`` receives it, the block of time ``t``
 *replaces* the previous one from ``i``: ``j`` adds ``msg(t) - M_ji(t)`` to its
 filter. Each entry records the sequence number of the message it came from; an
 entry is only replaced by one from a newer message. Consequences:

@@ -333,8 +333,9 @@ class FusionNode:
         """Fuse information produced by a local estimator at time ``t``.
 
         For sensors whose measurements are not fused by the EIF itself, such as a
-        particle filter (DESIGN.md sec. 4: the Gaussian fit of its posterior minus
-        that of its prediction, in information form). The information counts as
+        particle filter (the Gaussian fit of its posterior minus that of its
+        prediction, in information form;
+        ``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The information counts as
         this node's own, exactly like a measurement: it is shared with the
         neighbours and never double counted. ``info_matrix`` must be symmetric
         positive semi-definite, of the state's dimension.

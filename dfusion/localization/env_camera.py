@@ -1,6 +1,6 @@
 r"""Environmental-camera localization: a robot seen by a calibrated ceiling camera.
 
-A camera fixed in the environment (the switching paper, seed 000, sec. 2.1: "obliquely
+A camera fixed in the environment (Hu et al.'s switching paper, sec. 2.1: "obliquely
 installed on the ceiling") sees a marker on the robot. The marker's pixel ``(u, v)`` is
 back-projected onto the plane the marker moves in
 (:meth:`dfusion.models.PinholeCamera.ground_point`), which gives the robot's position;

@@ -83,7 +83,7 @@ Output: :meth:`MonteCarloLocalization.estimate` -- the Gaussian summary of the w
     particles (mean with the circular mean for theta, covariance with theta residuals
     wrapped around it; particles injected by the recovery step are left out until a scan
     has weighted them) and the reliability ``R = 1 / (E + 1)``, ``E = sqrt(c_xx + c_yy)``
-    (Hu et al., seed 000, eq. 11-12).
+    (Hu et al., the switching paper, eq. 11-12; ``docs/background.md#references``).
 """
 from __future__ import annotations
 

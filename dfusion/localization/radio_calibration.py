@@ -40,7 +40,7 @@ class PathLossCalibration:
     """Log-distance path-loss parameters per receiver, optionally with a directional gain.
 
     Fitted with :func:`fit_path_loss` (``order = 0``) or
-    :func:`dfusion.pf.radio_map.fit_directional_path_loss`: the mean RSSI of receiver ``j``
+    :func:`dfusion.localization.radio_map.fit_directional_path_loss`: the mean RSSI of receiver ``j``
     for a tag at ``p`` is ``p0_j - 10 n_j log10(d / d0) + sum_k (a_jk cos k phi + b_jk sin k phi)``
     with ``d`` the 3-D distance and ``phi`` the azimuth of the tag seen from the receiver.
 
@@ -89,7 +89,7 @@ class PathLossCalibration:
         return self.harmonics.shape[1] // 2
 
     def sensors(self, receiver_positions: Array) -> list[RSSISensor]:
-        """One single-receiver :class:`RSSISensor` per receiver, for :class:`dfusion.pf.WSNTracker`.
+        """One single-receiver :class:`RSSISensor` per receiver, for :class:`dfusion.localization.WSNTracker`.
 
         Only for the plain log-distance model (``order = 0``): an :class:`RSSISensor` has no
         directional gain.
@@ -157,7 +157,7 @@ def calibrate_path_loss(tracks: list[Track], receiver_positions: Array, macs: li
 
     The distance of each row is the 3-D distance between the labelled tag position
     and the receiver. ``order = 0``: the log-distance fit :func:`fit_path_loss`;
-    ``order = K > 0``: :func:`dfusion.pf.radio_map.fit_directional_path_loss` with ``K``
+    ``order = K > 0``: :func:`dfusion.localization.radio_map.fit_directional_path_loss` with ``K``
     azimuthal harmonics and the ridge penalty ``ridge`` on them (per receiver only).
     ``per_receiver=False`` fits one ``(p0, exponent, std)`` for all receivers. Use tracks other
     than the one evaluated (leave-one-track-out).
@@ -267,7 +267,7 @@ def held_out_score(u: Array, S: Array, noise: str = "split-normal") -> tuple[flo
     """Mean log predictive density per reading (nats) of held-out residuals ``u = (z - M) / S``.
 
     ``noise="gaussian"``: ``mean(log N(u; 0, 1) - ln S)``; ``"split-normal"``: the split normal
-    fitted to ``u`` (:func:`dfusion.pf.radio_map.fit_split_normal`; three parameters against
+    fitted to ``u`` (:func:`dfusion.localization.radio_map.fit_split_normal`; three parameters against
     thousands of readings) in place of ``N(0, 1)``. Returns the score and the fitted law.
     """
     if noise == "gaussian":
@@ -329,7 +329,7 @@ def calibrate_radio_map(tracks: list[Track], receiver_positions: Array, macs: li
                         exclude: str | None = None, order: int = 0, ridge: float = 100.0,
                         noise: str | tuple[float, float, float] | None = "gaussian"
                         ) -> tuple[RadioMap, PathLossCalibration]:
-    """Per-receiver (directional) path-loss fit plus a kernel-smoothed residual map (:func:`dfusion.pf.fit_radio_map`).
+    """Per-receiver (directional) path-loss fit plus a kernel-smoothed residual map (:func:`~.radio_map.fit_radio_map`).
 
     The nodes are ``(0, 0) + cell (ix, iy)`` up to the first multiple of ``cell`` at or beyond
     ``limits = [x_min, y_min, x_max, y_max]`` (the layout of the dataset's ``.occ`` grids).

@@ -1,9 +1,10 @@
 r"""Similarity of two 2-D point sets: the correntropy similarity rate and the trimmed-ICP overlap ratio.
 
-**Similarity rate** (the docking paper, ``003_4c9e8a9f5c1173be.txt``, sec. 3.3). The
+**Similarity rate** (the docking paper, Yilmaz and Temeltas, *Robotica* 2024, sec. 3.3). The
 *data* set ``X`` (the current scan, ``N_x`` points) is moved into the frame of the
 *model* set ``Y`` (the reference scan taken at the target pose) by the transform
-``(R, t)`` that the current pose estimate implies (:func:`relative_pose`). Then:
+``(R, t)`` that the current pose estimate implies (the pose of the scan in the reference
+scan's frame, :func:`dfusion.geometry.se2_between`). Then:
 
 1. correspondences: for every ``x_k`` its nearest model point ``y_j(k)`` (k-d tree,
    :class:`scipy.spatial.cKDTree`), distance ``d_k = |R x_k + t - y_j(k)|``;

@@ -8,8 +8,8 @@ Constant velocity: the white-noise-acceleration model of
 :class:`dfusion.models.ConstantVelocity` (``q`` in m^2/s^3), with the speed of
 each particle optionally capped at ``max_speed``.
 
-**Map constraint (URUS).** With an occupancy grid (a :class:`dfusion.maps.NodeLattice`,
-or its node-lattice view :class:`dfusion.pf.NodeLattice`), a particle whose
+**Map constraint (URUS).** With an occupancy grid (a :class:`dfusion.maps.OccupancyGrid`,
+or its node-lattice view :class:`dfusion.maps.NodeLattice`), a particle whose
 move ends in an occupied cell or whose straight-line move passes through one is
 discarded: its weight becomes zero and it keeps its previous (free) position, so
 the particle set never contains a position inside an obstacle (occupied and unknown
@@ -32,14 +32,15 @@ farther out it lies. Readings of one update are independent; missing readings
 (NaN) contribute nothing. ``std_scale`` multiplies every ``sigma_j``: values
 above 1 temper the likelihood, which accounts for shadowing that is correlated
 in time (successive packets are not independent measurements). With a
-:class:`~dfusion.pf.radio_map.RadioMap` (``radio_map=``) the mean and standard
+:class:`~dfusion.localization.radio_map.RadioMap` (``radio_map=``) the mean and standard
 deviation of each reading are the map's at the particle instead (learnt
 log-distance-plus-residual model; docs/wsn.md sec. 3), and the reading's law is the
 map's noise law (Gaussian, or a left-skewed split normal,
-:func:`~dfusion.pf.radio_map.split_normal_logpdf`). With ``outlier_prob = eps > 0``
+:func:`~dfusion.localization.radio_map.split_normal_logpdf`). With ``outlier_prob = eps > 0``
 each reading's density ``f`` (annulus or map) becomes ``(1 - eps) f + eps / rssi_span``.
 
-**Information contribution (DESIGN.md sec. 4).** The Gaussian fit of the
+**Information contribution**
+(``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The Gaussian fit of the
 posterior minus the Gaussian fit of the prediction, in information form,
 ``(Omega_post - Omega_pred, eta_post - eta_pred)`` over the position
 ``(x, y)``, made positive semi-definite: see :meth:`WSNTracker.information_contribution`.
@@ -125,7 +126,7 @@ class WSNTracker:
         The receivers and their path-loss parameters. One sensor with ``m``
         receivers shares ``p0`` and the exponent; a list (for example one
         single-receiver sensor per receiver, as
-        :meth:`dfusion.datasets.PathLossCalibration.sensors` builds them from
+        :meth:`dfusion.localization.PathLossCalibration.sensors` builds them from
         :func:`~dfusion.models.fit_path_loss` fits) gives every receiver its own. Receiver ``j`` of :meth:`update` is the
         ``j``-th receiver in this order. The tag height is each sensor's ``height``.
     n_particles : int
@@ -138,7 +139,7 @@ class WSNTracker:
         suits a walking person tracked packet by packet (docs/wsn.md).
     max_speed : float or None
         Constant velocity only: particle speeds are capped at this value (m/s).
-    grid : dfusion.maps.NodeLattice, dfusion.pf.NodeLattice or None
+    grid : dfusion.maps.OccupancyGrid, dfusion.maps.NodeLattice or None
         Map constraint (see the module docstring); also the initial support.
     bounds : (x_min, y_min, x_max, y_max) or None
         Initial support when there is no grid.
@@ -449,8 +450,8 @@ class WSNTracker:
         """Re-weight the particles by information on ``(x, y)`` received from the network.
 
         Multiplies each weight by ``exp(eta^T p - p^T Omega p / 2)``, the likelihood that
-        the information pair ``(eta, Omega)`` represents (DESIGN.md sec. 4: pass the fused
-        information minus this node's own share, or it is counted twice), then
+        the information pair ``(eta, Omega)`` represents (pass the fused information minus this
+        node's own share, or it is counted twice; ``docs/background.md`` sec. 3), then
         resamples if needed. The result becomes the new reference of
         :meth:`information_contribution` (like a prediction), so that the next
         contribution again holds only this node's own RSSI readings; readings
@@ -485,7 +486,7 @@ class WSNTracker:
         return Estimate("wsn", self.time, mean, cov, covariance_reliability(cov), n_particles=pf.n, n_eff=pf.ess)
 
     def information_contribution(self, rtol: float = 1e-9) -> InformationGaussian:
-        """What this node's RSSI readings added, as information on ``(x, y)`` (DESIGN.md sec. 4).
+        """What this node's RSSI readings added, as information on ``(x, y)`` (``docs/background.md`` sec. 3).
 
         With ``(mu_pred, P_pred)`` the Gaussian fit of the particles after the last
         :meth:`predict` (map constraint included) and ``(mu_post, P_post)`` the fit

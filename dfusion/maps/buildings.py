@@ -137,8 +137,9 @@ def repetitive_corridor(
     """A corridor with identical alcoves every ``period`` metres on both sides.
 
     The map is periodic along x (only the two ends break the symmetry), the kind of
-    repetitive environment in which global localization is ambiguous (Zhang et al.'s
-    survey, 001 in the seeds). Deterministic: no random elements.
+    repetitive environment in which global localization is ambiguous (Zhang et al.,
+    "Infrastructure-Free Global Localization in Repetitive Environments: An Overview").
+    Deterministic: no random elements.
     """
     res = float(resolution)
     data, pad = _canvas(length, width + 2 * alcove_depth, res, wall + 0.5)

@@ -319,7 +319,8 @@ class OccupancyGrid:
         """``n`` world points ``(n, 2)`` uniform over the free cells.
 
         A free cell is drawn uniformly (cells enumerated column by column, i.e. x-major:
-        the order of the former ``dfusion.pf`` grid, so seeded draws are unchanged), then a
+        the node-lattice order of the BLE grids, kept so that seeded draws did not change
+        when the grid classes were merged), then a
         point uniformly inside it.
         """
         rng = np.random.default_rng(rng)
@@ -354,7 +355,7 @@ class OccupancyGrid:
         that crosses at most one boundary visits only its end cells. The crossings of the
         remaining segments are listed in one flat array, so the work is proportional to
         their number. (This is the map constraint of the WSN particle filter,
-        :class:`dfusion.pf.WSNTracker`.)
+        :class:`dfusion.localization.WSNTracker`.)
         """
         a = np.asarray(p0, dtype=float)
         b = np.asarray(p1, dtype=float)

@@ -197,7 +197,7 @@ def read_occ(path: str | Path, occupied_value: int = 1) -> OccupancyGrid:
 
     Format: line 1 ``[[x_min, y_min], [x_max, y_max]]::cell``; every other line
     ``[x, y]::v``, one per node, in any order; node ``(x, y)`` is the centre of a
-    ``cell`` x ``cell`` square (see :meth:`from_nodes`). ``occupied_value`` is the
+    ``cell`` x ``cell`` square (see :meth:`dfusion.maps.OccupancyGrid.from_nodes`). ``occupied_value`` is the
     value that marks an obstacle: the dataset's own README says 1 = traversable, but
     the data show the reverse (tracks run on 0-nodes, tables and the border are 1), so
     1 = occupied is the default. Raises :class:`ValidationError` on a malformed file,

@@ -75,7 +75,7 @@ class NodeLattice:
     # -------------------------------------------------------------- loading
     @classmethod
     def from_occ_file(cls, path: str | Path, occupied_value: int = 1) -> "NodeLattice":
-        """Read a ``.occ`` grid (see :meth:`dfusion.maps.OccupancyGrid.from_occ_file`)."""
+        """Read a ``.occ`` grid (see :func:`dfusion.maps.io.read_occ`)."""
         return cls.from_map(read_occ(path, occupied_value))
 
     # ---------------------------------------------------------- conventions
@@ -128,4 +128,4 @@ def as_map_grid(grid: OccupancyGrid | NodeLattice) -> OccupancyGrid:
     if isinstance(grid, OccupancyGrid):
         return grid
 
-    raise ValidationError("grid must be a dfusion.maps.OccupancyGrid (or its dfusion.pf node view)")
+    raise ValidationError("grid must be a dfusion.maps.OccupancyGrid or a dfusion.maps.NodeLattice")

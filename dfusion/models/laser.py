@@ -110,7 +110,7 @@ class BeamErfcModel:
         Laser range noise ``sigma_1`` (m).
     two_sided : bool
         Use ``|z - zhat|`` (default); ``False`` uses the signed ``z - zhat`` as printed in the
-        seed text (see the module docstring).
+        URUS paper (see the module docstring).
     exponent : float
         The likelihood is raised to this power.
     raycast : ``"table"`` or ``"exact"``

@@ -1,5 +1,5 @@
 """Output policies beside fusion: the policy interface, switching policies, the component life cycle."""
-from dfusion.policies.base import InformationFusionPolicy, Policy, SourceEstimate
+from dfusion.policies.base import InformationFusionPolicy, Policy
 from dfusion.policies.lifecycle import (
     TRANSITIONS,
     Component,
@@ -21,7 +21,6 @@ from dfusion.policies.switching import (
 )
 
 __all__ = [
-    "SourceEstimate",
     "Policy",
     "InformationFusionPolicy",
     "State",

@@ -1,6 +1,6 @@
 r"""Component life cycle and a supervisor that restarts failed components.
 
-The switching paper (``000_2c7cfc349439030c.txt``, sec. 3, Fig. 6b) runs every
+The switching paper (Hu et al.; ``docs/background.md#references``; sec. 3, Fig. 6b) runs every
 localizer as an RT-component with a life cycle: "When a component is started, it is in
 the ready state, in which it has completed the initialization process. And then the
 component can be activated to execute the core algorithm repeatedly. It remains in the
@@ -29,7 +29,7 @@ will be changed. At the same time, the problem component will be restarted".
 health callback returns false (or raises) or whose heartbeat is older than its
 timeout, and restarts a failed one (``error -> reset -> ready -> active``) once its
 ``restart_delay`` has passed. While a component is not active, and after a restart
-until it reports a new estimate, its :class:`~dfusion.fusion.policy.Estimate`
+until it reports a new estimate, its :class:`~dfusion.estimation.Estimate`
 carries ``healthy=False``: switching policies count it as reliability 0 and fusion
 policies leave it out, so it is off the candidates meanwhile.
 

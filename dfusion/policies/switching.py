@@ -1,8 +1,8 @@
 r"""Switching policies beside fusion: greedy with a punishment, hysteresis, blending, a floor.
 
-Every class here is a :class:`dfusion.fusion.policy.Policy`: given the node's fused
+Every class here is a :class:`dfusion.policies.base.Policy`: given the node's fused
 estimate and its candidate sources (:class:`Estimate`), it returns the node's
-output. A source with ``healthy=False`` (in error, see :mod:`dfusion.switching.lifecycle`)
+output. A source with ``healthy=False`` (in error, see :mod:`dfusion.policies.lifecycle`)
 counts as reliability 0. Each policy keeps
 
 * ``current``: its current choice (a source name; for :class:`FusionFloorPolicy` the
@@ -14,10 +14,10 @@ The time of a decision is the newest time stamp among the fused estimate and the
 sources.
 
 Policies (registered for scenario files as ``"greedy"``, ``"hysteresis"``, ``"blend"``,
-``"fusion_floor"`` by :mod:`dfusion.switching`):
+``"fusion_floor"`` by :mod:`dfusion.scenario.kinds`):
 
 :class:`GreedySwitchingPolicy`
-    The switching paper's algorithm (``000_2c7cfc349439030c.txt``, sec. 4): with
+    The switching paper's algorithm (Hu et al., sec. 4; ``docs/background.md#references``): with
     ``R_c`` the current source's reliability and ``R_max`` the largest, switch only if
     ``R_max - P > R_c``. A source in error counts as ``R = 0``; an error of the current
     source forces a switch to the best healthy one whatever ``P`` (the supervisor's
@@ -36,7 +36,7 @@ Policies (registered for scenario files as ``"greedy"``, ``"hysteresis"``, ``"bl
     The default ``P = 0.15`` is inside the paper's range.
 
 :class:`HysteresisSwitchingPolicy`
-    The docking paper's decision (``003_4c9e8a9f5c1173be.txt``, sec. 3.5, Algorithm 1):
+    The docking paper's decision (Yilmaz and Temeltas, *Robotica* 2024, sec. 3.5, Algorithm 1):
     a signal ``rho`` (the correntropy similarity rate) above ``upper`` (0.75) selects
     the precise source, below ``lower`` (0.65) the coarse one, in between the previous
     stage is kept, so a signal wandering inside the band never switches.
@@ -55,7 +55,7 @@ Policies (registered for scenario files as ``"greedy"``, ``"hysteresis"``, ``"bl
     assumes the sources' errors are independent.** Sources that share information (two
     localizers using the same odometry, or estimates that already contain each other)
     are counted twice and the result is over-confident; use the node's channel-filtered
-    fusion (:class:`~dfusion.fusion.policy.InformationFusionPolicy`) for those, or
+    fusion (:class:`~dfusion.policies.base.InformationFusionPolicy`) for those, or
     covariance intersection.
 
 Angles: estimates with heading components (``angle_indices``) are blended and fused

@@ -410,7 +410,7 @@ class NodeProcess:
 
 # ---------------------------------------------------------------------- command line
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="fusion_node", description="Run one dfusion fusion node over Zenoh.")
+    p = argparse.ArgumentParser(prog="python -m dfusion.run.node_process", description="Run one dfusion fusion node over Zenoh.")
     p.add_argument("--scenario", required=True, help="scenario TOML file")
     p.add_argument("--node", required=True, help="this node's name in the scenario")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")

@@ -10,7 +10,7 @@ Every step ``t = k dt``:
 4. a node whose send period has elapsed sends a message to each neighbour;
 5. node estimates and the centralized estimate (all measurements taken by
    ``t``, no delay) are recorded; for a node whose policy is not plain fusion
-   (a switching policy, DESIGN.md sec. 7) its output (:meth:`FusionNode.output`,
+   (a switching policy, ``docs/policies.md``) its output (:meth:`FusionNode.output`,
    the source the policy chose) is recorded too.
 
 At the end every message in flight is delivered, late measurements are fused,

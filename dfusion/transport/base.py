@@ -1,7 +1,7 @@
 """The interface fusion nodes use to exchange byte messages with their neighbours.
 
 Semantics every implementation follows (the simulated network in
-:mod:`dfusion.sim.network` and the Zenoh transport alike):
+:mod:`dfusion.transport.simulated` and the Zenoh transport alike):
 
 * **Best effort.** A message may be lost, delayed, duplicated or reordered.
   There is no acknowledgement and no retransmission; protocols built on top

@@ -16,15 +16,15 @@ neighbours' endpoints: peer mode delivers only over direct links), or connect
 every node to a Zenoh router (``mode="client"`` or a router endpoint in
 ``connect``); see ``docs/zenoh.md``.
 
-Pitfalls handled here (measured in ``ZENOH_NOTES.md``):
+Pitfalls handled here (measured in this project; ``docs/background.md#7-zenoh-what-can-silently-lose-data-or-hang``):
 
 * Subscribers are callback subscribers that only append to this object's
   deques (never block); :meth:`ZenohTransport.receive` drains them.
-* The session is always closed: :meth:`close` (idempotent), the context
+* The session is always closed: :meth:`ZenohTransport.close` (idempotent), the context
   manager, and every user of this class closes it in ``finally`` (an open
   session with callback subscribers keeps the process from exiting).
-* ``transport/unicast/open_timeout`` is 1000 ms, so :meth:`close` does not
-  block for seconds when a reconnection is in flight; and :meth:`close` gives
+* ``transport/unicast/open_timeout`` is 1000 ms, so :meth:`ZenohTransport.close` does not
+  block for seconds when a reconnection is in flight; and :meth:`ZenohTransport.close` gives
   up after :data:`CLOSE_TIMEOUT` seconds when messages are queued towards a
   frozen peer (Zenoh would block about 10 s; see :func:`close_session`).
 * The lowlatency transport is refused (it drops payloads over 49,144 bytes).
@@ -38,7 +38,7 @@ neighbour is logged with ``logging.warning`` (``info`` once
 :attr:`ZenohTransport.quiet_loss` is set, e.g. at a normal end of run), its
 return with ``info``, and both are exposed through :meth:`ZenohTransport.alive`
 and callbacks registered with :meth:`ZenohTransport.on_liveliness` (called in
-the thread that calls :meth:`receive` or :meth:`poll`, never in Zenoh's).
+the thread that calls :meth:`ZenohTransport.receive` or :meth:`ZenohTransport.poll`, never in Zenoh's).
 """
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Tests of dfusion.pf: the generic particle filter, the occupancy grid and the WSN tracker.
+"""Tests of the generic particle filter (dfusion.estimation), the occupancy grid (dfusion.maps)
+and the WSN tracker (dfusion.localization).
 
 References are independent of the code under test: numpy's weighted covariance,
 a binary-search implementation of systematic resampling, an exact Liang-Barsky

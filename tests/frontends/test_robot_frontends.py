@@ -1,5 +1,5 @@
-"""Robot localizers as fusion-node front ends (dfusion.localization.robot_node, env_camera,
-dfusion.sensors.robot) and the map constraint shared by dfusion.maps and dfusion.pf.
+"""Robot localizers as fusion-node front ends (dfusion.frontends, dfusion.localization.env_camera,
+dfusion.scenario.robot_kinds) and the map constraint shared by dfusion.maps and the WSN tracker.
 
 References are independent of the code under test where possible: finite differences for
 Jacobians, Monte Carlo sampling for propagated covariances, the switching paper's eq. 1-9
@@ -381,7 +381,7 @@ def test_robot_scenario_errors():
         load_scenario(raw)
 
 
-# --------------------------------------------------------------------------- map constraint (dfusion.maps, used by dfusion.pf)
+# --------------------------------------------------------------------------- map constraint (dfusion.maps, used by the WSN tracker)
 def test_segment_blocked_on_a_rotated_map_with_unknown_cells():
     rng = np.random.default_rng(4)
     data = np.where(rng.random((30, 40)) < 0.15, 100, 0)

@@ -15,7 +15,7 @@ def rel_err(a, b):
 
 
 def window_from_rule(graph, s: Schedule) -> int:
-    """DESIGN.md's rule in states, with drops counted as extra send periods.
+    """The window rule (docs/background.md sec. 2) in states, with drops counted as extra send periods.
 
     window >= diameter * (max latency + send period) + max measurement delay;
     a link drops at most ``max_consecutive_drops`` messages in a row, so a hop

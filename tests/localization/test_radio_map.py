@@ -1,4 +1,4 @@
-"""Tests of the radio map's noise laws, outlier floor and directional path loss (dfusion.pf.radio_map).
+"""Tests of the radio map's noise laws, outlier floor and directional path loss (dfusion.localization.radio_map).
 
 References are independent of the code under test: scipy.stats.norm and numerical
 integration for the split normal, a general-purpose optimizer for its maximum-likelihood

@@ -1,4 +1,4 @@
-"""Tests of the simulated lossy network (dfusion.sim.network) and the transport types."""
+"""Tests of the simulated lossy network (dfusion.transport.simulated) and the transport types."""
 from __future__ import annotations
 
 import dataclasses
