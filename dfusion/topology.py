@@ -52,6 +52,7 @@ __all__ = [
     "tree_diameter",
     "path",
     "minimum_window",
+    "settling_rounds",
 ]
 
 logger = logging.getLogger(__name__)
@@ -385,6 +386,19 @@ def _non_negative(name: str, value: float) -> float:
     if not math.isfinite(value) or value < 0:
         raise ValidationError(f"{name} must be finite and >= 0, got {value!r}")
     return float(value)
+
+
+def settling_rounds(graph: nx.Graph) -> int:
+    """Lossless message rounds after which every node holds every other node's information:
+    ``diameter + 2``.
+
+    In each round every node sends one message to every neighbour and every message is
+    delivered. Information crosses one link per round, so ``diameter`` rounds carry it
+    across the tree; what a lost message carried is sent again once an acknowledgement
+    shows the loss, which takes one round for the acknowledgement and one for the resend
+    (:mod:`dfusion.fusion.channel`).
+    """
+    return (tree_diameter(graph) if graph.number_of_nodes() > 1 else 0) + 2
 
 
 def minimum_window(

@@ -1,42 +1,43 @@
-"""The fusion message: msgpack, versioned, validated, optionally authenticated.
+r"""The fusion message, version 2: compact, checksummed, authenticated by default, validated.
 
-A message from node ``src`` to its neighbour ``dst`` carries, for each state
-time ``t_i`` it covers, one block of *single-state information*
-``(Lambda_i, y_i)`` (see :mod:`dfusion.fusion.node` for what it means). Layout of
-version 1 (all floats IEEE-754 float64 little-endian; "packed" symmetric blocks
-store the upper triangle row by row, ``n(n+1)/2`` numbers)::
+A message from node ``src`` to its neighbour ``dst`` carries, for state times ``t_k``,
+blocks of *single-state information* ``(Lambda_k, y_k)`` (see :mod:`dfusion.fusion.channel`
+for what they mean and how they are exchanged). ``docs/wire-format.md`` describes the
+format byte by byte; in short::
 
-    envelope = msgpack map {
-        "v":    1,                  # format version
-        "body": bin,                # msgpack map below, as bytes
-        "mac":  bin | nil,          # HMAC-SHA256(key, body) when a network key is set
-    }
-    body = msgpack map {
-        "src": str, "dst": str,     # sender and recipient node names
-        "epoch": int,               # random 63-bit id of the sender's incarnation
-        "seq": int,                 # per-link sequence number, strictly increasing per epoch
-        "n": int,                   # state dimension
-        "start": float,             # oldest state time the sender still holds
-        "sent_at": float,           # sender's clock when the message was made
-        "times": bin,               # m float64, strictly increasing
-        "info": bin,                # m * n(n+1)/2 float64: packed Lambda_i
-        "vec": bin,                 # m * n float64: y_i
-    }
+    frame = b"DF" | version (1 byte, 2) | flags (1 byte) | body | crc32 (4 bytes) | mac (16 bytes, keyed frames)
+    body  = msgpack array [src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at,
+                           times, mask, values, cleared]
 
-:func:`decode` rejects, with :class:`~dfusion.errors.MessageError`: anything that
-is not such a map, an unknown version, wrong types or sizes, non-finite numbers,
-times that are not strictly increasing, an information block that is not
-positive semi-definite (scaled test, :func:`_not_psd`), a time beyond
-:data:`MAX_ABS_TIME` or two times closer than :data:`TIME_RESOLUTION`, entries
-beyond :data:`MAX_ABS_INFO` / :data:`MAX_ABS_VEC`, and, when a key is
-configured, a missing or wrong MAC (compared in constant time).
+* ``times``: the blocks' time keys (integer nanoseconds): the first as int64, then the
+  gaps as uint32 (int64 when a gap exceeds 4.29 s: flag ``WIDE_TIMES``);
+* ``mask`` and ``values``: each block is the upper triangle of ``Lambda_k`` (row by row)
+  followed by ``y_k``; ``mask`` has one bit per number (``n(n+1)/2 + n`` bits, padded to
+  whole bytes per block), ``values`` the float64 numbers whose bit is set, little-endian:
+  zero entries (a camera's information on the velocity) cost nothing;
+* ``cleared``: int64 time keys whose information from ``src`` is now zero;
+* ``crc32`` (:func:`zlib.crc32`, little-endian) over every byte before it: corruption is
+  detected without a key;
+* ``mac``: ``HMAC-SHA256(K, frame up to and including the crc)`` truncated to 16 bytes,
+  with the key ``K = HMAC-SHA256(network_key, "dfusion/2" 0 network 0 run)`` derived for
+  one network and one run (:class:`FrameKey`): a message of another network or another
+  run fails authentication even with the same network key. The MAC covers the version,
+  the flags, the sender's incarnation (``epoch``) and the sequence number.
+
+:func:`check_frame` runs the cheap checks (size, version, checksum, MAC) on raw bytes, so a
+transport can drop garbage before it queues anything; :func:`decode` runs every check before
+returning a message and raises :class:`~dfusion.errors.MessageError` naming the defect; its
+``reason`` (``"malformed"``, ``"corrupt"``, ``"unauthenticated"``, ``"version"``,
+``"oversized"``) is what rejection counters count.
 """
 from __future__ import annotations
 
 import hashlib
 import hmac
 import math
-from dataclasses import dataclass
+import struct
+import zlib
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import msgpack
@@ -45,39 +46,120 @@ import numpy as np
 from dfusion.errors import MessageError
 from dfusion.linalg import Array
 
-VERSION = 1
+__all__ = [
+    "VERSION",
+    "InfoMessage",
+    "FrameKey",
+    "encode",
+    "decode",
+    "check_frame",
+    "time_keys",
+    "MAX_MESSAGE_BYTES",
+    "MAX_BLOCKS",
+    "MAX_SEQ",
+    "MAX_STATE_DIM",
+]
+
+VERSION = 2
+MAGIC = b"DF"
+#: Flags (the fourth byte).
+KEYED, FULL, NAIVE, WIDE_TIMES = 1, 2, 4, 8
+_KNOWN_FLAGS = KEYED | FULL | NAIVE | WIDE_TIMES
+_HEAD = 4
+_CRC = 4
+MAC_BYTES = 16
+
+#: Largest frame accepted (bytes), checked before anything is parsed.
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+#: Most blocks (and cleared times) a message may carry.
+MAX_BLOCKS = 100_000
+MAX_STATE_DIM = 64
+#: Sequence numbers, incarnations and acknowledgements are below this (they fit int64).
+MAX_SEQ = 2**63
+#: Largest |time| accepted (seconds): time keys (integer nanoseconds) stay in int64.
+MAX_ABS_TIME = 9.2e9
+_MAX_KEY = int(MAX_ABS_TIME * 1e9)
 #: Positive semi-definiteness check on received blocks (see ``_not_psd``): the floor added
 #: to the diagonal, relative to the block's largest entry, and the tolerance on the
 #: smallest eigenvalue of the diagonally scaled block.
 PSD_RTOL = 1e-9
 PSD_SCALED_ATOL = 1e-6
-#: Largest message accepted (bytes); guards against memory exhaustion.
-MAX_MESSAGE_BYTES = 64 * 1024 * 1024
-MAX_STATE_DIM = 64
-#: Largest |time| accepted (seconds): time keys (integer nanoseconds) stay in int64.
-MAX_ABS_TIME = 9.2e9
-#: Resolution of state times: two times of a message must be at least this far apart.
-TIME_RESOLUTION = 1e-9
 #: Largest |entry| of an information block, and of an information vector. Information of
 #: 1e12 is a standard deviation of 1e-6 (in the state's units); far larger values are
 #: refused because replacing them later would cancel every other digit.
 MAX_ABS_INFO = 1e12
 MAX_ABS_VEC = 1e18
-#: Relative margin of the diagonal-dominance shortcut of ``_not_psd`` (covers the rounding
-#: of a row sum of up to ``MAX_STATE_DIM`` terms with room to spare).
 _DOMINANCE_RTOL = 1e-9
 
 _F8 = np.dtype("<f8")
+_I8 = np.dtype("<i8")
+_U4 = np.dtype("<u4")
+_CRC_STRUCT = struct.Struct("<I")
 
 
-@lru_cache(maxsize=16)
-def _triu(n: int) -> tuple[Array, Array]:
-    return np.triu_indices(n)
+def time_keys(times: Array) -> np.ndarray:
+    """Integer nanoseconds of an array of times (round half to even): the keys blocks are stored under."""
+    return np.rint(np.asarray(times, dtype=float) * 1e9).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class FrameKey:
+    """The MAC key of one network and one run, derived from the shared network key.
+
+    ``K = HMAC-SHA256(network_key, b"dfusion/2\\0" + network + b"\\0" + run)``: frames of
+    another network or another run (a captured message replayed into a new run) fail
+    authentication although both use the same network key.
+    """
+
+    network_key: bytes = field(repr=False)
+    network: str = ""
+    run: str = ""
+    derived: bytes = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.network_key, (bytes, bytearray)) or len(self.network_key) < 16:
+            raise MessageError("a network key must be at least 16 bytes")
+        info = b"dfusion/2\0" + self.network.encode("utf-8") + b"\0" + self.run.encode("utf-8")
+        object.__setattr__(self, "derived", hmac.digest(bytes(self.network_key), info, "sha256"))
+
+    def mac(self, data: bytes | memoryview) -> bytes:
+        return hmac.digest(self.derived, data, "sha256")[:MAC_BYTES]
 
 
 @dataclass(frozen=True)
 class InfoMessage:
-    """A decoded fusion message (see the module docstring for the fields)."""
+    """A decoded fusion message (``docs/wire-format.md`` and :mod:`dfusion.fusion.channel`).
+
+    Attributes
+    ----------
+    src, dst : str
+        Sender and recipient.
+    epoch : int
+        The sender's incarnation (increases when the sender restarts).
+    dst_epoch : int
+        The recipient's incarnation that ``ack`` refers to (0: unknown).
+    seq : int
+        Per-link sequence number, from 0 in each incarnation.
+    ack : int
+        Highest sequence number the sender applied from ``dst`` (-1: none).
+    ack_mask : int
+        Which of the 64 messages before ``ack`` the sender applied too: bit ``k`` is set
+        when message ``ack - 1 - k`` was applied (a selective acknowledgement).
+    start : float
+        Oldest state time the sender holds.
+    sent_at : float
+        Sender's clock when the message was made (informational).
+    times, info, vec : arrays ``(m,)``, ``(m, n, n)``, ``(m, n)``
+        The blocks, by increasing time.
+    cleared : (c,) float
+        Times whose information from ``src`` is now zero.
+    full : bool
+        The message holds the sender's whole window from ``start``: a time it does not
+        carry is zero. Otherwise it is partial: the times it carries replace what the
+        recipient holds, the others stay as they are.
+    naive : bool
+        Naive fusion (no channel filter), for comparison only: the blocks are increments.
+    """
 
     src: str
     dst: str
@@ -85,9 +167,15 @@ class InfoMessage:
     seq: int
     start: float
     sent_at: float
-    times: Array       # (m,)
-    info: Array        # (m, n, n), symmetric
-    vec: Array         # (m, n)
+    times: Array
+    info: Array
+    vec: Array
+    dst_epoch: int = 0
+    ack: int = -1
+    ack_mask: int = 0
+    cleared: Array = field(default_factory=lambda: np.zeros(0))
+    full: bool = True
+    naive: bool = False
 
     @property
     def n(self) -> int:
@@ -97,81 +185,9 @@ class InfoMessage:
         return self.times.shape[0]
 
 
-def encode(msg: InfoMessage, key: bytes | None = None) -> bytes:
-    """Serialize ``msg``; with ``key`` the envelope carries HMAC-SHA256 of the body."""
-    m, n = msg.vec.shape
-    iu = _triu(n)
-    body = msgpack.packb(
-        {
-            "src": msg.src,
-            "dst": msg.dst,
-            "epoch": int(msg.epoch),
-            "seq": int(msg.seq),
-            "n": int(n),
-            "start": float(msg.start),
-            "sent_at": float(msg.sent_at),
-            "times": np.ascontiguousarray(msg.times, dtype=_F8).tobytes(),
-            "info": np.ascontiguousarray(msg.info[:, iu[0], iu[1]], dtype=_F8).tobytes(),
-            "vec": np.ascontiguousarray(msg.vec, dtype=_F8).tobytes(),
-        },
-        use_bin_type=True,
-    )
-    mac = hmac.new(key, body, hashlib.sha256).digest() if key else None
-    return msgpack.packb({"v": VERSION, "body": body, "mac": mac}, use_bin_type=True)
-
-
-def _unpack(data: bytes) -> dict:
-    try:
-        obj = msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=MAX_MESSAGE_BYTES)
-    except Exception as exc:  # msgpack raises many types on garbage
-        raise MessageError(f"not a msgpack message: {type(exc).__name__}: {exc}") from None
-    if not isinstance(obj, dict):
-        raise MessageError("message is not a map")
-    return obj
-
-
-def _field(d: dict, name: str, types: type | tuple) -> object:
-    if name not in d:
-        raise MessageError(f"message has no field {name!r}")
-    v = d[name]
-    if isinstance(v, bool) or not isinstance(v, types):
-        raise MessageError(f"field {name!r} has type {type(v).__name__}")
-    return v
-
-
-def _floats(buf: bytes, count: int, name: str) -> tuple[Array, float]:
-    """``count`` little-endian float64 from ``buf`` (a writable copy) and their largest ``|x|``.
-
-    One reduction serves the finiteness check and, later, the magnitude limits:
-    the maximum of ``|x|`` is NaN or inf exactly when some number is.
-    """
-    if len(buf) != 8 * count:
-        raise MessageError(f"field {name!r} has {len(buf)} bytes, expected {8 * count}")
-    a = np.frombuffer(buf, dtype=_F8).astype(np.float64)
-    amax = float(np.abs(a).max()) if count else 0.0
-    if not math.isfinite(amax):
-        raise MessageError(f"field {name!r} contains NaN or inf")
-    return a, amax
-
-
-def _check_times(times: Array, start: float, sent_at: float, tmax: float) -> None:
-    """Checks 15-18 of docs/wire-format.md on finite ``times`` (``tmax = max|times|``).
-
-    Distinct, increasing nanosecond keys imply strictly increasing times (rounding
-    is monotone), so one test covers both in the usual case; when it fails, the
-    checks run one by one to report the first failure in the documented order.
-    """
-    m = times.shape[0]
-    in_range = tmax <= MAX_ABS_TIME   # times / TIME_RESOLUTION cannot overflow
-    ordered = m < 2 or (in_range and bool((np.diff(np.round(times / TIME_RESOLUTION)) > 0).all()))
-    if not ordered and np.any(np.diff(times) <= 0):
-        raise MessageError("state times are not strictly increasing")
-    if not in_range or abs(start) > MAX_ABS_TIME or abs(sent_at) > MAX_ABS_TIME:
-        raise MessageError(f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
-    if not ordered:
-        raise MessageError(f"two state times are closer than {TIME_RESOLUTION:g} s")
-    if m and times[0] < start:
-        raise MessageError("a state time precedes the window start")
+@lru_cache(maxsize=16)
+def _triu(n: int) -> tuple[Array, Array]:
+    return np.triu_indices(n)
 
 
 @lru_cache(maxsize=16)
@@ -184,55 +200,217 @@ def _unpack_index(n: int) -> Array:
     return idx.reshape(-1)
 
 
-def decode(data: bytes, key: bytes | None = None) -> InfoMessage:
-    """Parse and validate a message; raises :class:`MessageError` on any defect."""
+def _encode_times(keys: np.ndarray) -> tuple[bytes, bool]:
+    if keys.size == 0:
+        return b"", False
+    gaps = np.diff(keys)
+    wide = bool(gaps.size and gaps.max() >= 2**32)
+    head = keys[:1].astype(_I8).tobytes()
+    return head + gaps.astype(_I8 if wide else _U4).tobytes(), wide
+
+
+def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
+    """The frame of ``msg``; keyed (with a MAC) when ``key`` is given."""
+    m, n = msg.vec.shape
+    iu = _triu(n)
+    rows = np.concatenate([msg.info[:, iu[0], iu[1]], msg.vec], axis=1) if m else np.zeros((0, iu[0].size + n))
+    mask = rows != 0.0
+    keys = time_keys(msg.times)
+    times, wide = _encode_times(keys)
+    body = msgpack.packb(
+        [msg.src, msg.dst, int(msg.epoch), int(msg.dst_epoch), int(msg.seq), int(msg.ack), int(msg.ack_mask), int(n),
+         float(msg.start), float(msg.sent_at), times,
+         np.packbits(mask, axis=1, bitorder="little").tobytes(),
+         np.ascontiguousarray(rows[mask], dtype=_F8).tobytes(),
+         time_keys(msg.cleared).astype(_I8).tobytes()],
+        use_bin_type=True,
+    )
+    flags = (KEYED if key is not None else 0) | (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) \
+        | (WIDE_TIMES if wide else 0)
+    frame = MAGIC + bytes((VERSION, flags)) + body
+    frame += _CRC_STRUCT.pack(zlib.crc32(frame))
+    if key is not None:
+        frame += key.mac(frame)
+    return frame
+
+
+def _reject(reason: str, detail: str) -> MessageError:
+    err = MessageError(detail)
+    err.reason = reason
+    return err
+
+
+def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
+                max_bytes: int = MAX_MESSAGE_BYTES) -> memoryview:
+    """The cheap checks, before any parsing: size, magic and version, flags, checksum, MAC.
+
+    Returns the body's bytes (a view). Raises :class:`MessageError` with ``reason``
+    ``"oversized"``, ``"version"``, ``"malformed"``, ``"corrupt"`` or ``"unauthenticated"``.
+    A few microseconds for a valid frame of a few kilobytes: a transport may call it in
+    its receive callback and drop garbage before it takes queue space.
+    """
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise MessageError(f"message must be bytes, got {type(data).__name__}")
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise MessageError(f"message of {len(data)} bytes exceeds the limit")
-    env = _unpack(bytes(data))
-    version = _field(env, "v", int)
+        raise _reject("malformed", f"message must be bytes, got {type(data).__name__}")
+    size = len(data)
+    if size > max_bytes:
+        raise _reject("oversized", f"message of {size} bytes exceeds the limit of {max_bytes}")
+    view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
+    if size < _HEAD + 1 + _CRC or bytes(view[:2]) != MAGIC:
+        if size and view[0] in (0x80 | 3, 0xDE, 0xDF) or (size and 0x80 <= view[0] <= 0x8F):
+            raise _reject("version", "a version-1 message (msgpack map): this node speaks version 2 only")
+        raise _reject("malformed", "not a dfusion message (no DF header)")
+    version, flags = view[2], view[3]
     if version != VERSION:
-        raise MessageError(f"unknown message version {version}")
-    body = _field(env, "body", bytes)
-    mac = env.get("mac")
-    if key:
-        if not isinstance(mac, bytes):
-            raise MessageError("message is not authenticated (no MAC) but a network key is set")
-        if not hmac.compare_digest(mac, hmac.new(key, body, hashlib.sha256).digest()):
-            raise MessageError("message authentication failed (wrong MAC)")
-    d = _unpack(body)
-    src = _field(d, "src", str)
-    dst = _field(d, "dst", str)
-    epoch = _field(d, "epoch", int)
-    seq = _field(d, "seq", int)
-    n = _field(d, "n", int)
-    if not (1 <= n <= MAX_STATE_DIM):
-        raise MessageError(f"state dimension {n} out of range")
-    if seq < 0 or epoch < 0:
-        raise MessageError("negative sequence number or epoch")
-    start = float(_field(d, "start", (int, float)))
-    sent_at = float(_field(d, "sent_at", (int, float)))
-    if not (math.isfinite(start) and math.isfinite(sent_at)):
-        raise MessageError("non-finite start or sent_at")
-    tb = _field(d, "times", bytes)
-    if len(tb) % 8:
-        raise MessageError("field 'times' is not a whole number of float64")
-    m = len(tb) // 8
-    times, tmax = _floats(tb, m, "times")
-    _check_times(times, start, sent_at, tmax)
+        raise _reject("version", f"message version {version}: this node speaks version {VERSION} only")
+    if flags & ~_KNOWN_FLAGS:
+        raise _reject("malformed", f"unknown flags {flags:#04x}")
+    keyed = bool(flags & KEYED)
+    end = size - (MAC_BYTES if keyed else 0)
+    if end - _CRC < _HEAD + 1:
+        raise _reject("malformed", "message too short")
+    (crc,) = _CRC_STRUCT.unpack_from(view, end - _CRC)
+    if zlib.crc32(view[:end - _CRC]) != crc:
+        raise _reject("corrupt", "checksum mismatch: the message was corrupted")
+    if key is not None:
+        if not keyed:
+            raise _reject("unauthenticated", "message is not authenticated (no MAC) but a network key is set")
+        if not hmac.compare_digest(bytes(view[end:]), key.mac(view[:end])):
+            raise _reject("unauthenticated", "message authentication failed (wrong key, network or run)")
+    elif keyed:
+        raise _reject("unauthenticated", "message is authenticated (keyed network) but this node has no key")
+    return view[_HEAD:end - _CRC]
+
+
+def _int(v: object, name: str, lo: int, hi: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _reject("malformed", f"field {name!r} has type {type(v).__name__}")
+    if not lo <= v < hi:
+        raise _reject("malformed", f"field {name!r} = {v} is outside [{lo}, {hi})")
+    return v
+
+
+def _float(v: object, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _reject("malformed", f"field {name!r} has type {type(v).__name__}")
+    f = float(v)
+    if not math.isfinite(f) or abs(f) > MAX_ABS_TIME:
+        raise _reject("malformed", f"field {name!r} = {v!r} is not a finite time below {MAX_ABS_TIME:g} s")
+    return f
+
+
+def _bin(v: object, name: str) -> bytes:
+    if not isinstance(v, bytes):
+        raise _reject("malformed", f"field {name!r} has type {type(v).__name__}")
+    return v
+
+
+def _str(v: object, name: str) -> str:
+    if not isinstance(v, str) or not v or len(v) > 256:
+        raise _reject("malformed", f"field {name!r} must be a non-empty name")
+    return v
+
+
+def _decode_keys(buf: bytes, name: str, wide: bool) -> np.ndarray:
+    """Strictly increasing int64 keys of a ``times`` field (first key, then gaps)."""
+    if not buf:
+        return np.zeros(0, dtype=np.int64)
+    gap = 8 if wide else 4
+    if len(buf) < 8 or (len(buf) - 8) % gap:
+        raise _reject("malformed", f"field {name!r} has {len(buf)} bytes, not a first time and whole gaps")
+    first = np.frombuffer(buf, dtype=_I8, count=1)
+    gaps = np.frombuffer(buf, dtype=_I8 if wide else _U4, offset=8).astype(np.int64)
+    if gaps.size + 1 > MAX_BLOCKS:
+        raise _reject("malformed", f"more than {MAX_BLOCKS} blocks")
+    if gaps.size and (gaps.min() <= 0 or gaps.max() > 2 * _MAX_KEY):
+        raise _reject("malformed", f"field {name!r}: times are not strictly increasing")
+    keys = np.empty(gaps.size + 1, dtype=np.int64)
+    keys[0] = first[0]
+    if gaps.size:
+        if abs(int(first[0])) > _MAX_KEY or abs(int(first[0]) + int(gaps.sum())) > _MAX_KEY:
+            raise _reject("malformed", f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
+        np.cumsum(gaps, out=keys[1:])
+        keys[1:] += keys[0]
+    elif abs(int(first[0])) > _MAX_KEY:
+        raise _reject("malformed", f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
+    return keys
+
+
+def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
+           max_bytes: int = MAX_MESSAGE_BYTES) -> InfoMessage:
+    """Parse and validate a frame; raises :class:`MessageError` (with ``reason``) on any defect.
+
+    Every check of ``docs/wire-format.md`` runs before anything is returned: sizes, every
+    integer's range, times, finiteness and magnitudes, symmetry (by construction: only the
+    upper triangle travels) and positive semi-definiteness of every block.
+    """
+    body = check_frame(data, key, max_bytes)
+    flags = memoryview(data)[3] if not isinstance(data, memoryview) else data[3]
+    try:
+        fields = msgpack.unpackb(body, raw=False, use_list=True, strict_map_key=True, max_bin_len=max_bytes,
+                                 max_array_len=32, max_map_len=0, max_str_len=256)
+    except Exception as exc:  # msgpack raises many types on garbage
+        raise _reject("malformed", f"not a msgpack body: {type(exc).__name__}: {exc}") from None
+    if not isinstance(fields, list) or len(fields) != 14:
+        raise _reject("malformed", "the body must be an array of 14 fields")
+    (src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at, times_b, mask_b, values_b, cleared_b) = fields
+    src, dst = _str(src, "src"), _str(dst, "dst")
+    epoch = _int(epoch, "epoch", 0, MAX_SEQ)
+    dst_epoch = _int(dst_epoch, "dst_epoch", 0, MAX_SEQ)
+    seq = _int(seq, "seq", 0, MAX_SEQ)
+    ack = _int(ack, "ack", -1, MAX_SEQ)
+    ack_mask = _int(ack_mask, "ack_mask", 0, 2**64)
+    n = _int(n, "n", 1, MAX_STATE_DIM + 1)
+    start, sent_at = _float(start, "start"), _float(sent_at, "sent_at")
+    full, naive = bool(flags & FULL), bool(flags & NAIVE)
+    keys = _decode_keys(_bin(times_b, "times"), "times", bool(flags & WIDE_TIMES))
+    m = keys.size
+    cleared_raw = _bin(cleared_b, "cleared")
+    if len(cleared_raw) % 8:
+        raise _reject("malformed", "field 'cleared' is not a whole number of int64")
+    cleared = np.frombuffer(cleared_raw, dtype=_I8).astype(np.int64)
+    if cleared.size > MAX_BLOCKS:
+        raise _reject("malformed", f"more than {MAX_BLOCKS} cleared times")
+    if cleared.size:
+        if full:
+            raise _reject("malformed", "a full message clears no time (absent times are zero)")
+        if np.any(np.diff(cleared) <= 0) or np.abs(cleared).max() > _MAX_KEY:
+            raise _reject("malformed", "cleared times are not strictly increasing times")
+        if np.intersect1d(cleared, keys, assume_unique=True).size:
+            raise _reject("malformed", "a time is both cleared and carried")
+    start_key = int(round(start * 1e9))
+    if (m and keys[0] < start_key) or (cleared.size and cleared[0] < start_key):
+        raise _reject("malformed", "a state time precedes the window start")
     k = n * (n + 1) // 2
-    packed, info_max = _floats(_field(d, "info", bytes), m * k, "info")
-    vec, vec_max = _floats(_field(d, "vec", bytes), m * n, "vec")
-    if info_max > MAX_ABS_INFO:
-        raise MessageError(f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
-    if vec_max > MAX_ABS_VEC:
-        raise MessageError(f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
-    info = packed.reshape(m, k)[:, _unpack_index(n)].reshape(m, n, n)
-    bad = _not_psd(info)
-    if bad is not None:
-        raise MessageError(f"information block at t={times[bad]} is not positive semi-definite")
-    return InfoMessage(src, dst, int(epoch), int(seq), start, sent_at, times, info, vec.reshape(m, n))
+    width = k + n
+    row_bytes = (width + 7) // 8
+    mask_raw = _bin(mask_b, "mask")
+    if len(mask_raw) != m * row_bytes:
+        raise _reject("malformed", f"field 'mask' has {len(mask_raw)} bytes, expected {m * row_bytes}")
+    mask = np.unpackbits(np.frombuffer(mask_raw, dtype=np.uint8).reshape(m, row_bytes), axis=1,
+                         count=width, bitorder="little").astype(bool)
+    values_raw = _bin(values_b, "values")
+    count = int(mask.sum())
+    if len(values_raw) != 8 * count:
+        raise _reject("malformed", f"field 'values' has {len(values_raw)} bytes, expected {8 * count}")
+    values = np.frombuffer(values_raw, dtype=_F8)
+    vmax = float(np.abs(values).max()) if count else 0.0
+    if not math.isfinite(vmax):
+        raise _reject("malformed", "field 'values' contains NaN or inf")
+    rows = np.zeros((m, width))
+    rows[mask] = values
+    if m and np.abs(rows[:, :k]).max() > MAX_ABS_INFO:
+        raise _reject("malformed", f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
+    if m and np.abs(rows[:, k:]).max() > MAX_ABS_VEC:
+        raise _reject("malformed", f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
+    info = rows[:, :k][:, _unpack_index(n)].reshape(m, n, n)
+    vec = np.ascontiguousarray(rows[:, k:])
+    times = keys / 1e9
+    if not naive:
+        bad = _not_psd(info)
+        if bad is not None:
+            raise _reject("malformed", f"information block at t={times[bad]} is not positive semi-definite")
+    return InfoMessage(src, dst, epoch, seq, start, sent_at, times, info, vec, dst_epoch, ack, ack_mask,
+                       cleared / 1e9, full, naive)
 
 
 def _not_psd(info: Array) -> int | None:

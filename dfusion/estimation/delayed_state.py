@@ -250,20 +250,27 @@ class DelayedStateEIF:
         return None
 
     # ------------------------------------------------------------------ transaction
+    def checkpoint(self) -> tuple:
+        """The filter's state, to go back to with :meth:`restore` (cheap: no copy of unchanged blocks)."""
+        self._require_init()
+        return (self._traj.snapshot(), list(self._times), self.marginalized)
+
+    def restore(self, checkpoint: tuple) -> None:
+        """Go back to a :meth:`checkpoint` of this filter."""
+        traj, times, marg = checkpoint
+        self._traj.restore(traj)
+        self._times, self.marginalized = list(times), marg
+
     class _Transaction:
         def __init__(self, f: "DelayedStateEIF") -> None:
             self.f = f
 
         def __enter__(self) -> None:
-            f = self.f
-            self.snap = (f._traj.snapshot(), list(f._times), f.marginalized)
+            self.snap = self.f.checkpoint()
 
         def __exit__(self, exc_type, exc, tb) -> bool:
             if exc_type is not None:
-                f = self.f
-                traj, times, marg = self.snap
-                f._traj.restore(traj)
-                f._times, f.marginalized = times, marg
+                self.f.restore(self.snap)
             return False
 
     def transaction(self) -> "_Transaction":

@@ -1,4 +1,4 @@
-r"""The channel filter of one link: the information both ends already share.
+r"""The channel filter of one link: what both ends already share, and what the other end has acknowledged.
 
 Fusion rule on a tree (Grime & Durrant-Whyte, "Data fusion in decentralized
 sensor networks", Control Eng. Practice 1994; URUS paper, sec. 6)::
@@ -10,22 +10,55 @@ trajectory's information split by state time, and only single-state factors
 (measurements) ever differ between nodes: prior and motion factors are common.
 The channel filter of ``i`` for link ``i-j`` therefore stores, per state time
 ``t``, the latest single-state information ``M_ij(t)`` that ``j`` sent: the part
-of ``j``'s belief that ``i`` now shares. Node ``i`` sends ``j``
+of ``j``'s belief that ``i`` now shares. What ``i`` has for ``j`` is
 
-    msg_{i->j}(t) = T_i(t) - M_ij(t),   T_i(t) = own_i(t) + sum_k M_ik(t),
+    V_ij(t) = T_i(t) - M_ij(t),   T_i(t) = own_i(t) + sum_k M_ik(t),
 
-that is, everything it knows that did not come from ``j`` (``docs/background.md#2-fusion-on-a-tree``,
-"an equivalent view on trees"). When ``j`` receives it, the block of time ``t``
-*replaces* the previous one from ``i``: ``j`` adds ``msg(t) - M_ji(t)`` to its
-filter. Each entry records the sequence number of the message it came from; an
-entry is only replaced by one from a newer message. Consequences:
+everything ``i`` knows that did not come from ``j`` ("the equivalent view on
+trees", see ``docs/fusion.md``). At ``j`` a block of time ``t`` from ``i``
+*replaces* the previous one: ``j`` adds ``V(t) - M_ji(t)`` to its filter.
+
+**Sending what the neighbour does not have yet.** Each message carries the
+sender's incarnation ``epoch`` and a per-link sequence number ``seq``, and
+acknowledges what the sender has applied from the recipient: the newest sequence
+number ``ack`` and, as a bit mask, which of the 64 before it (a selective
+acknowledgement). A message is either
+
+* *full*: ``V(t)`` for every time of the sender's window from ``start`` on; a time it
+  does not carry is zero there. The first message to a neighbour (or to a new
+  incarnation of it) is full, and so is the one after an unacknowledged full message
+  that turned out lost;
+* *partial*: ``V(t)`` only for the times whose value changed since the previous message
+  (:attr:`ChannelFilter.dirty`), plus the times of every earlier message the recipient
+  turned out not to have received (:meth:`ChannelFilter.acknowledged` collects them); a
+  time among those whose value is now zero is listed in ``cleared``.
+
+Blocks are absolute values, not increments: a block (or a clearing) replaces what the
+recipient stores for that time, and only from a newer message (every stored entry
+remembers the sequence number it came from; a cleared time is kept as a zero entry, a
+tombstone, so that an older message arriving late cannot bring it back). A partial
+message is therefore safe to apply on its own, whatever else arrived. Consequences,
+whatever the transport does:
 
 * duplicates and reordered (older) messages change nothing;
-* a lost message loses nothing for good: the next one carries the same times;
-* crossing messages cannot double count: neither side's message contains what
-  it received from the other;
+* crossing messages cannot double count: neither side's message contains what it
+  received from the other;
+* a lost message loses nothing for good: once an acknowledgement shows a later message
+  arrived without it, its times are sent again with their current values; until then
+  the recipient holds older values for them, which is less information, never more
+  (never over-confident). A lost acknowledgement only delays that;
+* in the steady state without losses a message carries only what changed since the
+  previous one: the information minimum, plus a header;
+* while nothing is acknowledged (a link used one way only, or the first messages) and
+  when acknowledgements stall (more than :data:`ACK_LAG` messages behind: the link is
+  down, or the recipient is), partial messages carry everything sent since the newest
+  acknowledged message: a lost message is then recovered by the next one, and the first
+  message through after an outage brings the recipient up to date at once;
+* a restarted node has a new, larger ``epoch``: its neighbours forget what it had
+  acknowledged and send it a full message, and treat the blocks its previous incarnation
+  sent as older than any new message; a message of an earlier incarnation is rejected;
 * times older than the sender's window (``start``) are kept as they are: the
-  sender dropped them, the receiver may still hold them.
+  sender dropped them, the recipient may still hold them.
 """
 from __future__ import annotations
 
@@ -34,7 +67,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from dfusion.linalg import Array
-from dfusion.wire import InfoMessage
+from dfusion.wire import InfoMessage, time_keys
+
+__all__ = ["ChannelFilter", "Plan", "Entry", "time_key", "time_keys", "nonzero_blocks", "find_keys",
+           "MAX_SEQ_JUMP", "MAX_UNACKED"]
+
+_MASK64 = (1 << 64) - 1
+#: Messages an acknowledgement may lag behind before partial messages also carry everything
+#: sent since the newest acknowledged one (so that a link coming back from an outage
+#: catches up with its first message).
+ACK_LAG = 2
+
+#: Largest forward jump of the sequence number within one incarnation (a sender that lost
+#: a million messages in a row is indistinguishable from a forger's jump).
+MAX_SEQ_JUMP = 1_000_000
+#: Messages remembered while unacknowledged: beyond this many the sender sends a full
+#: message instead (and forgets the records).
+MAX_UNACKED = 64
 
 
 def time_key(t: float) -> int:
@@ -58,32 +107,28 @@ class Entry:
 
 @dataclass(frozen=True)
 class Plan:
-    """What receiving one message changes (see :meth:`ChannelFilter.plan`).
+    """What receiving one message changes (see :meth:`ChannelFilter.plan`); nothing is changed yet.
 
     Attributes
     ----------
     deltas : list of (t, dL, dy)
         Information to add to the receiver's filter per state time (``new - old``).
-    keys, times, info, vec : arrays
-        The message blocks to store (with the message's sequence number), sorted by key.
-    drop : (k,) int64
-        Keys of stored entries the sender no longer holds information for.
+    keys, times, seqs, info, vec : arrays
+        The channel's entries after the message (sorted by key): replaces the stored arrays.
+    changed : (k,) int64
+        Keys whose stored value changed (the receiver's other links must send them).
     outside : int
-        Blocks with information that were older than the receiver's window.
+        Blocks with information that were older than the receiver's window (ignored).
     """
 
     deltas: list[tuple[float, Array, Array]]
     keys: np.ndarray
     times: Array
+    seqs: np.ndarray
     info: Array
     vec: Array
-    drop: np.ndarray
+    changed: np.ndarray
     outside: int
-
-
-def time_keys(times: Array) -> np.ndarray:
-    """:func:`time_key` of an array of times (both round half to even)."""
-    return np.rint(np.asarray(times, dtype=float) * 1e9).astype(np.int64)
 
 
 def nonzero_blocks(info: Array, vec: Array) -> np.ndarray:
@@ -104,41 +149,54 @@ def find_keys(stored: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 class ChannelFilter:
-    """Information shared with neighbour ``remote`` over one link (held by ``local``).
+    """The link to neighbour ``remote``, held by ``local``.
 
-    The entries are stored as arrays sorted by time key, so that planning a message
-    of ``m`` blocks costs a few vectorized operations (a ``searchsorted`` join)
-    instead of ``m`` Python steps.
+    Inbound: the information ``remote`` sent, per state time, as arrays sorted by time key
+    (zero entries are cleared times). Outbound: what ``remote`` has acknowledged of this
+    node's messages, and which times changed since.
 
     Attributes
     ----------
-    local, remote : str
-        The node holding the filter and its neighbour.
-    keys : (k,) int64
-        Time keys (:func:`time_key`) of the stored entries, increasing.
-    times, seqs, info, vec : arrays
-        Per entry: the state time, the sequence number of the message it came from
-        (-1: from a previous incarnation of ``remote``), and the information
-        ``(info[i], vec[i])`` that ``remote`` sent for that time.
+    keys, times, seqs, info, vec : arrays
+        Per stored entry: time key (:func:`time_key`), time, sequence number of the
+        message it came from (-1: from a previous incarnation of ``remote``) and the
+        information ``(info[i], vec[i])``.
     epoch : int or None
         The incarnation of ``remote`` the entries come from.
     last_seq : int
-        Newest sequence number received from ``remote`` (-1: none).
+        Newest sequence number received from ``remote`` in that incarnation (-1: none).
+    applied_seq : int
+        Newest sequence number from ``remote`` applied completely (what is acknowledged,
+        with :meth:`received_mask`).
     seq_out : int
         Sequence number of the next message to ``remote``.
+    need_full : bool
+        The next message to ``remote`` must be full.
+    acked : int
+        Newest of this node's messages ``remote`` acknowledged (-1: none).
+    dirty : set of int
+        Keys whose value for ``remote`` changed since the last message to it.
     """
 
-    def __init__(self, local: str, remote: str) -> None:
+    def __init__(self, local: str, remote: str, n: int) -> None:
         self.local = local
         self.remote = remote
+        self.n = n
         self.keys = np.zeros(0, dtype=np.int64)
         self.times = np.zeros(0)
         self.seqs = np.zeros(0, dtype=np.int64)
-        self.info: Array | None = None
-        self.vec: Array | None = None
+        self.info = np.zeros((0, n, n))
+        self.vec = np.zeros((0, n))
         self.epoch: int | None = None
         self.last_seq = -1
+        self.applied_seq = -1
+        self._applied_mask = 0
         self.seq_out = 0
+        self.need_full = True
+        self.acked = -1
+        self.dirty: set[int] = set()
+        self._resend = np.zeros(0, dtype=np.int64)
+        self._sent: dict[int, tuple[np.ndarray, bool]] = {}   # seq -> (keys it may have changed, full?)
         self.messages_in = 0
         self.messages_out = 0
         self.duplicates = 0
@@ -150,13 +208,13 @@ class ChannelFilter:
     def __len__(self) -> int:
         return int(self.keys.size)
 
+    # ------------------------------------------------------------------ inbound
     @property
     def received(self) -> dict[int, Entry]:
-        """The stored entries as a dict ``{time key: Entry}`` (a snapshot, for inspection)."""
-        if not self.keys.size:
-            return {}
-        return {int(k): Entry(float(t), int(q), self.info[i].copy(), self.vec[i].copy())
-                for i, (k, t, q) in enumerate(zip(self.keys, self.times, self.seqs))}
+        """The stored non-zero entries as a dict ``{time key: Entry}`` (a snapshot, for inspection)."""
+        live = nonzero_blocks(self.info, self.vec)
+        return {int(self.keys[i]): Entry(float(self.times[i]), int(self.seqs[i]), self.info[i].copy(),
+                                          self.vec[i].copy()) for i in np.flatnonzero(live)}
 
     def information(self, key: int) -> Entry | None:
         """The shared information at a state time, if any."""
@@ -169,98 +227,109 @@ class ChannelFilter:
         """:func:`find_keys` of ``keys`` among the stored entries."""
         return find_keys(self.keys, keys)
 
+    def values_at(self, keys: np.ndarray) -> tuple[Array, Array]:
+        """The stored information at ``keys`` (zero where nothing is stored)."""
+        info = np.zeros((keys.size, self.n, self.n))
+        vec = np.zeros((keys.size, self.n))
+        if self.keys.size and keys.size:
+            found, pos = self.lookup(keys)
+            info[found] = self.info[pos[found]]
+            vec[found] = self.vec[pos[found]]
+        return info, vec
+
+    def state(self) -> tuple:
+        """Everything :meth:`commit`, :meth:`acknowledged` and :meth:`record_sent` change (to undo them)."""
+        return (self.keys, self.times, self.seqs, self.info, self.vec, self.epoch, self.last_seq, self.applied_seq,
+                self._applied_mask, self.need_full, self.acked, set(self.dirty), self._resend, dict(self._sent), self.seq_out,
+                self.messages_in, self.messages_out, self.duplicates)
+
+    def restore(self, state: tuple) -> None:
+        (self.keys, self.times, self.seqs, self.info, self.vec, self.epoch, self.last_seq, self.applied_seq,
+         self._applied_mask, self.need_full, self.acked, self.dirty, self._resend, self._sent, self.seq_out,
+         self.messages_in, self.messages_out, self.duplicates) = state
+
     def plan(self, msg: InfoMessage, oldest: float, time_tol: float) -> Plan:
         """What receiving ``msg`` changes, without changing anything.
 
-        A block of time ``t`` is new (stored, its information added), replaces a
-        stored entry from an older message or an older incarnation (the difference
-        is added), or is ignored (the stored entry is as new: a duplicate or a
-        reordered message). Stored entries at times the sender still holds
-        (``t >= msg.start``) but sent nothing for are removed (their information
-        is subtracted). Blocks older than the receiver's window are counted in
-        ``outside`` and ignored.
+        A block of time ``t`` is new (stored, its information added), replaces a stored
+        entry from an older message or an older incarnation (the difference is added),
+        or is ignored (the stored entry is as new: a duplicate or a reordered message).
+        A cleared time, and for a full message every stored time from ``msg.start`` on
+        that the message does not carry, becomes a zero entry when the stored one is
+        older (its information is subtracted). Blocks older than the receiver's window
+        are counted in ``outside`` and ignored.
         """
         new_epoch = msg.epoch != self.epoch
+        seqs_now = np.full(self.keys.size, -1, dtype=np.int64) if new_epoch else self.seqs
         times, info, vec = msg.times, msg.info, msg.vec
-        nonzero = nonzero_blocks(info, vec)
         mkeys = time_keys(times)
-        found_all, pos_all = self.lookup(mkeys)
-        found, pos = found_all, pos_all
-        # times increase: the blocks inside the receiver's window are a suffix
         first = int(times.searchsorted(oldest - time_tol))
-        outside = int(np.count_nonzero(nonzero[:first])) if first else 0
+        outside = int(np.count_nonzero(nonzero_blocks(info[:first], vec[:first]))) if first else 0
         if first:
-            times, info, vec, nonzero = times[first:], info[first:], vec[first:], nonzero[first:]
-            mkeys, found, pos = mkeys[first:], found[first:], pos[first:]
-        fresh = nonzero & ~found
-        if new_epoch or not self.keys.size:
-            replace = found
+            times, info, vec, mkeys = times[first:], info[first:], vec[first:], mkeys[first:]
+        if msg.full:
+            held = self.keys >= time_key(msg.start) - 1
+            held &= self.keys >= time_key(oldest) - 1
+            absent = np.setdiff1d(self.keys[held], mkeys, assume_unique=True)
+            ckeys = absent
         else:
-            replace = found & (self.seqs.take(pos, mode="clip") < msg.seq)
-        deltas: list[tuple[float, Array, Array]] = [
-            (t, info[i], vec[i]) for i, t in zip(fresh.nonzero()[0].tolist(), times[fresh].tolist())
-        ]
-        ri = replace.nonzero()[0]
-        if ri.size:
-            oi = pos[ri]
-            dL = info[ri] - self.info[oi]
-            dy = vec[ri] - self.vec[oi]
-            for j in nonzero_blocks(dL, dy).nonzero()[0].tolist():
-                deltas.append((float(times[ri[j]]), dL[j], dy[j]))
-        store = fresh | replace
-        # times the sender still holds but sent nothing for: its information there is now zero
-        drop = np.zeros(0, dtype=np.int64)
+            ckeys = time_keys(msg.cleared)
+            ckeys = ckeys[ckeys >= time_key(oldest) - 1]
+        # candidates: the message's blocks, then the times it clears (value zero)
+        all_keys = np.concatenate([mkeys, ckeys])
+        all_info = np.concatenate([info, np.zeros((ckeys.size, self.n, self.n))])
+        all_vec = np.concatenate([vec, np.zeros((ckeys.size, self.n))])
+        all_times = np.concatenate([times, ckeys / 1e9]) if ckeys.size else times
+        found, pos = self.lookup(all_keys)
+        newer = ~found
         if self.keys.size:
-            gone = self.times >= msg.start - time_tol
-            gone[pos_all[found_all]] = False
-            if not new_epoch:
-                gone &= self.seqs < msg.seq
-            gi = gone.nonzero()[0]
-            if gi.size:
-                for i in gi.tolist():
-                    deltas.append((float(self.times[i]), -self.info[i], -self.vec[i]))
-                drop = self.keys[gi]
-        if store.all():
-            return Plan(deltas, mkeys, times, info, vec, drop, outside)
-        return Plan(deltas, mkeys[store], times[store], info[store], vec[store], drop, outside)
-
-    def commit(self, msg: InfoMessage, plan: Plan | None) -> None:
-        """Store what :meth:`plan` decided (``None``: only note that ``msg`` arrived)."""
-        if msg.epoch != self.epoch:
-            # entries of the previous incarnation count as older than any new message
-            self.seqs = np.full(self.keys.size, -1, dtype=np.int64)
-            self.epoch = msg.epoch
-            self.last_seq = -1
-        self.last_seq = max(self.last_seq, msg.seq)
-        self.messages_in += 1
-        if plan is None:
-            return
-        n = msg.vec.shape[1]
-        if self.info is None:
-            self.info, self.vec = np.zeros((0, n, n)), np.zeros((0, n))
-        seqs = np.full(plan.keys.size, msg.seq, dtype=np.int64)
-        keep = self._kept(plan)
-        if not keep.any():
-            # the usual case: the message replaces every stored entry
-            self.keys, self.times, self.seqs = plan.keys, plan.times, seqs
-            self.info, self.vec = plan.info, plan.vec
-            return
-        keys = np.concatenate([self.keys[keep], plan.keys])
-        order = np.argsort(keys, kind="stable")
-        self.keys = keys[order]
-        self.times = np.concatenate([self.times[keep], plan.times])[order]
-        self.seqs = np.concatenate([self.seqs[keep], seqs])[order]
-        self.info = np.concatenate([self.info[keep], plan.info])[order]
-        self.vec = np.concatenate([self.vec[keep], plan.vec])[order]
-
-    def _kept(self, plan: Plan) -> np.ndarray:
-        """Mask of the stored entries that ``plan`` neither replaces nor drops."""
+            newer |= seqs_now.take(pos, mode="clip") < msg.seq
+        if not newer.any():
+            return Plan([], self.keys, self.times, seqs_now, self.info, self.vec, np.zeros(0, dtype=np.int64),
+                        outside)
+        idx = np.flatnonzero(newer)
+        old_info = np.zeros((idx.size, self.n, self.n))
+        old_vec = np.zeros((idx.size, self.n))
+        f = found[idx]
+        old_info[f] = self.info[pos[idx][f]]
+        old_vec[f] = self.vec[pos[idx][f]]
+        d_info = all_info[idx] - old_info
+        d_vec = all_vec[idx] - old_vec
+        moved = nonzero_blocks(d_info, d_vec)
+        deltas = [(float(all_times[idx[j]]), d_info[j], d_vec[j]) for j in np.flatnonzero(moved).tolist()]
+        # the new arrays: stored entries not touched, plus the message's newer ones
         keep = np.ones(self.keys.size, dtype=bool)
-        for keys in (plan.drop, plan.keys):
-            if keys.size and self.keys.size:
-                found, pos = self.lookup(keys)
-                keep[pos[found]] = False
-        return keep
+        keep[pos[idx][f]] = False
+        keys = np.concatenate([self.keys[keep], all_keys[idx]])
+        order = np.argsort(keys, kind="stable")
+        seq_col = np.full(idx.size, msg.seq, dtype=np.int64)
+        return Plan(
+            deltas,
+            keys[order],
+            np.concatenate([self.times[keep], all_times[idx]])[order],
+            np.concatenate([seqs_now[keep], seq_col])[order],
+            np.concatenate([self.info[keep], all_info[idx]])[order],
+            np.concatenate([self.vec[keep], all_vec[idx]])[order],
+            all_keys[idx][moved],
+            outside,
+        )
+
+    def commit(self, msg: InfoMessage, plan: Plan | None, complete: bool = True) -> None:
+        """Store what :meth:`plan` decided (``None``: only note that ``msg`` arrived).
+
+        ``complete``: every block of the message was applied (none was held back for
+        being too far ahead), so the message may be acknowledged.
+        """
+        if msg.epoch != self.epoch:
+            self.epoch = msg.epoch
+            self.last_seq = self.applied_seq = -1
+            self._applied_mask = 0
+        self.last_seq = max(self.last_seq, msg.seq)
+        if complete:
+            self.note_applied(msg.seq)
+        self.messages_in += 1
+        if plan is not None:
+            self.keys, self.times, self.seqs, self.info, self.vec = plan.keys, plan.times, plan.seqs, plan.info, plan.vec
 
     def prune(self, oldest_key: int) -> None:
         """Forget entries of states older than the window (already in the base)."""
@@ -268,3 +337,77 @@ class ChannelFilter:
             keep = self.keys >= oldest_key
             self.keys, self.times, self.seqs = self.keys[keep], self.times[keep], self.seqs[keep]
             self.info, self.vec = self.info[keep], self.vec[keep]
+        if self.dirty:
+            self.dirty = {k for k in self.dirty if k >= oldest_key}
+
+    # ------------------------------------------------------------------ outbound
+    def received_mask(self) -> int:
+        """The selective acknowledgement to send: bit ``k`` set when message ``applied_seq - 1 - k``
+        was applied completely."""
+        return self._applied_mask
+
+    def note_applied(self, seq: int) -> None:
+        """Message ``seq`` of the current incarnation was applied completely."""
+        top = self.applied_seq
+        if seq > top:
+            shift = seq - top
+            mask = (self._applied_mask << shift) | (1 << (shift - 1)) if top >= 0 else 0
+            self._applied_mask = mask & _MASK64
+            self.applied_seq = seq
+        elif seq < top and top - seq <= 64:
+            self._applied_mask |= 1 << (top - seq - 1)
+
+    def acknowledged(self, ack: int, mask: int) -> None:
+        """``remote`` acknowledged this node's messages: ``ack`` and, by ``mask``, some of the 64
+        before it. Messages up to ``ack`` it did not acknowledge are taken as lost: the times
+        they carried are sent again (:meth:`pending_keys`); a lost full message makes the next
+        one full."""
+        if ack < 0 or ack >= self.seq_out:
+            return
+        self.acked = max(self.acked, ack)
+        for s in [s for s in self._sent if s <= ack]:
+            keys, full = self._sent.pop(s)
+            got = s == ack or (ack - s <= 64 and (mask >> (ack - s - 1)) & 1)
+            if not got:
+                if full:
+                    self.need_full = True
+                self._resend = np.union1d(self._resend, keys)
+
+    def remote_restarted(self) -> None:
+        """``remote`` is a new incarnation: it holds nothing of this node's; the next message is full."""
+        self.need_full = True
+        self.acked = -1
+        self._sent.clear()
+        self._resend = np.zeros(0, dtype=np.int64)
+
+    def next_is_full(self) -> bool:
+        """Whether the next message must be full (first one, after a restart or a lost full one,
+        or too many unacknowledged messages)."""
+        return self.need_full or len(self._sent) > MAX_UNACKED
+
+    def pending_keys(self, oldest_key: int) -> np.ndarray:
+        """Times a partial message must carry: changed since the last message, or carried by a
+        message that turned out lost; and, while nothing was acknowledged yet or
+        acknowledgements have stalled (the newest acknowledged message is more than
+        :data:`ACK_LAG` messages old: a link outage, say), every time carried since the
+        newest acknowledged message (sorted keys from ``oldest_key`` on)."""
+        parts = [np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty)), self._resend]
+        if self.acked < 0 or self.seq_out - 1 - self.acked > ACK_LAG:
+            parts += [keys for keys, _ in self._sent.values()]
+        keys = np.unique(np.concatenate(parts))
+        return keys[keys >= oldest_key]
+
+    def record_sent(self, seq: int, keys: np.ndarray, full: bool) -> None:
+        """Remember the times message ``seq`` may have changed at ``remote`` (what it carried or
+        cleared, and the times that changed since the previous message); reset the dirty and
+        resend sets."""
+        if self.dirty:
+            keys = np.union1d(keys, np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty)))
+        if full:
+            self._sent.clear()
+            self.need_full = False
+        self._sent[seq] = (keys, full)
+        self.dirty = set()
+        self._resend = np.zeros(0, dtype=np.int64)
+        self.seq_out = seq + 1
+        self.messages_out += 1

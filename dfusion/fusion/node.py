@@ -3,7 +3,23 @@
 Every node of a tree runs the same motion model from the same prior. Its
 belief is that common part plus single-state information: its own
 measurements and what its neighbours sent (see :mod:`dfusion.fusion.channel`
-for the protocol and why it neither double counts nor loses information).
+for the protocol: full messages, partial ones with what changed, selective
+acknowledgements, and why it neither double counts nor loses information).
+
+**Receiving is transactional.** :meth:`FusionNode.receive` decodes and validates the
+whole message (:func:`dfusion.wire.decode`), checks it against the node (recipient,
+neighbour, dimension, incarnation, sequence number, base), plans every change without
+making it (:meth:`ChannelFilter.plan`), and only then applies the plan to the filter, the
+channel and the node's stores, undoing all of it if anything raises on the way: a
+message is either fused completely or leaves the node exactly as it was. A rejected
+message is counted by reason in ``stats.rejections``; rejections are logged at most once
+per ``log_interval`` seconds, as one summary line with the counts by reason.
+
+**Bounded resources.** Frames longer than ``max_message_bytes`` are rejected before they
+are parsed; information for state times more than ``max_ahead`` seconds ahead of the
+node's newest state, or beyond ``max_held`` held-back times, is not stored (counted in
+``stats.blocks_too_far_ahead``; the message is then not acknowledged, so its sender
+sends those times again).
 
 Information for state times ahead of the node's newest state is held back and
 added when :meth:`FusionNode.predict` reaches them, so a node never moves its
@@ -21,22 +37,18 @@ rumour-propagation failure the channel filter prevents.
 from __future__ import annotations
 
 import logging
-import secrets
+import time
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from dfusion.errors import (
-    DfusionError,
-    MessageError,
-    OutsideWindowError,
-    ValidationError,
-)
+from dfusion.errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
 from dfusion.fusion.channel import (
+    MAX_SEQ_JUMP,
     ChannelFilter,
     find_keys,
     nonzero_blocks,
@@ -46,24 +58,70 @@ from dfusion.fusion.channel import (
 from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.policies.base import InformationFusionPolicy, Policy
-from dfusion.wire import InfoMessage, decode, encode
+from dfusion.wire import MAX_MESSAGE_BYTES, FrameKey, InfoMessage, decode, encode
 
 log = logging.getLogger(__name__)
 
 FUSION_MODES = ("channel", "naive")
+#: Default bounds of a node (see the module docstring).
+MAX_AHEAD = 10.0
+LOG_INTERVAL = 10.0
 
 
 @dataclass
 class NodeStats:
-    """Counters of a node's traffic."""
+    """Counters of a node's traffic.
+
+    ``rejections`` counts rejected messages by reason: ``malformed``, ``corrupt``,
+    ``unauthenticated``, ``version``, ``oversized`` (the frame), ``misaddressed``,
+    ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``sequence-jump``,
+    ``numerical`` (the filter would not stay proper), ``internal``.
+    """
 
     messages_sent: int = 0
     bytes_sent: int = 0
+    full_messages_sent: int = 0
     messages_received: int = 0
     messages_rejected: int = 0
     duplicates: int = 0
     blocks_outside_window: int = 0
+    blocks_too_far_ahead: int = 0
     rejections: dict[str, int] = field(default_factory=dict)
+
+
+class RejectionLog:
+    """Counts rejected messages by reason and logs them at most once per ``interval`` seconds.
+
+    The first rejection is logged at once; later ones are summed and reported in one
+    line (``"a: 12,345 messages rejected in the last 10.0 s: corrupt 12,000, ..."``) when
+    the next rejection comes after ``interval`` seconds, or at :meth:`flush`.
+    """
+
+    def __init__(self, name: str, interval: float = LOG_INTERVAL, logger: logging.Logger = log) -> None:
+        self.name, self.interval, self.logger = name, float(interval), logger
+        self._pending: dict[str, int] = {}
+        self._last: float | None = None
+        self._example = ""
+
+    def add(self, reason: str, detail: str) -> None:
+        now = time.monotonic()
+        if self._last is None:
+            self._last = now
+            self.logger.warning("%s: rejected a message (%s): %s", self.name, reason, detail)
+            return
+        self._pending[reason] = self._pending.get(reason, 0) + 1
+        self._example = f"{reason}: {detail}"
+        if now - self._last >= self.interval:
+            self.flush(now)
+
+    def flush(self, now: float | None = None) -> None:
+        if self._pending:
+            total = sum(self._pending.values())
+            parts = ", ".join(f"{r} {c:,}" for r, c in sorted(self._pending.items(), key=lambda x: -x[1]))
+            self.logger.warning("%s: %s messages rejected since the last report: %s (last: %s)", self.name,
+                                f"{total:,}", parts, self._example)
+            self._pending = {}
+        self._last = time.monotonic() if now is None else now
 
 
 @dataclass
@@ -165,6 +223,28 @@ class _Blocks:
         """Forget the entries whose key is below ``cutoff``."""
         self._lo += int(self.keys.searchsorted(cutoff))
 
+    def values_at(self, keys: np.ndarray) -> tuple[Array, Array]:
+        """The information at ``keys`` (zero where nothing is stored)."""
+        n = self._info.shape[1]
+        info = np.zeros((keys.size, n, n))
+        vec = np.zeros((keys.size, n))
+        if len(self) and keys.size:
+            found, pos = find_keys(self.keys, keys)
+            info[found] = self.info[pos[found]]
+            vec[found] = self.vec[pos[found]]
+        return info, vec
+
+    def count_after(self, key: int) -> int:
+        """Entries with a key above ``key``."""
+        return int(len(self) - self.keys.searchsorted(key, side="right"))
+
+    def checkpoint(self) -> tuple[np.ndarray, Array, Array, Array]:
+        """Copies of the entries (to undo changes with :meth:`restore`)."""
+        return self.keys.copy(), self.times.copy(), self.info.copy(), self.vec.copy()
+
+    def restore(self, cp: tuple[np.ndarray, Array, Array, Array]) -> None:
+        self._set(*cp)
+
     def between(self, lo: float, hi: float) -> list[tuple[float, Array, Array]]:
         """Entries with ``lo < t <= hi``, oldest first (copies)."""
         times = self.times
@@ -230,10 +310,21 @@ class FusionNode:
     policy : Policy, optional
         Decides :meth:`output`; default :class:`InformationFusionPolicy`.
     network_key : bytes, optional
-        When set, outgoing messages carry an HMAC-SHA256 and incoming ones must.
+        The network's shared secret (at least 16 bytes): outgoing messages carry a MAC
+        and incoming ones must (``docs/security.md``). ``None``: no authentication
+        (every message still carries a checksum).
+    network, run : str
+        The network's name and the run's identifier: the MAC key is derived for them, so
+        a message of another network or another run is rejected.
     epoch : int, optional
-        Identifier of this incarnation (random by default): a restarted node gets a
-        new one, and its neighbours replace what the old incarnation sent.
+        Identifier of this incarnation; must grow when a node restarts (default: the
+        current time in nanoseconds). Neighbours replace what the old incarnation sent and
+        reject messages of earlier incarnations.
+    max_message_bytes, max_ahead, max_held : bounds
+        Largest frame accepted; how far (seconds) and how many state times ahead of the
+        newest state received information may be held back (default ``window`` times).
+    log_interval : float
+        Seconds between two log lines about rejected messages.
 
     Attributes
     ----------
@@ -255,8 +346,14 @@ class FusionNode:
         fusion: str = "channel",
         policy: Policy | None = None,
         network_key: bytes | None = None,
+        network: str = "",
+        run: str = "",
         epoch: int | None = None,
         time_tol: float = 1e-9,
+        max_message_bytes: int = MAX_MESSAGE_BYTES,
+        max_ahead: float = MAX_AHEAD,
+        max_held: int | None = None,
+        log_interval: float = LOG_INTERVAL,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValidationError("node name must be a non-empty string")
@@ -267,22 +364,29 @@ class FusionNode:
             raise ValidationError(f"fusion must be one of {FUSION_MODES}, got {fusion!r}")
         if prior is None:
             raise ValidationError("a prior (t0, mean, cov) common to all nodes is required")
-        if network_key is not None and (not isinstance(network_key, (bytes, bytearray)) or len(network_key) == 0):
-            raise ValidationError("network_key must be non-empty bytes (or None to turn authentication off)")
+        if network_key is not None and (not isinstance(network_key, (bytes, bytearray)) or len(network_key) < 16):
+            raise ValidationError("network_key must be at least 16 bytes (or None to turn authentication off)")
         self.name = name
         self.neighbors = nbrs
         self.fusion = fusion
         self.policy: Policy = policy or InformationFusionPolicy()
-        self.network_key = network_key
-        self.epoch = secrets.randbits(63) if epoch is None else int(epoch)
+        self.frame_key = None if network_key is None else FrameKey(bytes(network_key), network, run)
+        self.epoch = time.time_ns() if epoch is None else int(epoch)
+        if not 0 < self.epoch < 2**63:
+            raise ValidationError(f"epoch must be in (0, 2^63), got {self.epoch}")
         self.filter = DelayedStateEIF(motion, window, horizon=horizon, time_tol=time_tol)
         t0, mean, cov = prior
         self.filter.initialize(t0, mean, cov)
-        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j) for j in nbrs}
+        n = self.filter.n
+        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j, n) for j in nbrs}
         self.stats = NodeStats()
         self.sources: dict[str, Estimate] = {}
-        self._own = _Blocks(self.filter.n)
-        self._total = _Blocks(self.filter.n)   # entries newer than the newest state wait for predict
+        self.max_message_bytes = int(max_message_bytes)
+        self.max_ahead = float(max_ahead)
+        self.max_held = int(max_held if max_held is not None else (window or 100))
+        self.rejection_log = RejectionLog(name, log_interval)
+        self._own = _Blocks(n)
+        self._total = _Blocks(n)   # entries newer than the newest state wait for predict
         self._pruned_at = self.filter.oldest_time
         self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
 
@@ -333,9 +437,8 @@ class FusionNode:
         """Fuse information produced by a local estimator at time ``t``.
 
         For sensors whose measurements are not fused by the EIF itself, such as a
-        particle filter (the Gaussian fit of its posterior minus that of its
-        prediction, in information form;
-        ``docs/background.md#3-particle-filter-nodes-in-an-information-network``). The information counts as
+        particle filter (:mod:`dfusion.frontends.base`: the Gaussian fit of its posterior
+        minus that of its prediction, in information form). The information counts as
         this node's own, exactly like a measurement: it is shared with the
         neighbours and never double counted. ``info_matrix`` must be symmetric
         positive semi-definite, of the state's dimension.
@@ -359,6 +462,9 @@ class FusionNode:
     def _add_own(self, t: float, Lam: Array, y: Array) -> None:
         self._own.add(t, Lam, y)
         self._total.add(t, Lam, y)
+        key = time_key(t)
+        for ch in self.channels.values():
+            ch.dirty.add(key)
 
     def estimate(self, t: float | None = None) -> tuple[Array, Array]:
         """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""
@@ -375,31 +481,43 @@ class FusionNode:
         self.sources[estimate.name] = estimate
 
     # ------------------------------------------------------------------ messages
+    def _values_for(self, ch: ChannelFilter, keys: np.ndarray) -> tuple[Array, Array]:
+        """``V(t) = T(t) - M(t)`` for ``ch``'s neighbour at ``keys`` (rounding noise removed)."""
+        infos, vecs = self._total.values_at(keys)
+        m_info, m_vec = ch.values_at(keys)
+        held = m_info.any(axis=(1, 2)) | m_vec.any(axis=1)
+        if held.any():
+            scale = np.abs(infos[held]).max(axis=(1, 2))
+            infos[held] = _clean_difference(infos[held] - m_info[held], scale)
+            vecs[held] -= m_vec[held]
+        return infos, vecs
+
     def message_to(self, neighbor: str, sent_at: float | None = None) -> bytes:
-        """The message for ``neighbor`` (msgpack bytes, ready for any transport)."""
+        """The message for ``neighbor`` (bytes, ready for any transport).
+
+        Partial (what changed since the previous message, and what turned out lost) when
+        the neighbour has been sent a full message, else the whole window
+        (:mod:`dfusion.fusion.channel`).
+        """
         ch = self.channels.get(neighbor)
         if ch is None:
             raise ValidationError(f"{neighbor!r} is not a neighbour of {self.name!r}")
+        f = self.filter
+        oldest_key = time_key(f.oldest_time) - 1
         tot = self._total
-        keys, times, infos, vecs = tot.keys, tot.times, tot.info.copy(), tot.vec.copy()
-        if self.fusion == "channel" and len(ch):
-            found, pos = ch.lookup(keys)
-            rows = np.flatnonzero(found)
-            if rows.size:
-                scale = np.abs(infos[rows]).max(axis=(1, 2))
-                infos[rows] -= ch.info[pos[rows]]
-                vecs[rows] -= ch.vec[pos[rows]]
-                infos[rows] = _clean_difference(infos[rows], scale)
-        elif self.fusion == "naive":
-            # rumour propagation: everything new since the last message, echo included
-            sent = self._naive_sent.setdefault(neighbor, {})
-            for i, k in enumerate(keys.tolist()):
-                prev = sent.get(k)
-                sent[k] = (infos[i].copy(), vecs[i].copy())
-                if prev is not None:
-                    infos[i] -= prev[0]
-                    vecs[i] -= prev[1]
+        full = self.fusion == "naive" or ch.next_is_full()
+        if full:
+            keys = tot.keys[tot.keys >= oldest_key]
+            if self.fusion == "naive":
+                infos, vecs = self._naive_increments(neighbor, keys, *tot.values_at(keys))
+            else:
+                infos, vecs = self._values_for(ch, keys)
+        else:
+            keys = ch.pending_keys(oldest_key)
+            infos, vecs = self._values_for(ch, keys)
+        times = keys / 1e9
         keep = nonzero_blocks(infos, vecs)
+        cleared = times[~keep] if not full else np.zeros(0)
         if not keep.all():
             times, infos, vecs = times[keep], infos[keep], vecs[keep]
         msg = InfoMessage(
@@ -407,36 +525,47 @@ class FusionNode:
             dst=neighbor,
             epoch=self.epoch,
             seq=ch.seq_out,
-            start=self.filter.oldest_time,
-            sent_at=self.filter.latest_time if sent_at is None else float(sent_at),
+            start=f.oldest_time,
+            sent_at=f.latest_time if sent_at is None else float(sent_at),
             times=times,
             info=infos,
             vec=vecs,
+            dst_epoch=ch.epoch or 0,
+            ack=ch.applied_seq,
+            ack_mask=ch.received_mask(),
+            cleared=cleared,
+            full=full and self.fusion != "naive",
+            naive=self.fusion == "naive",
         )
-        data = encode(msg, self.network_key)
-        ch.seq_out += 1
-        ch.messages_out += 1
+        data = encode(msg, self.frame_key)
+        ch.record_sent(msg.seq, keys, msg.full)
         self.stats.messages_sent += 1
         self.stats.bytes_sent += len(data)
+        self.stats.full_messages_sent += int(msg.full)
         return data
+
+    def _naive_increments(self, neighbor: str, keys: np.ndarray, infos: Array, vecs: Array) -> tuple[Array, Array]:
+        """Rumour propagation: everything new since the last message to ``neighbor``, echo included."""
+        sent = self._naive_sent.setdefault(neighbor, {})
+        infos, vecs = infos.copy(), vecs.copy()
+        for i, k in enumerate(keys.tolist()):
+            prev = sent.get(k)
+            sent[k] = (infos[i].copy(), vecs[i].copy())
+            if prev is not None:
+                infos[i] -= prev[0]
+                vecs[i] -= prev[1]
+        return infos, vecs
 
     def _reject(self, reason: str, detail: str) -> MessageError:
         self.stats.messages_rejected += 1
         self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + 1
-        log.warning("%s: rejected message (%s): %s", self.name, reason, detail)
-        return MessageError(detail)
+        self.rejection_log.add(reason, detail)
+        err = MessageError(detail)
+        err.reason = reason
+        return err
 
-    def receive(self, data: bytes) -> int:
-        """Fuse a neighbour's message; returns the number of state blocks that changed.
-
-        Raises :class:`MessageError` (and changes nothing) if the message is
-        malformed, unauthenticated while a key is set, from a non-neighbour,
-        addressed to another node, or of another state dimension.
-        """
-        try:
-            msg = decode(data, self.network_key)
-        except MessageError as exc:
-            raise self._reject("malformed", str(exc)) from None
+    def _check(self, msg: InfoMessage) -> ChannelFilter:
+        """Everything about ``msg`` that can be known without changing anything; its channel."""
         if msg.dst != self.name:
             raise self._reject("misaddressed", f"message for {msg.dst!r} delivered to {self.name!r}")
         ch = self.channels.get(msg.src)
@@ -444,35 +573,111 @@ class FusionNode:
             raise self._reject("not-a-neighbour", f"{msg.src!r} is not a neighbour of {self.name!r}")
         if msg.n != self.filter.n:
             raise self._reject("dimension", f"state dimension {msg.n} from {msg.src!r}, expected {self.filter.n}")
-        duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
+        if msg.naive != (self.fusion == "naive"):
+            raise self._reject("malformed", f"{msg.src!r} uses another fusion mode")
+        if ch.epoch is not None and msg.epoch < ch.epoch:
+            raise self._reject("previous-incarnation",
+                               f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
+        last = ch.last_seq if msg.epoch == ch.epoch else -1
+        if msg.seq > last + MAX_SEQ_JUMP:
+            raise self._reject("sequence-jump", f"sequence number {msg.seq} from {msg.src!r} jumps past {last}")
+        return ch
+
+    def receive(self, data: bytes) -> int:
+        """Fuse a neighbour's message; returns the number of state blocks that changed.
+
+        Raises :class:`MessageError` (with ``reason``), counts it and changes nothing else if
+        the message is malformed, corrupt, unauthenticated while a key is set, from a
+        non-neighbour, addressed to another node, of another state dimension, of an earlier
+        incarnation, too far ahead in its sequence numbers, or not fusable.
+        """
+        try:
+            msg = decode(data, self.frame_key, self.max_message_bytes)
+        except MessageError as exc:
+            raise self._reject(getattr(exc, "reason", "malformed"), str(exc)) from None
+        ch = self._check(msg)
+        self.stats.duplicates += int(msg.epoch == ch.epoch and msg.seq == ch.last_seq)
         f = self.filter
-        if self.fusion == "naive":
+        if msg.naive:
+            plan = None
             if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
                 return 0
             inside = msg.times >= f.oldest_time - f.time_tol
             deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
-            plan, outside = None, int(np.count_nonzero(~inside))
+            outside, changed = int(np.count_nonzero(~inside)), time_keys(msg.times[inside])
         else:
             plan = ch.plan(msg, f.oldest_time, f.time_tol)
-            deltas, outside = plan.deltas, plan.outside
-        latest = f.latest_time + f.time_tol
-        now = [d for d in deltas if d[0] <= latest]
-        try:
-            if now:
-                with f.transaction():
-                    f.add_information_batch(now, validate=False)
-                    f.estimate()   # the belief must still be proper; otherwise roll back
-        except DfusionError as exc:
-            raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
-        self.stats.duplicates += duplicate
-        ch.commit(msg, plan)
-        self._total.add_many(deltas)
-        if outside:
-            self.stats.blocks_outside_window += outside
-            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
+            deltas, outside, changed = plan.deltas, plan.outside, plan.changed
+        deltas, too_far = self._within_reach(deltas)
+        if too_far and plan is not None:
+            plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
+            deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
+        self._apply(msg, ch, plan, deltas, changed, complete=not too_far)
+        if msg.dst_epoch == self.epoch:
+            ch.acknowledged(msg.ack, msg.ack_mask)
         self.stats.messages_received += 1
+        self.stats.blocks_outside_window += outside
+        self.stats.blocks_too_far_ahead += len(too_far)
+        if outside:
+            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
         self._prune()
         return len(deltas)
+
+    def _within_reach(self, deltas: list) -> tuple[list, list]:
+        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest."""
+        f = self.filter
+        horizon = f.latest_time + self.max_ahead + f.time_tol
+        room = self.max_held - self._total.count_after(time_key(f.latest_time + f.time_tol))
+        ok, far = [], []
+        for d in deltas:
+            if d[0] <= f.latest_time + f.time_tol:
+                ok.append(d)
+            elif d[0] <= horizon and room > 0:
+                ok.append(d)
+                room -= 1
+            else:
+                far.append(d[0])
+        return ok, far
+
+    def _apply(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list, changed: np.ndarray,
+               complete: bool) -> None:
+        """Apply a planned message to the filter, the channel and the stores, all or nothing."""
+        f = self.filter
+        latest = f.latest_time + f.time_tol
+        now = [d for d in deltas if d[0] <= latest]
+        cp_filter = f.checkpoint()
+        cp_total = self._total.checkpoint()
+        cp_channel = ch.state()
+        dirty = {j: set(c.dirty) for j, c in self.channels.items()}
+        restarted = ch.epoch is not None and msg.epoch > ch.epoch
+        try:
+            if now:
+                try:
+                    f.add_information_batch(now, validate=False)
+                    f.estimate()   # the belief must still be proper
+                except DfusionError as exc:
+                    raise _Numerical(str(exc)) from None
+            ch.commit(msg, plan, complete)
+            if restarted:
+                ch.remote_restarted()
+            if deltas:
+                self._total.add_many(deltas)
+            if changed.size:
+                keys = changed.tolist()
+                for j, other in self.channels.items():
+                    if j != msg.src:
+                        other.dirty.update(keys)
+        except BaseException as exc:
+            f.restore(cp_filter)
+            self._total.restore(cp_total)
+            ch.restore(cp_channel)
+            for j, c in self.channels.items():
+                c.dirty = dirty[j]
+            if isinstance(exc, _Numerical):
+                raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
+            if isinstance(exc, Exception):
+                raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
+            raise
 
     def _prune(self) -> None:
         oldest = self.filter.oldest_time
@@ -488,3 +693,19 @@ class FusionNode:
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""
         return [(e.t, e.info, e.vec) for _, e in self._own.items()]
+
+    def flush_log(self) -> None:
+        """Write the pending summary of rejected messages now."""
+        self.rejection_log.flush()
+
+
+class _Numerical(Exception):
+    """A message's information would make the filter improper."""
+
+
+def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
+    """``msg`` without the blocks at ``times``."""
+    drop = np.isin(time_keys(msg.times), time_keys(np.asarray(times)))
+    return InfoMessage(msg.src, msg.dst, msg.epoch, msg.seq, msg.start, msg.sent_at, msg.times[~drop],
+                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.base, msg.cleared,
+                       msg.full, msg.naive)

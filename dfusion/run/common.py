@@ -16,11 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
-import networkx as nx
 import numpy as np
 
 from dfusion.errors import MessageError, ValidationError
 from dfusion.scenario.spec import Scenario
+from dfusion.topology import settling_rounds
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +58,8 @@ def load_network_key(path: str | Path | None = None) -> bytes | None:
 
 
 def final_rounds(sc: Scenario) -> int:
-    """Rounds of the final phase: ``diameter + 1`` (as in ``dfusion.sim.runner.final_rounds``)."""
-    return (nx.diameter(sc.graph) if sc.graph.number_of_nodes() > 1 else 0) + 1
+    """Rounds of the final phase: :func:`dfusion.topology.settling_rounds` (as in ``dfusion simulate``)."""
+    return settling_rounds(sc.graph)
 
 
 @dataclass

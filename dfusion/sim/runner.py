@@ -14,7 +14,7 @@ Every step ``t = k dt``:
    the source the policy chose) is recorded too.
 
 At the end every message in flight is delivered, late measurements are fused,
-and ``diameter + 1`` lossless rounds are exchanged ("once the last messages are
+and ``diameter + 2`` lossless rounds are exchanged (:func:`dfusion.topology.settling_rounds`) ("once the last messages are
 delivered"); ``final_gap`` compares each node's newest mean then with the
 centralized one.
 """
@@ -38,6 +38,7 @@ from dfusion.scenario.build import build_front_ends, build_nodes
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.world import World, simulate_world
 from dfusion.transport.simulated import SimulatedNetwork
+from dfusion.topology import settling_rounds
 
 log = logging.getLogger(__name__)
 
@@ -227,9 +228,9 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
 
 
 def final_rounds(nodes: dict[str, FusionNode], graph: nx.Graph) -> None:
-    """``diameter + 1`` rounds in which every node sends to every neighbour, losslessly."""
-    rounds = (nx.diameter(graph) if graph.number_of_nodes() > 1 else 0) + 1
-    for _ in range(rounds):
+    """:func:`dfusion.topology.settling_rounds` rounds in which every node sends to every
+    neighbour, losslessly."""
+    for _ in range(settling_rounds(graph)):
         msgs = [(nb, nodes[nm].message_to(nb)) for nm in sorted(nodes) for nb in nodes[nm].neighbors]
         for nb, data in msgs:
             nodes[nb].receive(data)

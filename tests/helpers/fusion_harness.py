@@ -9,9 +9,10 @@ import networkx as nx
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from dfusion.fusion import FusionNode
 from dfusion.errors import OutsideWindowError
+from dfusion.fusion import FusionNode
 from dfusion.models import ConstantVelocity, PositionSensor
+from dfusion.topology import settling_rounds
 
 Q_PSD = 0.3
 P0 = 4.0
@@ -139,8 +140,7 @@ def run_network(graph: nx.Graph, s: Schedule, final_rounds: bool = True):
     for _, _, dst, data in sorted(in_flight):
         nodes[dst].receive(data)
     if final_rounds:
-        diameter = nx.diameter(graph)
-        for _ in range(diameter + 1):
+        for _ in range(settling_rounds(graph)):
             msgs = [(b, nodes[a].message_to(b)) for a, b in links]
             for b, data in msgs:
                 nodes[b].receive(data)
