@@ -15,7 +15,7 @@
    each neighbour whose send period has elapsed and whose liveliness token is
    seen, and publish its estimate on ``dfusion/NET/monitor/NAME``; messages are
    also received as soon as they arrive between steps;
-4. after the scenario's end, exchanges ``diameter + 1`` more rounds without
+4. after the scenario's end, exchanges ``diameter + 2`` more rounds without
    new measurements (synchronized rounds: round ``r`` goes to every neighbour,
    then the node waits for every live neighbour's round ``r``), publishes its
    final estimate (and writes it to ``--result``) and exits 0.
@@ -333,12 +333,12 @@ class NodeProcess:
             self.tr.send(self.name, nb, data, t)
 
     def _final_phase(self) -> None:
-        """``diameter + 1`` synchronized rounds without new measurements, then the final estimate.
+        """``diameter + 2`` (:func:`dfusion.topology.settling_rounds`) synchronized rounds without new measurements, then the final estimate.
 
         Round ``r``: send to every live neighbour (transport time ``T + r dt``),
         then wait until every live neighbour's round ``r`` has arrived (or
         ``round_timeout``). Information thus moves one hop per round whatever
-        the nodes' relative delays, so after ``diameter + 1`` rounds every node
+        the nodes' relative delays, so after ``diameter + 2`` rounds every node
         holds everything: the in-process ``final_rounds`` over a real network.
         """
         T = float(self.times[-1])
