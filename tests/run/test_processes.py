@@ -203,7 +203,8 @@ def test_authenticated_network_rejects_a_stranger(tmp_path):
     recording.write_text("".join(save_recording(tmp_path / f"{n}.jsonl", n, world_measurements(sc, n)).read_text()
                                  for n in sorted(sc.nodes)))
     opts = RunOptions(scenario=str(scenario), speed=3.0, run_dir=str(tmp_path / "run"),
-                      network_key_file=str(key_file), node_args=["--measurements", str(recording)])
+                      network_key_file=str(key_file), node_args=["--measurements", str(recording)],
+                      emulate_links=False)   # the real network only (the default emulates the links)
     launcher = Launcher(opts)
     box: dict = {}
     thread = threading.Thread(target=lambda: box.setdefault("result", launcher.run()), daemon=True)
@@ -240,6 +241,7 @@ def test_authenticated_network_rejects_a_stranger(tmp_path):
         assert v["final_gap"] < 1e-6, (name, v["final_gap"])
         assert v["messages"] > 0
     assert forged_sent == 5
+    assert m["run"]["links_emulated"] is False and m["run"]["network_key"] == "given"
     assert m["run"]["nodes"]["b"]["measurements_fused"] == len(world_measurements(sc, "b"))
 
 
