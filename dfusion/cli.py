@@ -98,8 +98,8 @@ def _run(args: argparse.Namespace) -> int:
         from dfusion.plots import plot_result
 
         run = result.metrics["run"]
-        title = (f"{Path(launcher.sc.path).name} as processes (x{run['speed']:g}; {run['links']}): "
-                 f"estimate − truth per node vs centralized EKF")
+        title = (f"{Path(launcher.sc.path).name} as processes at x{run['speed']:g}: estimate − truth per node vs "
+                 f"centralized EKF\n{run['links']}; {'mutual TLS' if run['tls'] else 'no TLS'}")
         print(f"wrote {plot_result(result, args.plot, title=title)}")
     return 1 if launcher.failures else 0
 

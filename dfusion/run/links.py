@@ -172,4 +172,4 @@ def describe(enabled: bool, links: Mapping[tuple[str, str], LinkSpec]) -> str:
                            ("reordering", any(s.reorder > 0 for s in specs)), ("outages", any(s.outages for s in specs))):
         if present:
             kinds.append(label)
-    return "links emulated as in the scenario (" + (", ".join(kinds) if kinds else "ideal links") + ")"
+    return "links emulated as in the scenario: " + (", ".join(kinds) if kinds else "ideal links")

@@ -93,7 +93,7 @@ def test_flush_and_discard():
 def test_node_links_and_description():
     sc = load_scenario(ROOT / "topologies" / "chain3.scenario.toml")
     assert set(node_links(sc.links, "b")) == {"a", "c"} and set(node_links(sc.links, "a")) == {"b"}
-    assert describe(True, sc.links) == "links emulated as in the scenario (latency, drops, outages)"
+    assert describe(True, sc.links) == "links emulated as in the scenario: latency, drops, outages"
     assert describe(False, sc.links).startswith("links not emulated")
 
 
@@ -142,7 +142,7 @@ def test_dfusion_run_loses_what_simulate_loses(tmp_path, capsys):
     assert got["messages_dropped"] == ref["messages_dropped"] > 0
     assert sum(v["dropped_emulated"] for v in got["run"]["nodes"].values()) == ref["messages_dropped"]
     assert got["run"]["links_emulated"] is True
-    assert "links emulated as in the scenario (latency, jitter, drops, outages)" in printed
+    assert "links emulated as in the scenario: latency, jitter, drops, outages" in printed
     for v in got["nodes"].values():
         assert v["final_gap"] < 1e-6
     print(f"dfusion run lost {got['messages_dropped']} of {got['messages']} messages, simulate "
