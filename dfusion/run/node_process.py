@@ -513,7 +513,56 @@ def _extra_options(items: list[str]) -> dict:
     return out
 
 
+def standby(run_dir: str | Path) -> int:
+    """``python -m dfusion.run.node_process --standby RUN_DIR``: a warm spare for fast restarts.
+
+    The launcher keeps one such process ready: it has imported everything (about
+    1-3 s of a node's start on a busy machine) and waits for one line on its
+    standard input, ``{"argv": [node arguments], "log": path}``. It then sends its
+    output to ``log`` and becomes that node (:func:`main` with ``argv``: the same
+    command line as ``RUN_DIR/commands/NAME.sh``). It watches the launcher like a
+    node: it exits when the launcher is gone (lock free, parent-death signal) or
+    closes its standard input.
+    """
+    import select
+
+    watch = LauncherWatch(run_dir)
+    if not watch.alive():
+        return EXIT_NO_LAUNCHER
+    if watch.launcher_pid() == os.getppid():
+        set_parent_death_signal(signal.SIGTERM)   # no handler yet: the default action ends the process
+    try:   # warm up what loading the scenario imports (sensor kinds, plug-ins)
+        info = json.loads((Path(run_dir) / "run.json").read_text())
+        load_scenario(info["scenario"], plugins=info.get("plugins", []))
+    except Exception as exc:   # only a warm-up
+        print(f"standby: warm-up skipped: {exc}", file=sys.stderr, flush=True)
+    while True:
+        if not watch.alive():
+            return 0
+        ready, _, _ = select.select([sys.stdin], [], [], POLL)
+        if ready:
+            line = sys.stdin.readline()
+            if not line:
+                return 0   # the launcher closed the pipe: not needed
+            order = json.loads(line)
+            break
+    watch.close()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    fd = os.open(order["log"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    return main(list(order["argv"]))
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--standby"] and len(argv) == 2:
+        return standby(argv[1])
     args = build_parser().parse_args(argv)
     proc: NodeProcess | None = None
     early: list[str] = []
@@ -528,7 +577,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     level = [logging.INFO, logging.DEBUG][min(args.verbose, 1)]
-    logging.basicConfig(level=level, stream=sys.stderr,
+    logging.basicConfig(level=level, stream=sys.stderr, force=True,
                         format=f"%(asctime)s %(levelname)s [{args.node}] %(name)s: %(message)s")
     watch: LauncherWatch | None = None
     lock: FileLock | None = None
