@@ -89,3 +89,20 @@ def test_mutual_tls_run_is_closed_to_strangers_and_keyed_per_run(tmp_path):
     assert header["run"] == launcher.run_id
     print(f"mutual TLS run: member heard {len(member)} samples, strangers {sum(map(len, heard.values()))}; "
           f"final gaps {max(v['final_gap'] for v in m['nodes'].values()):.1e}")
+
+
+def test_the_scenarios_security_table_is_read_and_the_command_line_wins(tmp_path):
+    """The launcher reads a scenario's [security] table (paths relative to the file) strictly; the
+    command line's TLS options replace the table's."""
+    from types import SimpleNamespace
+
+    from dfusion.errors import ValidationError
+    from dfusion.run.launcher import scenario_security
+
+    sc = SimpleNamespace(raw={"security": {"network_key_file": "k", "tls": {"dir": "certs"}}}, base_dir=str(tmp_path))
+    sec = scenario_security(sc)
+    assert sec == SecurityOptions(str(tmp_path / "k"), str(tmp_path / "certs"))
+    assert SecurityOptions(tls_ca="a", tls_cert="b", tls_key="c").over(sec).tls_dir is None
+    assert scenario_security(SimpleNamespace(raw={}, base_dir=None)) == SecurityOptions()
+    with pytest.raises(ValidationError, match="security.tls.cetr"):
+        scenario_security(SimpleNamespace(raw={"security": {"tls": {"cetr": "x"}}}, base_dir=None))
