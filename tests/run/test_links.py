@@ -11,6 +11,8 @@ from dfusion.scenario import load_scenario
 from dfusion.sim import run_scenario
 from dfusion.transport.simulated import LinkSpec, SimulatedNetwork
 
+from tests.run.test_processes import PAIR
+
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = LinkSpec(latency=0.05, jitter=0.1, drop=0.3, duplicate=0.2, reorder=0.3, reorder_delay=0.2,
                 outages=((2.0, 3.0), (6.5, 7.25)))
@@ -97,26 +99,8 @@ def test_node_links_and_description():
     assert describe(False, sc.links).startswith("links not emulated")
 
 
-LOSSY = """
-duration = 8.0
-dt = 0.1
-seed = 21
-window = 100
-[target]
-initial_mean = [0.0, 0.0, 1.0, 0.0]
-[[nodes]]
-name = "a"
-sensor = "position"
-rate = 5.0
-send_period = 0.3
-[[nodes]]
-name = "b"
-sensor = "position"
-rate = 5.0
-send_period = 0.3
-[[links]]
-between = ["a", "b"]
-latency = 0.1
+# two nodes on a lossy, delaying link with an outage
+LOSSY = PAIR.replace("duration = 60.0", "duration = 8.0").replace("seed = 5", "seed = 21") + """latency = 0.1
 jitter = 0.05
 drop = 0.3
 outages = [[3.0, 4.5]]

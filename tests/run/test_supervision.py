@@ -5,7 +5,6 @@ start processes themselves kill them by pid in a ``finally``.
 """
 from __future__ import annotations
 
-import json
 import os
 import random
 import signal
@@ -29,7 +28,7 @@ from dfusion.run.supervision import (  # noqa: E402
     lock_holder,
 )
 
-from tests.run.test_processes import CHAIN3, ROOT, kill_pids, pid_alive  # noqa: E402
+from tests.run.test_processes import CHAIN3, ROOT, kill_pids, node_pids, pid_alive, start_cli_run  # noqa: E402
 
 
 def scenario(tmp_path: Path, duration: float, *, dt: float = 0.1, window: int = 200) -> Path:
@@ -166,18 +165,11 @@ def test_sigkilled_launcher_leaves_no_process(tmp_path):
     signal, launcher lock), and a node started by hand afterwards refuses to run."""
     path = scenario(tmp_path, duration=60.0)
     run_dir = tmp_path / "run"
-    launcher = subprocess.Popen([sys.executable, "-m", "dfusion.cli", "run", str(path), "--run-dir", str(run_dir),
-                                 "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+    launcher = start_cli_run(path, run_dir)
     pids: list[int] = []
     try:
-        deadline = time.monotonic() + 90
-        while not (run_dir / "start").exists():
-            assert launcher.poll() is None, launcher.communicate()
-            assert time.monotonic() < deadline, "the run never started"
-            time.sleep(0.05)
-        wait_until(lambda: "standby" in json.loads((run_dir / "pids.json").read_text()), 30, "the warm standby")
-        pids = [p for n, p in json.loads((run_dir / "pids.json").read_text()).items() if n != "launcher"]
+        wait_until(lambda: "standby" in node_pids(run_dir), 30, "the warm standby")
+        pids = list(node_pids(run_dir).values())
         assert len(pids) == 4 and all(pid_alive(p) for p in pids)   # a, b, c and the warm standby
         t0 = time.monotonic()
         launcher.kill()
