@@ -703,12 +703,15 @@ def supervision_lines(result) -> str:
             counts: dict[str, int] = {}
             for r in v["exits"]:
                 counts[r] = counts.get(r, 0) + 1
-            bits = [f"{len(v['exits'])} unexpected exits (" + ", ".join(f"{r} x{c}" for r, c in counts.items()) + ")",
-                    f"restarted {v['restarts']}x"]
+            n = len(v["exits"])
+            bits = [f"{n} unexpected exit{'s' if n != 1 else ''} ("
+                    + ", ".join(f"{r} x{c}" for r, c in counts.items()) + ")", f"restarted {v['restarts']}x"]
             if v["started_by_hand"]:
                 bits.append(f"started by hand {v['started_by_hand']}x")
             if v["back_after_s"]:
-                bits.append(f"back after {min(v['back_after_s']):.1f}-{max(v['back_after_s']):.1f} s wall")
+                lo, hi = min(v["back_after_s"]), max(v["back_after_s"])
+                bits.append(f"back after {lo:.1f} s wall" if f"{lo:.1f}" == f"{hi:.1f}"
+                            else f"back after {lo:.1f}-{hi:.1f} s wall")
             if v["gave_up"]:
                 bits.append("given up")
             lines.append(f"  {name}: " + "; ".join(bits))
