@@ -15,6 +15,7 @@ import numpy as np
 
 from dfusion.errors import ScenarioError
 from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.scenario.security import SecurityOptions
 from dfusion.transport.simulated import LinkSpec
 
 if TYPE_CHECKING:   # type names only: no import at run time
@@ -202,6 +203,8 @@ class Scenario:
         plug-ins).
     warnings : list of str
         Degenerate settings found while loading (also logged).
+    security : SecurityOptions
+        The ``[security]`` table: the network key file and mutual TLS of ``dfusion run``.
     """
 
     path: str
@@ -218,6 +221,7 @@ class Scenario:
     raw: dict[str, Any]
     kinds: Kinds | None = None
     warnings: list[str] = field(default_factory=list)
+    security: SecurityOptions = field(default_factory=SecurityOptions)
 
     @property
     def steps(self) -> int:
