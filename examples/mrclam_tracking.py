@@ -3,7 +3,8 @@ r"""Decentralized tracking of robot 1 by robots 2-5 on the UTIAS MRCLAM dataset.
 
 Usage::
 
-    python examples/mrclam_tracking.py DATASET_DIR [--duration S] [--json OUT]
+    python examples/mrclam_tracking.py DATASET_DIR [--duration S] [--json OUT] [--plot DIR]
+    python examples/mrclam_tracking.py DATASET_DIR --bag BAG ...    (the robots' data from a ROS bag)
 
 ``DATASET_DIR`` is an MRCLAM dataset directory (e.g. ``DATA/mrclam/dataset6``, the
 folder ``MRCLAM_Dataset6``, see ``tests/data/mrclam/README.md`` for where to get it; or
@@ -51,6 +52,11 @@ zero velocity with 0.1 m/s (``cv``): the same knowledge of
 the start as the dead-reckoning baseline, which integrates robot 1's own odometry from
 its true initial pose.
 
+With ``--bag BAG`` the robots' odometry, sightings and ground truth come from a ROS 1 or
+ROS 2 bag (topics ``/robot<n>/odom``, ``/robot<n>/sightings``, ``/robot<n>/ground_truth``,
+:func:`dfusion.bags.mrclam_from_bag`, ``docs/ros.md``); ``DATASET_DIR`` then only gives
+the landmark map (``Landmark_Groundtruth.dat``).
+
 References:
 
 * ``centralized``: one EKF over the joint state (robot 1's state, pose or constant velocity, and
@@ -84,7 +90,7 @@ from pathlib import Path
 import numpy as np
 
 
-from dfusion.datasets import integrate_odometry, mean_velocities, read_mrclam  # noqa: E402
+from dfusion.datasets import integrate_odometry, mean_velocities, read_landmarks, read_mrclam  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402
 from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.localization import LandmarkEKF
@@ -207,9 +213,19 @@ def rmse(err: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.atleast_2d(err) ** 2, axis=-1)))) if len(err) else float("nan")
 
 
-def run(args: argparse.Namespace) -> dict:
+def load_dataset(args: argparse.Namespace):
+    """The dataset directory, or the bag ``args.bag`` with the directory's landmark map."""
+    if getattr(args, "bag", None):
+        from dfusion.bags import mrclam_from_bag
+
+        return mrclam_from_bag(args.bag, read_landmarks(args.dataset)[1], duration=args.duration)
+    return read_mrclam(args.dataset, duration=args.duration)
+
+
+def run(args: argparse.Namespace, ds=None) -> dict:
+    """Track the target on ``ds`` (default: :func:`load_dataset`); see the module docstring."""
     t_wall = time.perf_counter()
-    ds = read_mrclam(args.dataset, duration=args.duration)
+    ds = load_dataset(args) if ds is None else ds
     target = args.target
     observers = list(args.observers)
     if target in observers or target not in ds.robots or any(o not in ds.robots for o in observers):
@@ -277,6 +293,8 @@ def run(args: argparse.Namespace) -> dict:
     R0 = np.diag([args.range_std**2, args.bearing_std**2])
     counts = {o: {"landmarks": 0, "landmarks_rejected": 0, "target": 0, "target_rejected": 0} for o in observers}
     rec_nodes = {o: np.empty((eval_t.size, 2)) for o in observers}
+    rec_cov = {o: np.empty((eval_t.size, 2, 2)) for o in observers}
+    rec_loc_cov = {o: np.empty((eval_t.size, 3, 3)) for o in observers}
     rec_loc = {o: np.empty((eval_t.size, 3)) for o in observers}
     rec_joint = np.empty((eval_t.size, 2))
     rec_ct = np.empty((eval_t.size, 2))
@@ -352,9 +370,11 @@ def run(args: argparse.Namespace) -> dict:
         for o in observers:
             node = nodes[o]
             advance(node, tg, k)
-            rec_nodes[o][ke] = node.estimate(tg)[0][:2]
+            m_, P_ = node.estimate(tg)
+            rec_nodes[o][ke], rec_cov[o][ke] = m_[:2], P_[:2, :2]
             ekfs[o].predict(tg)
             rec_loc[o][ke] = ekfs[o].x
+            rec_loc_cov[o][ke] = ekfs[o].P
         joint.predict_to(tg)
         rec_joint[ke] = joint.x[:2]
         advance(central_trk, tg, k)
@@ -402,9 +422,19 @@ def run(args: argparse.Namespace) -> dict:
         dr = integrate_odometry(rl.odom_t, rl.odom, rl.truth_at(0.0), 0.0, eval_t)
         out["dead_reckoning"][str(r)] = {"rmse": rmse(dr[:, :2] - rl.truth_at(eval_t)[:, :2])}
     out["runtime_s"] = time.perf_counter() - t_wall
-    if getattr(args, "series", False):
-        out["series"] = {"t": eval_t, "truth": truth1, "nodes": rec_nodes, "centralized": rec_joint,
-                         "centralized_tracking": rec_ct}
+    dr1 = integrate_odometry(tr.odom_t, tr.odom, tr.truth_at(0.0), 0.0, eval_t)
+    # per evaluation point (lists, for --json): time (s); robot 1's true position, each node's
+    # estimate (m) with its 2x2 covariance (m^2); each observer's own pose (x, y m, theta rad),
+    # its landmark EKF estimate and covariance; the references
+    out["series"] = {
+        "t": eval_t.tolist(), "truth": truth1.tolist(),
+        "nodes": {str(o): {"mean": rec_nodes[o].tolist(), "cov": rec_cov[o].tolist()} for o in observers},
+        "observers": {str(o): {"truth": ds.robots[o].truth_at(eval_t).tolist(), "mean": rec_loc[o].tolist(),
+                               "cov": rec_loc_cov[o].tolist()} for o in observers},
+        "centralized": rec_joint.tolist(), "centralized_tracking": rec_ct.tolist(),
+        "dead_reckoning": dr1[:, :2].tolist(),
+    }
+    out["landmarks"] = {str(k): [float(v) for v in xy] for k, xy in landmarks.items()}
     return out
 
 
@@ -429,9 +459,10 @@ def print_tables(res: dict) -> None:
     print(f"\nrun time {res['runtime_s']:.1f} s")
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset", type=Path, help="MRCLAM dataset directory")
+    ap.add_argument("dataset", type=Path, help="MRCLAM dataset directory (with --bag: only its landmark map)")
+    ap.add_argument("--bag", type=Path, default=None, help="read the robots' data from this ROS 1 / ROS 2 bag")
     ap.add_argument("--duration", type=float, default=None, help="use the first S seconds")
     ap.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     ap.add_argument("--target", type=int, default=1)
@@ -442,7 +473,11 @@ def main(argv: list[str] | None = None) -> int:
                          "correct it; cv: constant velocity from the observations only")
     for k, v in DEFAULTS.items():
         ap.add_argument("--" + k.replace("_", "-"), type=float, default=v)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
         res = run(args)
     except (DfusionError, OSError) as exc:

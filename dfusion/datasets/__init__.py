@@ -15,6 +15,7 @@ from dfusion.datasets.mrclam import (
     integrate_odometry,
     interpolate_poses,
     mean_velocities,
+    read_landmarks,
     read_mrclam,
 )
 
@@ -32,6 +33,7 @@ __all__ = [
     "RobotLog",
     "MRCLAMDataset",
     "read_mrclam",
+    "read_landmarks",
     "integrate_odometry",
     "interpolate_poses",
     "mean_velocities",
