@@ -30,7 +30,7 @@ def _simulate(args: argparse.Namespace) -> int:
         Path(args.json).write_text(result.to_json())
         print(f"wrote {args.json}")
     if args.plot:
-        from dfusion.plots import plot_result
+        from dfusion.viz import plot_result
 
         print(f"wrote {plot_result(result, args.plot)}")
     return 0
@@ -88,7 +88,7 @@ def _run(args: argparse.Namespace) -> int:
         Path(args.json).write_text(result.to_json())
         print(f"wrote {args.json}")
     if args.plot:
-        from dfusion.plots import plot_result
+        from dfusion.viz import plot_result
 
         print(f"wrote {plot_result(result, args.plot)}")
     return 1 if launcher.failures else 0

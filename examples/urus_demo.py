@@ -15,7 +15,7 @@ gap to the centralized EKF, traffic) and a few demo figures, and writes
 * ``DIR/urus_figure33.png`` (or ``--plot``): the Figure-33-style plot of one
   camera node (``--node``, default ``cam_left``) against the centralized EKF;
 * ``DIR/urus_nodes.png``: every node's error with 3-sigma bands
-  (:func:`dfusion.plots.plot_result`);
+  (:func:`dfusion.viz.plot_result`);
 * ``DIR/urus.json`` (or ``--json``): the metrics.
 
 By default every node runs as its own OS process over Zenoh (``dfusion run``,
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         print(line)
     print(f"mode: {mode}" + (f" (speed x{args.speed:g})" if mode == "processes" else "") + f", wall time {wall:.1f} s")
 
-    from dfusion.plots import plot_figure33, plot_result
+    from dfusion.viz import plot_figure33, plot_result
 
     out = args.out
     out.mkdir(parents=True, exist_ok=True)

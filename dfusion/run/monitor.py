@@ -392,7 +392,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(_json.dumps(result.metrics, indent=2, sort_keys=True))
     if args.plot:
-        from dfusion.plots import plot_result
+        from dfusion.viz import plot_result
 
         plot_result(result, args.plot)
     return 0 if len(finals) == len(sc.nodes) else 1

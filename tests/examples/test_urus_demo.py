@@ -86,7 +86,7 @@ def test_outage_shows_and_heals_in_the_gap(tmp_path):
 
 
 def test_plot_figure33_needs_a_known_node(tmp_path):
-    from dfusion.plots import plot_figure33
+    from dfusion.viz import plot_figure33
     from dfusion.sim import run_scenario
 
     res = run_scenario(load_scenario(SCENARIO, duration=3.0))
