@@ -269,6 +269,7 @@ def build_result(
     truth = np.array([world.truth(t) for t in times])
     node_mean, node_cov, views, run_nodes, outputs = {}, {}, {}, {}, {}
     delivered = sent = refused = 0
+    tsum = {"published": 0, "dropped_emulated": 0, "messages_received": 0, "messages_rejected": 0}
     for name in sorted(records):
         rec = records[name]
         node_mean[name], node_cov[name], gaps = _filled(rec, sc)
@@ -288,6 +289,8 @@ def build_result(
         delivered += total.get("delivered", 0)
         sent += total.get("messages_sent", 0)
         refused += total.get("measurements_refused", 0)
+        for key in tsum:
+            tsum[key] += total.get(key, 0)
         run_nodes[name] = {
             "incarnations": max(1, len(rec.epochs)),
             "finished": fin is not None,
@@ -306,6 +309,17 @@ def build_result(
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)
+    # the counts of traffic_lines: built = published + dropped by link emulation; published =
+    # delivered + not received (lost by the transport, or the receiver was down); delivered =
+    # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers)
+    pub, emu = tsum["published"], tsum["dropped_emulated"]
+    ignored = max(0, delivered - tsum["messages_received"] - tsum["messages_rejected"])
+    result.metrics["traffic"] = {
+        "network": {"sent": pub + emu, "duplicated": 0, "delivered": delivered,
+                    "dropped": emu + max(0, pub - delivered), "in_flight": 0},
+        "fused": delivered - tsum["messages_rejected"] - ignored, "rejected": tsum["messages_rejected"],
+        "ignored": ignored, "final_rounds": 0, "final_rounds_over_network": True,
+    }
     result.metrics["run"] = {
         "nodes": run_nodes,
         "measurements_lost": len(lost),
