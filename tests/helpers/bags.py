@@ -40,12 +40,13 @@ class _Types:
 
 
 def write_bag(path: Path, fmt: str, records: list[Record], *, custom: dict[str, str] | None = None,
-              shuffle: int | None = None) -> Path:
+              shuffle: int | None = None, record_ns: list[int] | None = None) -> Path:
+    """Write ``records``; ``record_ns`` gives each record's record time (default: see above)."""
     ts = typestore(fmt, custom)
     types = _Types(ts)
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
-    rec_ns = [r[2] + 5_000_000 for r in records]
+    rec_ns = list(record_ns) if record_ns is not None else [r[2] + 5_000_000 for r in records]
     if shuffle is not None:
         rng = np.random.default_rng(shuffle)
         rec_ns = [r[2] + int(rng.integers(0, 3_000_000_000)) for r in records]
