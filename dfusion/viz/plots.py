@@ -6,23 +6,64 @@ from pathlib import Path
 import numpy as np
 
 
+def transient_end(times: np.ndarray, sigma: np.ndarray, factor: float = 2.0) -> float:
+    """End of the start-up transient: the first time after which ``sigma`` (e.g. the
+    centralized EKF's largest position standard deviation) stays below ``factor`` times
+    its median over the second half of the run (the steady state). 0 when there is none.
+    """
+    s = np.asarray(sigma, dtype=float)
+    t = np.asarray(times, dtype=float)
+    if s.size < 4:
+        return float(t[0]) if t.size else 0.0
+    level = factor * float(np.median(s[s.size // 2:]))
+    above = np.flatnonzero(s > level)
+    if above.size == 0:
+        return float(t[0])
+    k = min(int(above[-1]) + 1, t.size - 1)
+    # only a transient at the start counts; later excursions (outages) are data
+    return float(t[k]) if t[k] <= t[0] + 0.25 * (t[-1] - t[0]) else float(t[0])
+
+
+def steady_limits(t: np.ndarray, t_start: float, *curves: np.ndarray, pad: float = 0.1) -> tuple[float, float]:
+    """Symmetric y-limits covering every curve after ``t_start`` (the steady state)."""
+    sel = t >= t_start
+    hi = max(float(np.nanmax(np.abs(c[sel]))) for c in curves) if sel.any() else 1.0
+    hi = hi * (1 + pad) if hi > 0 else 1.0
+    return -hi, hi
+
+
 def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | None = None) -> Path:
     """Each node's X and Y error against the centralized EKF's, with 3-sigma bands.
 
     One row per node (at most ``max_nodes``), columns X and Y; every curve is
-    *estimate minus truth*, so the bands (±3σ) are visible whatever the
-    trajectory's extent. Link outages are shaded (darker where they touch the
-    node).
+    *estimate minus truth* (m), so the bands (±3σ) are visible whatever the
+    trajectory's extent. The y-range is that of the steady state: the start-up
+    transient (while the centralized 3σ is above twice its steady median,
+    :func:`transient_end`) is shaded grey and its curves are clipped, with the
+    prior's ±3σ written in the panel. Link outages are shaded red: dark where the
+    link touches the node, light elsewhere in the tree. One legend explains every
+    line and shading.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     names = sorted(result.node_mean)[:max_nodes]
     t = result.times
-    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.4 * len(names) + 0.9), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.3 * len(names) + 1.5), sharex=True, sharey=True,
+                             squeeze=False)
     outages = result.scenario.outages()
+
+    def pos_sigma(cov):
+        return np.sqrt(np.maximum(cov[:, [0, 1], [0, 1]], 0.0)).max(axis=1)
+
+    # the transient ends when the centralized EKF and every node have settled
+    t_tr = max(transient_end(t, pos_sigma(c)) for c in [result.central_cov, *(result.node_cov[n] for n in names)])
+    lim = 0.0
+    any_mine = any_other = False
     for row, name in enumerate(names):
         for col, label in enumerate(("X", "Y")):
             ax = axes[row][col]
@@ -33,22 +74,43 @@ def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | No
             cs = 3 * np.sqrt(result.central_cov[:, col, col])
             for a, b, t0, t1 in outages:
                 mine = name in (a, b)
-                ax.axvspan(t0, t1, color="tab:red", alpha=0.18 if mine else 0.07, lw=0)
-            ax.fill_between(t, -s, s, color="tab:blue", alpha=0.18, lw=0, label="node ±3σ")
-            ax.plot(t, cs, color="k", lw=0.8, ls=":", label="centralized ±3σ")
+                any_mine |= mine
+                any_other |= not mine
+                ax.axvspan(t0, t1, color="tab:red", alpha=0.22 if mine else 0.08, lw=0)
+            ax.fill_between(t, -s, s, color="tab:blue", alpha=0.18, lw=0)
+            ax.plot(t, cs, color="k", lw=0.8, ls=":")
             ax.plot(t, -cs, color="k", lw=0.8, ls=":")
-            ax.plot(t, cm, color="k", lw=0.9, label="centralized EKF error")
-            ax.plot(t, m, color="tab:blue", lw=0.9, label="node error")
+            ax.plot(t, cm, color="k", lw=0.9)
+            ax.plot(t, m, color="tab:blue", lw=0.9)
             ax.axhline(0.0, color="tab:green", lw=0.6)
+            lim = max(lim, steady_limits(t, t_tr, s, cs, m, cm)[1])
+            if t_tr > t[0]:
+                ax.axvspan(t[0], t_tr, facecolor="0.85", edgecolor="0.6", hatch="////", lw=0, zorder=0)
+                ax.annotate(f"↑ clipped: prior ±{s[0]:.1f} m", xy=(t_tr, 1.0), xycoords=("data", "axes fraction"),
+                            xytext=(3, -3), textcoords="offset points", ha="left", va="top", fontsize=7, color="0.3")
             ax.set_ylabel(f"{name}: {label} error [m]")
-            if row == 0 and col == 0:
-                ax.legend(loc="upper right", fontsize=7, ncol=2)
+            ax.grid(alpha=0.25)
+    axes[0][0].set_ylim(-lim, lim)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
+        ax.set_xlim(t[0], t[-1])
+    handles = [Line2D([], [], color="tab:blue", lw=0.9, label="node estimate − truth"),
+               Patch(color="tab:blue", alpha=0.18, label="node ±3σ (its own covariance)"),
+               Line2D([], [], color="k", lw=0.9, label="centralized EKF − truth"),
+               Line2D([], [], color="k", lw=0.8, ls=":", label="centralized ±3σ"),
+               Line2D([], [], color="tab:green", lw=0.6, label="zero error")]
+    if t_tr > t[0]:
+        handles.append(Patch(facecolor="0.85", edgecolor="0.6", hatch="////",
+                             label=f"start-up transient 0-{t_tr:.1f} s (clipped: y-range from the steady state)"))
+    if any_mine:
+        handles.append(Patch(color="tab:red", alpha=0.22, label="outage of a link of this node"))
+    if any_other:
+        handles.append(Patch(color="tab:red", alpha=0.08, label="outage of another link"))
+    fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=7.5, frameon=False, bbox_to_anchor=(0.5, 0.975))
     m = result.metrics
-    fig.suptitle(title or f"{Path(result.scenario.path).name}: estimate − truth per node vs centralized EKF "
-                 f"(fusion={m['fusion']}, seed={m['seed']}; red: link outages)", fontsize=10)
-    fig.tight_layout()
+    fig.suptitle(title or f"{Path(result.scenario.path).name}: each node's position error against the centralized EKF's "
+                 f"(fusion={m['fusion']}, seed={m['seed']})", fontsize=10, y=0.995)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.75 / fig.get_figheight()))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -136,16 +198,27 @@ def plot_figure33(result, node: str, path: str | Path, *, title: str | None = No
         ax.set_ylabel(f"{label} [m]")
         ax.grid(alpha=0.25)
     handles, labels = axes[0].get_legend_handles_labels()
-    handles += [Patch(color="tab:red", alpha=0.3, label="link outage (this node)")]
+    if any(node in (a, b) for a, b, _, _ in outages):
+        handles += [Patch(color="tab:red", alpha=0.3, label="outage of a link of this node")]
+    if any(node not in (a, b) for a, b, _, _ in outages):
+        handles += [Patch(color="tab:red", alpha=0.1, label="outage of another link")]
     if in_view is not None:
         handles += [Patch(color="tab:green", alpha=0.55, label=f"target in {node}'s view (ticks: detections)")]
     axes[0].legend(handles=handles, loc="lower right", fontsize=7.5, ncol=2, framealpha=0.9)
 
     ax = axes[2]
     shade(ax)
-    gap = np.abs(mean - cm).max(axis=1)
-    ax.semilogy(t, np.maximum(gap, 1e-12), color="tab:red", lw=0.9)
-    ax.set_ylabel("|node − central|\nmax over state")
+    d = mean - cm
+    gp = np.linalg.norm(d[:, :2], axis=1)
+    ax.semilogy(t, np.maximum(gp, 1e-12), color="tab:red", lw=0.9, label="position [m]")
+    gaps = [gp]
+    if d.shape[1] == 4:
+        gv = np.linalg.norm(d[:, 2:], axis=1)
+        ax.semilogy(t, np.maximum(gv, 1e-12), color="tab:purple", lw=0.8, ls="--", label="velocity [m/s]")
+        gaps.append(gv)
+    gap = np.concatenate(gaps)
+    ax.set_ylabel("node − centralized\n(distance)")
+    ax.legend(loc="upper right", fontsize=7, ncol=2, framealpha=0.9)
     ax.set_ylim(max(1e-6, float(np.min(gap[gap > 0])) * 0.5 if np.any(gap > 0) else 1e-6),
                 max(1.0, float(gap.max()) * 2))
     ax.grid(alpha=0.25, which="both")
@@ -154,7 +227,8 @@ def plot_figure33(result, node: str, path: str | Path, *, title: str | None = No
     ax.set_xlim(t[0], t[-1])
     m = result.metrics.get("nodes", {}).get(node, {})
     sub = (f"RMSE {m['rmse']:.2f} m (centralized {result.metrics['centralized']['rmse']:.2f} m), "
-           f"mean gap {m['mean_gap']:.2g}, final gap {m['final_gap']:.2g}") if m else ""
+           f"mean position gap {m.get('mean_gap_position', m['mean_gap']):.2g} m, "
+           f"final {m.get('final_gap_position', m['final_gap']):.2g} m") if m else ""
     fig.suptitle(title or f"{node}: estimated X and Y (red) vs the centralized EKF (black), ±3σ "
                  f"— URUS Figure 33 style\n{sub}", fontsize=10)
     fig.tight_layout()
