@@ -457,15 +457,16 @@ def write_series_csv(res: SimulationResult, path) -> None:
     ser = series_of(res)
     names = ser["state"]
 
-    def unit(n: str) -> tuple[str, str]:
+    def unit(n: str) -> tuple[str, str, str]:
         base, _, u = n.partition(" [")
-        u = u.rstrip("]").replace("/", "p") if u else ""
-        return base, u
+        u = u.rstrip("]")
+        sq = {"m": "m2", "m/s": "m2ps2"}.get(u, u + "2" if u else "")
+        return base, u.replace("/", "p"), sq
 
     cols = ["t_s", "node"]
     for n in names:
-        b, u = unit(n)
-        cols += [f"truth_{b}_{u}".rstrip("_"), f"mean_{b}_{u}".rstrip("_"), f"var_{b}_{u}2".rstrip("_")]
+        b, u, sq = unit(n)
+        cols += [f"truth_{b}_{u}".rstrip("_"), f"mean_{b}_{u}".rstrip("_"), f"var_{b}_{sq}".rstrip("_")]
     cols += ["nees", "gap_position_m", "gap_velocity_mps"]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

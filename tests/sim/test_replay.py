@@ -148,3 +148,46 @@ def test_replay_errors(tmp_path):
         standard_z(Velocity(0.0, 1.0, 0.1))
     with pytest.raises(ValidationError, match="no converter"):
         convert("vendor_msgs/msg/Blob", object(), 0.0)
+
+
+def test_replay_command_writes_series_json_csv_and_figures(tmp_path, capsys):
+    import csv
+    import json
+
+    from dfusion.cli import main
+
+    sc = load_scenario(ROOT / "topologies" / "chain3.scenario.toml", duration=6.0)
+    world = simulate_world(sc)
+    bag = _write(tmp_path, world, {nm: "point" for nm in sc.nodes}, fmt="ros1")
+    out = tmp_path / "out"
+    code = main(["replay", str(ROOT / "topologies" / "chain3.scenario.toml"), str(bag), "--duration", "6",
+                 "--topic", "/a/fix=a", "--topic", "/b/fix=b", "--topic", "/c/fix=c", "--truth", "/truth",
+                 "--arrival", "record", "--json", str(out / "r.json"), "--csv", str(out / "r.csv"),
+                 "--plot", str(out / "e.png"), "--topdown", str(out / "t.png"), "--mcap", str(out / "r.mcap"), "-q"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "RMSE [m]" in printed and "final gap pos [m]" in printed
+    ref = run_scenario(sc, world=world)
+    data = json.loads((out / "r.json").read_text())
+    ser = data["series"]
+    assert ser["state"] == ["x [m]", "y [m]", "vx [m/s]", "vy [m/s]"]
+    np.testing.assert_allclose(ser["t"], ref.times)
+    for nm in sc.nodes:
+        np.testing.assert_allclose(ser["nodes"][nm]["mean"], ref.node_mean[nm], atol=1e-9)
+        np.testing.assert_allclose(ser["nodes"][nm]["var"], np.diagonal(ref.node_cov[nm], axis1=1, axis2=2), atol=1e-9)
+        # NEES and gaps, independently: e' P^-1 e with a plain solve; distances to the centralized mean
+        e = ref.node_mean[nm] - ref.truth
+        nees_ref = [float(v @ np.linalg.solve(P, v)) for v, P in zip(e, ref.node_cov[nm])]
+        np.testing.assert_allclose(ser["nodes"][nm]["nees"], nees_ref, rtol=1e-7)
+        d = ref.node_mean[nm] - ref.central_mean
+        np.testing.assert_allclose(ser["nodes"][nm]["gap_position"], np.hypot(d[:, 0], d[:, 1]), atol=1e-9)
+        np.testing.assert_allclose(ser["nodes"][nm]["gap_velocity"], np.hypot(d[:, 2], d[:, 3]), atol=1e-9)
+    with (out / "r.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(ref.times) * (len(sc.nodes) + 1)
+    b_rows = [r for r in rows if r["node"] == "b"]
+    np.testing.assert_allclose([float(r["mean_vx_mps"]) for r in b_rows], ref.node_mean["b"][:, 2], atol=1e-9)
+    np.testing.assert_allclose([float(r["var_y_m2"]) for r in b_rows], ref.node_cov["b"][:, 1, 1], atol=1e-9)
+    np.testing.assert_allclose([float(r["truth_x_m"]) for r in b_rows], ref.truth[:, 0], atol=1e-9)
+    for f in ("e.png", "t.png", "r.mcap"):
+        assert (out / f).stat().st_size > 10_000
