@@ -250,6 +250,34 @@ def run(args: argparse.Namespace, log=None) -> dict:
     return out
 
 
+def figures(res: dict, grid, out: Path) -> list[Path]:
+    """``out/carmen_topdown.png`` (the map built from the even scans, the true path of the
+    localized scans, each localizer's estimate with 3-sigma ellipses, the drifting
+    odometry) and ``out/carmen_errors.png`` (X and Y errors of both localizers with their
+    own ±3σ)."""
+    from dfusion.viz.plots import plot_track_errors
+    from dfusion.viz.topdown import Scene, Track, draw_scene
+
+    ser = res["series"]
+    t = np.asarray(ser["t"])
+    truth = np.asarray(ser["truth"])[:, :2]
+    mcl = Track("MCL (likelihood field)", t, np.asarray(ser["mcl"]["mean"])[:, :2],
+                np.asarray(ser["mcl"]["cov"])[:, :2, :2], "tab:blue")
+    sm = Track("ICP + odometry EKF", t, np.asarray(ser["scan_matching"]["mean"])[:, :2],
+               np.asarray(ser["scan_matching"]["cov"])[:, :2, :2], "tab:orange")
+    odo = Track("odometry (dead reckoning)", t, np.asarray(ser["odometry"])[:, :2], None, "0.45", style=":")
+    scene = Scene(title=f"CARMEN {Path(res['log']).name}: {res['localized_scans']} scans localized in a map of "
+                        f"{res['map_scans']} others",
+                  truth={"robot (corrected poses)": (t, truth)}, tracks=[mcl, sm, odo], grid=grid,
+                  note=f"RMSE: MCL {res['mcl']['rmse']:.3f} m, ICP + EKF {res['scan_matching']['rmse']:.3f} m, "
+                       f"odometry {res['odometry']['rmse']:.2f} m")
+    out.mkdir(parents=True, exist_ok=True)
+    a = draw_scene(scene, out / "carmen_topdown.png")
+    b = plot_track_errors(t, truth, [mcl, sm], out / "carmen_errors.png",
+                          title=f"CARMEN {Path(res['log']).name}: position error of each localizer with its own ±3σ")
+    return [a, b]
+
+
 def print_table(res: dict) -> None:
     m = res["map"]
     print(f"CARMEN {res['log']}: {res['scans']} scans, map from {res['map_scans']} "
@@ -270,7 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("log", type=Path, nargs="?", default=None, help="CARMEN log (plain or .gz) with corrected poses")
     ap.add_argument("--bag", type=Path, default=None, help="read scans, scan poses and odometry from this ROS bag")
-    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None, help="write the results and the per-scan series as JSON")
+    ap.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                    help="write the top-down figure and the error plot (PNG) into DIR")
     ap.add_argument("--max-scans", type=int, default=None, help="use only the first N scans")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--resolution", type=float, default=0.05, help="map cell size (m)")
@@ -289,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print_table(res)
     plot = res.pop("_plot")
+    if args.plot:
+        print("wrote " + ", ".join(str(p) for p in figures(res, plot["grid"], args.plot)))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(res, indent=2))

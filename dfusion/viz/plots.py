@@ -1,6 +1,7 @@
 """Figures (PNG) of simulation results, with matplotlib's Agg backend."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -33,16 +34,33 @@ def steady_limits(t: np.ndarray, t_start: float, *curves: np.ndarray, pad: float
 
 
 def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | None = None) -> Path:
-    """Each node's X and Y error against the centralized EKF's, with 3-sigma bands.
+    """Each node's X and Y error against the centralized EKF's, with 3-sigma bands
+    (:func:`plot_track_errors`: steady-state y-range, start-up transient shaded and
+    clipped, link outages shaded, one legend for every line and shading)."""
+    from dfusion.viz.topdown import Track
 
-    One row per node (at most ``max_nodes``), columns X and Y; every curve is
-    *estimate minus truth* (m), so the bands (±3σ) are visible whatever the
-    trajectory's extent. The y-range is that of the steady state: the start-up
-    transient (while the centralized 3σ is above twice its steady median,
-    :func:`transient_end`) is shaded grey and its curves are clipped, with the
-    prior's ±3σ written in the panel. Link outages are shaded red: dark where the
-    link touches the node, light elsewhere in the tree. One legend explains every
-    line and shading.
+    names = sorted(result.node_mean)[:max_nodes]
+    t = result.times
+    tracks = [Track(n, t, result.node_mean[n][:, :2], result.node_cov[n][:, :2, :2]) for n in names]
+    ref = Track("centralized EKF", t, result.central_mean[:, :2], result.central_cov[:, :2, :2], "k")
+    m = result.metrics
+    return plot_track_errors(
+        t, result.truth[:, :2], tracks, path, reference=ref, outages=result.scenario.outages(),
+        title=title or f"{Path(result.scenario.path).name}: each node's position error against the centralized "
+                       f"EKF's (fusion={m['fusion']}, seed={m['seed']})")
+
+
+def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str | Path, *, title: str,
+                      reference=None, outages=(), truth_times: np.ndarray | None = None) -> Path:
+    """Position errors (estimate − truth, X and Y in m) of several estimators over time.
+
+    One row per :class:`~dfusion.viz.topdown.Track` (its own times; the truth, given at
+    ``truth_times`` or at ``t``, is interpolated there), columns X and Y; a track with a
+    covariance gets its ±3σ band; ``reference`` (e.g. the centralized EKF) is drawn in
+    black in every row. One y-range for all panels, from the steady state: the
+    start-up transient (until every covariance has settled, :func:`transient_end`) is
+    shaded grey and clipped. ``outages`` ``(a, b, t0, t1)`` are shaded red, dark where
+    the link touches the row's track. One legend explains every line and shading.
     """
     import matplotlib
 
@@ -51,66 +69,89 @@ def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | No
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    names = sorted(result.node_mean)[:max_nodes]
-    t = result.times
-    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.3 * len(names) + 1.5), sharex=True, sharey=True,
-                             squeeze=False)
-    outages = result.scenario.outages()
+    tt = np.asarray(t if truth_times is None else truth_times, float)
+    truth = np.asarray(truth, float)
 
-    def pos_sigma(cov):
-        return np.sqrt(np.maximum(cov[:, [0, 1], [0, 1]], 0.0)).max(axis=1)
+    def truth_at(ts):
+        return np.column_stack([np.interp(ts, tt, truth[:, 0]), np.interp(ts, tt, truth[:, 1])])
 
-    # the transient ends when the centralized EKF and every node have settled
-    t_tr = max(transient_end(t, pos_sigma(c)) for c in [result.central_cov, *(result.node_cov[n] for n in names)])
+    def sigma(tr):
+        return np.sqrt(np.maximum(np.asarray(tr.cov)[:, [0, 1], [0, 1]], 0.0)).max(axis=1)
+
+    with_cov = [tr for tr in [*tracks, reference] if tr is not None and tr.cov is not None]
+    t_tr = max((transient_end(np.asarray(tr.t), sigma(tr)) for tr in with_cov), default=float(tt[0]))
+    t0_all = min(float(np.asarray(tr.t)[0]) for tr in tracks)
+    t1_all = max(float(np.asarray(tr.t)[-1]) for tr in tracks)
+    rows = len(tracks)
+    fig, axes = plt.subplots(rows, 2, figsize=(12, 2.3 * rows + 1.5), sharex=True, sharey=True, squeeze=False)
     lim = 0.0
     any_mine = any_other = False
-    for row, name in enumerate(names):
+    colors = ["tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:cyan"]
+    for row, tr in enumerate(tracks):
+        ts = np.asarray(tr.t, float)
+        e = np.asarray(tr.mean, float)[:, :2] - truth_at(ts)
+        color = tr.color or colors[row % len(colors)]
         for col, label in enumerate(("X", "Y")):
             ax = axes[row][col]
-            truth = result.truth[:, col]
-            m = result.node_mean[name][:, col] - truth
-            s = 3 * np.sqrt(result.node_cov[name][:, col, col])
-            cm = result.central_mean[:, col] - truth
-            cs = 3 * np.sqrt(result.central_cov[:, col, col])
-            for a, b, t0, t1 in outages:
-                mine = name in (a, b)
+            for a, b, o0, o1 in outages:
+                mine = tr.name in (a, b)
                 any_mine |= mine
                 any_other |= not mine
-                ax.axvspan(t0, t1, color="tab:red", alpha=0.22 if mine else 0.08, lw=0)
-            ax.fill_between(t, -s, s, color="tab:blue", alpha=0.18, lw=0)
-            ax.plot(t, cs, color="k", lw=0.8, ls=":")
-            ax.plot(t, -cs, color="k", lw=0.8, ls=":")
-            ax.plot(t, cm, color="k", lw=0.9)
-            ax.plot(t, m, color="tab:blue", lw=0.9)
+                ax.axvspan(o0, o1, color="tab:red", alpha=0.22 if mine else 0.08, lw=0)
+            curves = [e[:, col]]
+            if tr.cov is not None:
+                s = 3 * np.sqrt(np.maximum(np.asarray(tr.cov)[:, col, col], 0.0))
+                ax.fill_between(ts, -s, s, color=color, alpha=0.18, lw=0)
+                curves.append(s)
+            if reference is not None:
+                rt = np.asarray(reference.t, float)
+                re = np.asarray(reference.mean, float)[:, col] - truth_at(rt)[:, col]
+                ax.plot(rt, re, color="k", lw=0.9)
+                curves.append(re)
+                if reference.cov is not None:
+                    rs = 3 * np.sqrt(np.maximum(np.asarray(reference.cov)[:, col, col], 0.0))
+                    ax.plot(rt, rs, color="k", lw=0.8, ls=":")
+                    ax.plot(rt, -rs, color="k", lw=0.8, ls=":")
+                    curves.append(rs)
+            ax.plot(ts, e[:, col], color=color, lw=0.9)
             ax.axhline(0.0, color="tab:green", lw=0.6)
-            lim = max(lim, steady_limits(t, t_tr, s, cs, m, cm)[1])
-            if t_tr > t[0]:
-                ax.axvspan(t[0], t_tr, facecolor="0.85", edgecolor="0.6", hatch="////", lw=0, zorder=0)
-                ax.annotate(f"↑ clipped: prior ±{s[0]:.1f} m", xy=(t_tr, 1.0), xycoords=("data", "axes fraction"),
-                            xytext=(3, -3), textcoords="offset points", ha="left", va="top", fontsize=7, color="0.3")
-            ax.set_ylabel(f"{name}: {label} error [m]")
+            sel = ts >= t_tr
+            for c in curves:
+                cc = np.abs(np.asarray(c)[sel[:len(c)]] if len(c) == len(ts) else np.asarray(c))
+                if cc.size and np.isfinite(cc).any():
+                    lim = max(lim, float(np.nanmax(cc)))
+            if t_tr > t0_all:
+                ax.axvspan(t0_all, t_tr, facecolor="0.85", edgecolor="0.6", hatch="////", lw=0, zorder=0)
+                if tr.cov is not None and row == 0:
+                    s0 = 3 * math.sqrt(max(float(np.asarray(tr.cov)[0, col, col]), 0.0))
+                    ax.annotate(f"↑ clipped: start ±{s0:.1f} m", xy=(t_tr, 1.0), xycoords=("data", "axes fraction"),
+                                xytext=(3, -3), textcoords="offset points", ha="left", va="top", fontsize=7,
+                                color="0.3")
+            ax.set_ylabel(f"{tr.name}:\n{label} error [m]")
             ax.grid(alpha=0.25)
+    lim = lim * 1.1 if lim > 0 else 1.0
     axes[0][0].set_ylim(-lim, lim)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
-        ax.set_xlim(t[0], t[-1])
-    handles = [Line2D([], [], color="tab:blue", lw=0.9, label="node estimate − truth"),
-               Patch(color="tab:blue", alpha=0.18, label="node ±3σ (its own covariance)"),
-               Line2D([], [], color="k", lw=0.9, label="centralized EKF − truth"),
-               Line2D([], [], color="k", lw=0.8, ls=":", label="centralized ±3σ"),
-               Line2D([], [], color="tab:green", lw=0.6, label="zero error")]
-    if t_tr > t[0]:
+        ax.set_xlim(t0_all, t1_all)
+    handles = [Line2D([], [], color="tab:blue", lw=0.9, label="estimate − truth (colour: the row's estimator)")]
+    if any(tr.cov is not None for tr in tracks):
+        handles.append(Patch(color="tab:blue", alpha=0.18, label="±3σ of the estimator's own covariance"))
+    if reference is not None:
+        handles.append(Line2D([], [], color="k", lw=0.9, label=f"{reference.name} − truth"))
+        if reference.cov is not None:
+            handles.append(Line2D([], [], color="k", lw=0.8, ls=":", label=f"{reference.name} ±3σ"))
+    handles.append(Line2D([], [], color="tab:green", lw=0.6, label="zero error"))
+    if t_tr > t0_all:
         handles.append(Patch(facecolor="0.85", edgecolor="0.6", hatch="////",
-                             label=f"start-up transient 0-{t_tr:.1f} s (clipped: y-range from the steady state)"))
+                             label=f"start-up transient to {t_tr:.1f} s (clipped: y-range from the steady state)"))
     if any_mine:
         handles.append(Patch(color="tab:red", alpha=0.22, label="outage of a link of this node"))
     if any_other:
         handles.append(Patch(color="tab:red", alpha=0.08, label="outage of another link"))
-    fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=7.5, frameon=False, bbox_to_anchor=(0.5, 0.975))
-    m = result.metrics
-    fig.suptitle(title or f"{Path(result.scenario.path).name}: each node's position error against the centralized EKF's "
-                 f"(fusion={m['fusion']}, seed={m['seed']})", fontsize=10, y=0.995)
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.75 / fig.get_figheight()))
+    fig.legend(handles=handles, loc="upper center", ncol=3, fontsize=7.5, frameon=False, bbox_to_anchor=(0.5, 0.975))
+    fig.suptitle(title, fontsize=10, y=0.995)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.6 / fig.get_figheight()))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

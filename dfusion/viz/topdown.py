@@ -80,6 +80,10 @@ class Scene:
     ellipse_times: list[float] | None = None
     node_colors: dict[str, str] = field(default_factory=dict)
     note: str = ""
+    #: Colours of the truths after the first (default: the truth's green).
+    truth_colors: dict[str, str] = field(default_factory=dict)
+    #: Small text labels ``(xy, text)`` (landmark numbers, ...).
+    labels: list[tuple[np.ndarray, str]] = field(default_factory=list)
 
 
 def camera_footprint(sensor: Any, n: int = 16) -> np.ndarray | None:
@@ -159,11 +163,11 @@ def _draw_layers(ax, scene: Scene, times: list[float], main: bool) -> list[Any]:
                 ext = [g.origin[0], g.origin[0] + g.width * g.resolution, g.origin[1],
                        g.origin[1] + g.height * g.resolution]
                 ax.imshow(np.ma.masked_where(occ == 0, occ), extent=ext, origin="lower", cmap="Greys", vmin=0,
-                          vmax=1.3, interpolation="nearest", zorder=0)
+                          vmax=1.8, interpolation="nearest", zorder=0)
             else:
                 p = g.occupied_points(boundary_only=False)
                 ax.plot(p[:, 0], p[:, 1], ",", color="0.4", zorder=0)
-            handles.append(Patch(facecolor="0.45", label=f"map: occupied cells ({g.resolution:g} m)"))
+            handles.append(Patch(facecolor="0.55", label=f"map: occupied cells ({g.resolution:g} m)"))
     for label, (poly, color) in scene.polygons.items():
         ax.fill(poly[:, 0], poly[:, 1], color=color, alpha=0.12, lw=0, zorder=1)
         ax.plot(np.r_[poly[:, 0], poly[:1, 0]], np.r_[poly[:, 1], poly[:1, 1]], color=color, lw=0.8, ls="--", zorder=1)
@@ -172,6 +176,9 @@ def _draw_layers(ax, scene: Scene, times: list[float], main: bool) -> list[Any]:
         xy = np.asarray(xy, float).reshape(-1, 2)
         ax.plot(xy[:, 0], xy[:, 1], marker, color=color, ms=6, mec="k", mew=0.5, ls="none", zorder=4)
         handles.append(Line2D([], [], marker=marker, color=color, mec="k", mew=0.5, ls="none", label=label))
+    for xy, text in scene.labels:
+        ax.annotate(text, np.asarray(xy, float)[:2], xytext=(4, -9), textcoords="offset points", fontsize=7,
+                    color="0.25", zorder=6, annotation_clip=True)
     for label, xy in scene.detections.items():
         xy = np.asarray(xy, float).reshape(-1, 2)
         if xy.size:
@@ -180,16 +187,17 @@ def _draw_layers(ax, scene: Scene, times: list[float], main: bool) -> list[Any]:
             handles.append(Line2D([], [], marker=".", color=color, ls="none", alpha=0.6, label=label))
     for k, (name, (t, xy)) in enumerate(scene.truth.items()):
         xy = np.asarray(xy, float)
-        ax.plot(xy[:, 0], xy[:, 1], color=TRUTH_COLOR, lw=2.0 if k == 0 else 1.2, alpha=0.75, zorder=3,
+        tc = scene.truth_colors.get(name, TRUTH_COLOR)
+        ax.plot(xy[:, 0], xy[:, 1], color=tc, lw=2.0 if k == 0 else 1.0, alpha=0.75 if k == 0 else 0.6, zorder=3,
                 ls="-" if k == 0 else (0, (4, 2)))
-        ax.plot(xy[0, 0], xy[0, 1], "o", color=TRUTH_COLOR, ms=5, zorder=5)
+        ax.plot(xy[0, 0], xy[0, 1], "o", color=tc, ms=5, zorder=5)
         if k == 0 and main:
             for i, tq in enumerate(times, 1):
                 j = _nearest(np.asarray(t), tq)
                 ax.annotate(str(i), xy[j], xytext=(5, 5), textcoords="offset points", fontsize=8, weight="bold",
                             color="darkgreen", zorder=6)
                 ax.plot(xy[j, 0], xy[j, 1], "s", color=TRUTH_COLOR, ms=4, zorder=6)
-        handles.append(Line2D([], [], color=TRUTH_COLOR, lw=2.0 if k == 0 else 1.2, ls="-" if k == 0 else (0, (4, 2)),
+        handles.append(Line2D([], [], color=tc, lw=2.0 if k == 0 else 1.0, ls="-" if k == 0 else (0, (4, 2)),
                               label=f"truth: {name} (o start" + (", squares 1-n: ellipse times)" if k == 0 else ")")))
     for i, tr in enumerate(scene.tracks):
         color = tr.color or scene.node_colors.get(tr.name) or _COLORS[i % len(_COLORS)]
@@ -244,8 +252,10 @@ def draw_scene(scene: Scene, path: str | Path, *, figsize: tuple[float, float] =
             zax = fig.add_subplot(sub[0, i])
             _draw_layers(zax, scene, times, False)
             c = np.asarray(txy, float)[_nearest(np.asarray(tt), tq)]
-            half = 0.5
+            half = 0.25
             for tr in scene.tracks:
+                if tr.cov is None:   # the close-ups are for the ellipses
+                    continue
                 k = _nearest(np.asarray(tr.t), tq)
                 m = np.asarray(tr.mean, float)[k]
                 ext = np.abs(m - c).max()
