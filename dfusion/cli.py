@@ -31,7 +31,17 @@ def _simulate(args: argparse.Namespace) -> int:
     from dfusion.sim.runner import run_scenario
 
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
-    result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet)
+    live = None
+    if args.foxglove is not None:
+        from dfusion.viz.foxglove import LiveView
+
+        live = LiveView(sc, port=args.foxglove, speed=args.speed)
+        print(f"Foxglove live view on ws://127.0.0.1:{args.foxglove} (scenario time x{args.speed:g})", flush=True)
+    try:
+        result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet and live is None, on_step=live)
+    finally:
+        if live is not None:
+            live.close()
     print(result.table())
     _outputs(result, args)
     return 0
@@ -144,6 +154,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; docs/new-sensor-kind.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--foxglove", type=int, default=None, metavar="PORT",
+                   help="serve the run live to Foxglove on this port (needs pip install 'dfusion[live]'; docs/ros.md)")
+    s.add_argument("--speed", type=float, default=1.0,
+                   help="with --foxglove: scenario seconds per wall-clock second (default 1)")
     s.set_defaults(func=_simulate)
 
     r = sub.add_parser("run", help="run a scenario with one OS process per node, over Zenoh (docs/processes.md)")

@@ -33,7 +33,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import networkx as nx
 import numpy as np
@@ -201,11 +201,15 @@ def _progress(iterable, enabled: bool, total: int):
 
 
 
-def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = None) -> SimulationResult:
+def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = None,
+                 on_step: Callable[..., None] | None = None) -> SimulationResult:
     """Simulate ``sc`` with every node in this process; see the module docstring.
 
     ``world``: the truth and measurements to use (default: simulated from ``sc``; a
-    recording, :func:`dfusion.sim.replay.world_from_bag`).
+    recording, :func:`dfusion.sim.replay.world_from_bag`). ``on_step(t, estimates,
+    truth, events)`` is called after every step with each node's ``(mean, cov)`` (and
+    ``"centralized"``) and the events (:attr:`SimulationResult.events`) since the last
+    call: a live view (:class:`dfusion.viz.foxglove.LiveView`).
     """
     world = simulate_world(sc) if world is None else world
     nodes = build_nodes(sc)
@@ -257,6 +261,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
             counts["rejected"] += 1
             log.warning("%s: %s", dst, exc)
 
+    seen = [0]
+
     def record(k: int) -> None:
         for nm in names:
             node_mean[nm][k], node_cov[nm][k] = nodes[nm].estimate()
@@ -264,6 +270,11 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
             chosen = nodes[nm].output()
             o.mean[k], o.cov[k], o.source[k] = chosen.mean, chosen.cov, chosen.name
         c_mean[k], c_cov[k] = central.estimate(times[k])
+        if on_step is not None:
+            est = {nm: (node_mean[nm][k], node_cov[nm][k]) for nm in names}
+            est["centralized"] = (c_mean[k], c_cov[k])
+            on_step(float(times[k]), est, truth[k], events[seen[0]:])
+            seen[0] = len(events)
 
     record(0)
     for k in _progress(range(1, K), progress, K - 1):

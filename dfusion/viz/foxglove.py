@@ -51,7 +51,7 @@ import numpy as np
 
 from dfusion.viz.topdown import camera_footprint, detection_point, ellipse_points, sensor_points
 
-__all__ = ["SCHEMAS", "FOXGLOVE_SCHEMAS", "record_mcap", "messages_of_result"]
+__all__ = ["SCHEMAS", "FOXGLOVE_SCHEMAS", "record_mcap", "messages_of_result", "LiveView"]
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -160,17 +160,15 @@ def _text(xy, text: str, rgb=(0.1, 0.1, 0.1), size: float = 14.0) -> dict[str, A
             "text": text}
 
 
-def _anchors(result) -> dict[str, np.ndarray]:
+def _anchors(sc, names: list[str], truth: np.ndarray) -> dict[str, np.ndarray]:
     """Where the tree draws each node (module docstring)."""
-    sc = result.scenario
-    names = sorted(result.node_mean)
     out: dict[str, np.ndarray] = {}
     for n in names:
         sensor = sc.nodes[n].sensor
         pts = sensor_points(sensor) if sensor is not None else None
         if pts is not None:
             out[n] = pts.mean(axis=0)
-    truth = result.truth[:, :2]
+    truth = np.asarray(truth, float).reshape(-1, 2) if np.size(truth) else np.zeros((0, 2))
     finite = truth[np.all(np.isfinite(truth), axis=1)]
     ref = np.vstack([finite, *out.values()]) if (finite.size or out) else np.zeros((1, 2))
     lo, hi = ref.min(axis=0), ref.max(axis=0)
@@ -180,117 +178,137 @@ def _anchors(result) -> dict[str, np.ndarray]:
     return out
 
 
-def messages_of_result(result, *, start_ns: int = 0) -> list[tuple[str, str, int, dict[str, Any]]]:
-    """Every message of the recording: ``(topic, schema, log_time_ns, message)``, sorted by time."""
-    from dfusion.metrics import nees
-    from dfusion.sim.runner import state_parts
+Message = tuple[str, str, int, dict[str, Any]]
 
-    sc = result.scenario
-    names = sorted(result.node_mean)
-    colors = {n: _PALETTE[i % len(_PALETTE)] for i, n in enumerate(names)}
-    t = result.times
-    ns = [start_ns + int(round(float(tk) * 1e9)) for tk in t]
-    motion = sc.target.motion
-    pos, vel = state_parts(motion.dim, sc.target.axes)
-    resid = motion.residual if motion.angle_indices else None
-    letters = "xyz"
-    state = [f"{letters[i]} [m]" for i in pos] + [f"v{letters[i - len(pos)]} [m/s]" for i in vel]
-    state += [f"x{i}" for i in range(len(state), motion.dim)]
-    out: list[tuple[str, str, int, dict[str, Any]]] = []
-    truth = result.truth
 
+class _Builder:
+    """The messages of one scenario, step by step (shared by the recording and the live view)."""
+
+    def __init__(self, sc, names: list[str], start_ns: int = 0, truth_path: np.ndarray | None = None) -> None:
+        from dfusion.sim.runner import state_parts
+
+        self.sc, self.names, self.start_ns = sc, names, start_ns
+        self.colors = {n: _PALETTE[i % len(_PALETTE)] for i, n in enumerate(names)}
+        motion = sc.target.motion
+        self.pos, self.vel = state_parts(motion.dim, sc.target.axes)
+        self.resid = motion.residual if motion.angle_indices else None
+        letters = "xyz"
+        state = [f"{letters[i]} [m]" for i in self.pos] + [f"v{letters[i - len(self.pos)]} [m/s]" for i in self.vel]
+        self.state = state + [f"x{i}" for i in range(len(state), motion.dim)]
+        self.truth_path = np.zeros((0, 2)) if truth_path is None else np.asarray(truth_path, float)[:, :2]
+        self.anchors = _anchors(sc, names, self.truth_path)
+
+    def ns(self, t: float) -> int:
+        return self.start_ns + int(round(float(t) * 1e9))
+
+    @staticmethod
     def heading(x: np.ndarray) -> float:
         return math.atan2(x[3], x[2]) if len(x) >= 4 and np.all(np.isfinite(x[2:4])) else 0.0
 
-    estimates = {n: (result.node_mean[n], result.node_cov[n]) for n in names}
-    estimates["centralized"] = (result.central_mean, result.central_cov)
-    nees_all = {n: nees(m, P, truth, resid) for n, (m, P) in estimates.items()}
-    for k, tk in enumerate(t):
-        stamp = _stamp(ns[k])
-        if np.all(np.isfinite(truth[k, :2])):
-            out.append(("/truth", "foxglove.PoseInFrame", ns[k],
-                        {"timestamp": stamp, "frame_id": "map", "pose": _pose(truth[k, 0], truth[k, 1], heading(truth[k]))}))
+    def step(self, t: float, estimates: dict[str, tuple[np.ndarray, np.ndarray]], truth: np.ndarray,
+             central_mean: np.ndarray) -> list[Message]:
+        """Poses, estimates and ellipses at ``t``; ``estimates`` includes ``"centralized"``."""
+        from dfusion.metrics import nees
+
+        ns = self.ns(t)
+        stamp = _stamp(ns)
+        out: list[Message] = []
+        truth = np.asarray(truth, float)
+        known = bool(np.all(np.isfinite(truth[:2])))
+        if known:
+            out.append(("/truth", "foxglove.PoseInFrame", ns,
+                        {"timestamp": stamp, "frame_id": "map", "pose": _pose(truth[0], truth[1], self.heading(truth))}))
         ents = []
-        for n, (m, P) in estimates.items():
+        for n, (mk, Pk) in estimates.items():
+            mk, Pk = np.asarray(mk, float), np.asarray(Pk, float)
             topic = "/centralized" if n == "centralized" else f"/nodes/{n}"
-            mk, Pk = m[k], P[k]
-            out.append((f"{topic}/pose", "foxglove.PoseInFrame", ns[k],
-                        {"timestamp": stamp, "frame_id": "map", "pose": _pose(mk[0], mk[1], heading(mk))}))
-            d = mk - result.central_mean[k]
-            est = {"timestamp": stamp, "t": float(tk), "node": n, "state": state, "mean": mk.tolist(),
+            out.append((f"{topic}/pose", "foxglove.PoseInFrame", ns,
+                        {"timestamp": stamp, "frame_id": "map", "pose": _pose(mk[0], mk[1], self.heading(mk))}))
+            d = mk - np.asarray(central_mean, float)
+            e = float(nees(mk[None], Pk[None], truth[None], self.resid)[0]) if np.all(np.isfinite(truth)) else math.nan
+            est = {"timestamp": stamp, "t": float(t), "node": n, "state": self.state, "mean": mk.tolist(),
                    "covariance": Pk.ravel().tolist(), "std": np.sqrt(np.maximum(np.diag(Pk), 0.0)).tolist(),
-                   "nees": float(nees_all[n][k]), "gap_position_m": float(np.linalg.norm(d[pos])),
-                   "gap_velocity_mps": float(np.linalg.norm(d[vel])) if vel else 0.0}
-            out.append((f"{topic}/estimate", "dfusion.Estimate", ns[k], est))
-            rgb = (0.0, 0.0, 0.0) if n == "centralized" else colors[n]
+                   "nees": e, "gap_position_m": float(np.linalg.norm(d[self.pos])),
+                   "gap_velocity_mps": float(np.linalg.norm(d[self.vel])) if self.vel else 0.0}
+            out.append((f"{topic}/estimate", "dfusion.Estimate", ns, est))
+            rgb = (0.0, 0.0, 0.0) if n == "centralized" else self.colors[n]
             ell = ellipse_points(mk[:2], Pk[:2, :2], 3.0, 48)
-            ents.append(_entity(ns[k], f"ellipse/{n}", lines=[_line(ell, rgb, kind=_LINE_STRIP, thickness=2.0)],
+            ents.append(_entity(ns, f"ellipse/{n}", lines=[_line(ell, rgb, kind=_LINE_STRIP, thickness=2.0)],
                                 spheres=[_sphere(mk[:2], rgb, 0.15)],
                                 texts=[_text(mk[:2] + np.array([0.3, 0.3]), n, rgb, 12.0)],
                                 metadata={"node": n, "meaning": "estimate and its 3-sigma ellipse"}))
-        if np.all(np.isfinite(truth[k, :2])):
-            ents.append(_entity(ns[k], "truth", spheres=[_sphere(truth[k, :2], (0.17, 0.63, 0.17), 0.35)],
+        if known:
+            ents.append(_entity(ns, "truth", spheres=[_sphere(truth[:2], (0.17, 0.63, 0.17), 0.35)],
                                 metadata={"meaning": "true position"}))
-        out.append(("/scene/estimates", "foxglove.SceneUpdate", ns[k], {"deletions": [], "entities": ents}))
+        out.append(("/scene/estimates", "foxglove.SceneUpdate", ns, {"deletions": [], "entities": ents}))
+        return out
 
-    # static scene: footprints, receivers, beacons, the true path
-    ents = []
-    for n in names:
-        sensor = sc.nodes[n].sensor
-        if sensor is None:
-            continue
-        fp = camera_footprint(sensor)
-        if fp is not None:
-            ents.append(_entity(ns[0], f"footprint/{n}", lines=[_line(fp, colors[n], kind=_LINE_LOOP, thickness=1.5)],
-                                texts=[_text(fp.mean(axis=0), f"{n} view", colors[n], 12.0)],
-                                metadata={"node": n, "meaning": "the ground the camera sees"}))
-        pts = sensor_points(sensor)
-        if pts is not None:
-            ents.append(_entity(ns[0], f"sensor/{n}", spheres=[_sphere(p, colors[n], 0.4) for p in pts],
-                                metadata={"node": n, "meaning": "sensor positions (camera, receivers, beacon)"}))
-    finite = truth[np.all(np.isfinite(truth[:, :2]), axis=1), :2]
-    if len(finite) > 1:
-        ents.append(_entity(ns[0], "truth/path", lines=[_line(finite, (0.17, 0.63, 0.17), thickness=1.0, a=0.5)],
-                            metadata={"meaning": "the whole true path"}))
-    out.append(("/scene/sensors", "foxglove.SceneUpdate", ns[0], {"deletions": [], "entities": ents}))
+    def sensors(self) -> list[Message]:
+        """The static scene at time 0: footprints, receivers, beacons, the true path."""
+        ns = self.start_ns
+        ents = []
+        for n in self.names:
+            sensor = self.sc.nodes[n].sensor
+            if sensor is None:
+                continue
+            fp = camera_footprint(sensor)
+            if fp is not None:
+                ents.append(_entity(ns, f"footprint/{n}", lines=[_line(fp, self.colors[n], kind=_LINE_LOOP,
+                                                                        thickness=1.5)],
+                                    texts=[_text(fp.mean(axis=0), f"{n} view", self.colors[n], 12.0)],
+                                    metadata={"node": n, "meaning": "the ground the camera sees"}))
+            pts = sensor_points(sensor)
+            if pts is not None:
+                ents.append(_entity(ns, f"sensor/{n}", spheres=[_sphere(p, self.colors[n], 0.4) for p in pts],
+                                    metadata={"node": n, "meaning": "sensor positions (camera, receivers, beacon)"}))
+        finite = self.truth_path[np.all(np.isfinite(self.truth_path), axis=1)]
+        if len(finite) > 1:
+            ents.append(_entity(ns, "truth/path", lines=[_line(finite, (0.17, 0.63, 0.17), thickness=1.0, a=0.5)],
+                                metadata={"meaning": "the whole true path"}))
+        return [("/scene/sensors", "foxglove.SceneUpdate", ns, {"deletions": [], "entities": ents})]
 
-    # the tree and its link states
-    anchors = _anchors(result)
-    edges = sorted(tuple(sorted(e)) for e in sc.graph.edges)
-    outages = list(sc.outages())
-    changes = sorted({0.0, *(o[2] for o in outages), *(o[3] for o in outages)})
-    for tc in changes:
-        if tc > t[-1] + 1e-9:
-            continue
-        lns = ns[0] + int(round(tc * 1e9)) if tc > 0 else ns[0]
-        up = {e: not any(set(e) == {a, b} and t0 <= tc + 1e-9 < t1 for a, b, t0, t1 in outages) for e in edges}
-        out.append(("/tree", "dfusion.Tree", lns, {"timestamp": _stamp(lns), "nodes": names,
-                                                     "links": [{"a": a, "b": b, "up": up[(a, b)]} for a, b in edges]}))
-        ents = [_entity(lns, f"link/{a}-{b}", lines=[_line([anchors[a], anchors[b]],
-                                                            (0.2, 0.6, 0.2) if up[(a, b)] else (0.85, 0.1, 0.1),
-                                                            kind=_LINE_LIST, thickness=3.0 if up[(a, b)] else 2.0)],
-                        metadata={"link": f"{a} - {b}", "state": "up" if up[(a, b)] else "down"}) for a, b in edges]
-        ents += [_entity(lns, f"node/{n}", spheres=[_sphere(anchors[n], colors[n], 0.6)],
-                         texts=[_text(anchors[n] + np.array([0.0, 0.6]), n, colors[n], 14.0)],
-                         metadata={"node": n}) for n in names]
-        out.append(("/scene/tree", "foxglove.SceneUpdate", lns, {"deletions": [], "entities": ents}))
-        if tc > 0:
-            for a, b, t0, t1 in outages:
-                if abs(t0 - tc) < 1e-9 or abs(t1 - tc) < 1e-9:
-                    what = "down" if abs(t0 - tc) < 1e-9 else "up again"
-                    out.append(("/diagnostics", "foxglove.Log", lns,
-                                {"timestamp": _stamp(lns), "level": _LOG_WARNING if what == "down" else _LOG_INFO,
-                                 "message": f"link {a} - {b} {what} (outage {t0:g}-{t1:g} s)", "name": "link",
-                                 "file": "", "line": 0}))
+    def tree(self, t_end: float) -> list[Message]:
+        """The tree at 0 and at every change of a link's state (outages), with logs."""
+        sc = self.sc
+        edges = sorted(tuple(sorted(e)) for e in sc.graph.edges)
+        outages = list(sc.outages())
+        out: list[Message] = []
+        for tc in sorted({0.0, *(o[2] for o in outages), *(o[3] for o in outages)}):
+            if tc > t_end + 1e-9:
+                continue
+            lns = self.ns(tc)
+            up = {e: not any(set(e) == {a, b} and t0 <= tc + 1e-9 < t1 for a, b, t0, t1 in outages) for e in edges}
+            out.append(("/tree", "dfusion.Tree", lns, {"timestamp": _stamp(lns), "nodes": self.names,
+                                                         "links": [{"a": a, "b": b, "up": up[(a, b)]} for a, b in edges]}))
+            ents = [_entity(lns, f"link/{a}-{b}",
+                            lines=[_line([self.anchors[a], self.anchors[b]],
+                                         (0.2, 0.6, 0.2) if up[(a, b)] else (0.85, 0.1, 0.1),
+                                         kind=_LINE_LIST, thickness=3.0 if up[(a, b)] else 2.0)],
+                            metadata={"link": f"{a} - {b}", "state": "up" if up[(a, b)] else "down"})
+                    for a, b in edges]
+            ents += [_entity(lns, f"node/{n}", spheres=[_sphere(self.anchors[n], self.colors[n], 0.6)],
+                             texts=[_text(self.anchors[n] + np.array([0.0, 0.6]), n, self.colors[n], 14.0)],
+                             metadata={"node": n}) for n in self.names]
+            out.append(("/scene/tree", "foxglove.SceneUpdate", lns, {"deletions": [], "entities": ents}))
+            if tc > 0:
+                for a, b, t0, t1 in outages:
+                    if abs(t0 - tc) < 1e-9 or abs(t1 - tc) < 1e-9:
+                        what = "down" if abs(t0 - tc) < 1e-9 else "up again"
+                        out.append(("/diagnostics", "foxglove.Log", lns,
+                                    {"timestamp": _stamp(lns), "level": _LOG_WARNING if what == "down" else _LOG_INFO,
+                                     "message": f"link {a} - {b} {what} (outage {t0:g}-{t1:g} s)", "name": "link",
+                                     "file": "", "line": 0}))
+        return out
 
-    # detections and diagnostics of the measurements
-    for i, ev in enumerate(getattr(result, "events", []) or []):
+    def event(self, i: int, ev: dict[str, Any]) -> list[Message]:
+        """A processed measurement: its point on the ground, and a log line when not used."""
         n = ev["node"]
-        lns = start_ns + int(round(float(ev["t"]) * 1e9))
+        lns = self.ns(ev["t"])
         outcome = list(ev["outcome"])
-        sensor = sc.nodes[n].sensor if n in sc.nodes else None
+        sensor = self.sc.nodes[n].sensor if n in self.sc.nodes else None
         p = detection_point(sensor, ev["z"]) if sensor is not None else None
         used = "contributed" in outcome
+        out: list[Message] = []
         if p is not None:
             rgb = (0.1, 0.7, 0.1) if used else (0.85, 0.1, 0.1)
             out.append(("/detections", "foxglove.SceneUpdate", lns,
@@ -303,8 +321,82 @@ def messages_of_result(result, *, start_ns: int = 0) -> list[tuple[str, str, int
                         {"timestamp": _stamp(lns), "level": _LOG_WARNING,
                          "message": f"{n}: measurement of t={float(ev['t_meas']):.3f} s not used ({why})",
                          "name": n, "file": "", "line": 0}))
+        return out
+
+
+def messages_of_result(result, *, start_ns: int = 0) -> list[Message]:
+    """Every message of the recording: ``(topic, schema, log_time_ns, message)``, sorted by time."""
+    names = sorted(result.node_mean)
+    b = _Builder(result.scenario, names, start_ns, result.truth[:, :2])
+    out: list[Message] = []
+    for k, tk in enumerate(result.times):
+        est = {n: (result.node_mean[n][k], result.node_cov[n][k]) for n in names}
+        est["centralized"] = (result.central_mean[k], result.central_cov[k])
+        out += b.step(float(tk), est, result.truth[k], result.central_mean[k])
+    out += b.sensors()
+    out += b.tree(float(result.times[-1]))
+    for i, ev in enumerate(getattr(result, "events", []) or []):
+        out += b.event(i, ev)
     out.sort(key=lambda e: e[2])
     return out
+
+
+class LiveView:
+    """A running scenario served to Foxglove over its WebSocket protocol (foxglove-sdk,
+    ``pip install 'dfusion[live]'``): the topics of the recording, step by step, paced so
+    that scenario time runs ``speed`` times as fast as the wall clock.
+
+    ``sink(topic, schema, log_ns, message)`` replaces the server (tests, other outputs).
+    Use as the ``on_step`` of :func:`dfusion.sim.runner.run_scenario`.
+    """
+
+    def __init__(self, sc, *, port: int = 8765, speed: float = 1.0, sink=None, host: str = "127.0.0.1") -> None:
+        import time
+
+        self.sc, self.speed = sc, float(speed)
+        self._builder = _Builder(sc, sorted(sc.nodes), 0)
+        self._server = None
+        self._channels: dict[str, Any] = {}
+        if sink is None:
+            try:
+                import foxglove
+            except ImportError:
+                raise ImportError("the live view needs foxglove-sdk: pip install 'dfusion[live]'") from None
+            self._foxglove = foxglove
+            self._server = foxglove.start_server(host=host, port=port, name="dfusion")
+            sink = self._to_server
+        self._sink = sink
+        self._wall0 = time.monotonic()
+        self._events = 0
+        for m in self._builder.sensors() + self._builder.tree(sc.duration):
+            self._sink(*m)
+
+    def _to_server(self, topic: str, schema: str, log_ns: int, msg: dict[str, Any]) -> None:
+        ch = self._channels.get(topic)
+        if ch is None:
+            ch = self._channels[topic] = self._foxglove.Channel(topic, schema=SCHEMAS[schema])
+        ch.log(msg, log_time=log_ns)
+
+    def __call__(self, t: float, estimates: dict[str, tuple[np.ndarray, np.ndarray]], truth: np.ndarray,
+                 events: list[dict[str, Any]] = ()) -> None:
+        """One step: ``estimates`` with ``"centralized"``; ``events`` the measurements processed since."""
+        import time
+
+        for m in self._builder.step(t, estimates, truth, estimates["centralized"][0]):
+            self._sink(*m)
+        for ev in events:
+            for m in self._builder.event(self._events, ev):
+                self._sink(*m)
+            self._events += 1
+        if self.speed > 0:
+            wait = self._wall0 + t / self.speed - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+
+    def close(self) -> None:
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
 
 
 def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:

@@ -60,7 +60,7 @@ def test_demo_runs_in_process_shortened_and_writes_its_figures(tmp_path, capsys,
     assert "not available" in caplog.text
     out = capsys.readouterr().out
     assert "centralized" in out and "mode: in-process" in out and "outage gateway - cam_left" in out
-    for name in ("fig33.png", "urus_nodes.png", "urus.json"):
+    for name in ("fig33.png", "urus_nodes.png", "urus.json", "urus_topdown.png", "urus.mcap", "urus_series.csv"):
         assert (tmp_path / name).stat().st_size > 1000
     m = json.loads((tmp_path / "urus.json").read_text())
     assert m["demo"]["mode"] == "in-process" and m["steps"] == 451

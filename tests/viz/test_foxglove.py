@@ -133,3 +133,25 @@ def test_tree_sensors_and_diagnostics(recording):
     # a camera detection is drawn where the camera's ray meets the ground
     dets = topics["/detections"]
     assert len(dets) == sum(1 for m in res.world.measurements if m.node.startswith("cam"))
+
+
+def test_live_view_streams_every_step_as_the_recording_has_it(tmp_path):
+    """The live view (run_scenario's on_step) sends each step's messages as they are made;
+    here into a list instead of foxglove-sdk's server. They are the recording's messages."""
+    from dfusion.viz.foxglove import LiveView, messages_of_result
+
+    sc = load_scenario(ROOT / "topologies" / "urus.scenario.toml", duration=8.0)
+    got = []
+    live = LiveView(sc, speed=0.0, sink=lambda *m: got.append(m))
+    res = run_scenario(sc, on_step=live)
+    rec = messages_of_result(res)
+    per_topic = defaultdict(list)
+    for topic, _, ns, msg in got:
+        per_topic[topic].append((ns, msg))
+    assert len(per_topic["/nodes/wsn/estimate"]) == len(res.times)
+    np.testing.assert_allclose([m["mean"] for _, m in per_topic["/nodes/wsn/estimate"]], res.node_mean["wsn"],
+                               atol=1e-12)
+    def key(m):
+        return (m[0], m[2], json.dumps(m[3], sort_keys=True))
+    steps = {"/truth", "/scene/estimates", "/detections"} | {f"/nodes/{n}/estimate" for n in sc.nodes}
+    assert sorted(map(key, (m for m in got if m[0] in steps))) == sorted(map(key, (m for m in rec if m[0] in steps)))
