@@ -111,7 +111,7 @@ class SimulationResult:
 
     def to_json(self, series: bool = False) -> str:
         """The metrics as JSON; with ``series`` also the per-step time series
-        (:func:`dfusion.sim.runner.series`) under the key ``"series"``."""
+        (:func:`dfusion.sim.runner.series_of`) under the key ``"series"``."""
         out = dict(self.metrics, series=series_of(self)) if series else self.metrics
         return json.dumps(out, indent=2, sort_keys=True)
 

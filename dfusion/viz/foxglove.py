@@ -4,7 +4,7 @@ The file is written with the ``mcap`` library (the format's reference implementa
 JSON-encoded, with Foxglove's own schemas (``foxglove.PoseInFrame``,
 ``foxglove.SceneUpdate``, ``foxglove.Log``) described as JSON Schema, so that opening it
 in Foxglove shows the run in the 3D panel (frame ``map``, metres) without any set-up.
-Numbers to plot (covariances, NEES, gaps) travel in small ``dfusion.*`` JSON messages
+Numbers to plot (covariances, NEES, gaps) travel in small ``dfusion/*`` JSON messages
 that Foxglove's Plot and Raw Message panels read by field path.
 
 Topics (one message per filter step unless said otherwise; time = scenario time, plus
@@ -16,7 +16,7 @@ topic                              schema                what
 ``/truth``                         foxglove.PoseInFrame  the true position (heading: the
                                                          direction of motion)
 ``/nodes/<name>/pose``             foxglove.PoseInFrame  the node's estimate
-``/nodes/<name>/estimate``         dfusion.Estimate      mean, covariance (row-major),
+``/nodes/<name>/estimate``         dfusion/Estimate      mean, covariance (row-major),
                                                          standard deviations, NEES, gaps to
                                                          the centralized EKF (m, m/s)
 ``/centralized/pose``,             as above              the centralized EKF
@@ -28,7 +28,7 @@ topic                              schema                what
 ``/scene/tree``                    foxglove.SceneUpdate  the tree's links between the nodes'
                                                          anchors (green up, red down), at 0
                                                          and at each change
-``/tree``                          dfusion.Tree          nodes and links with their state,
+``/tree``                          dfusion/Tree          nodes and links with their state,
                                                          at 0 and at each change
 ``/detections``                    foxglove.SceneUpdate  each measurement that gives a point
                                                          on the ground, for 1 s (green used,
@@ -104,11 +104,11 @@ FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
 #: Every schema of the recording: Foxglove's and dfusion's own numeric messages.
 SCHEMAS: dict[str, dict[str, Any]] = {
     **FOXGLOVE_SCHEMAS,
-    "dfusion.Estimate": _obj({"timestamp": _TIME, "t": _NUM, "node": _STR, "state": _arr(_STR), "mean": _arr(_NUM),
+    "dfusion/Estimate": _obj({"timestamp": _TIME, "t": _NUM, "node": _STR, "state": _arr(_STR), "mean": _arr(_NUM),
                               "covariance": _arr(_NUM), "std": _arr(_NUM), "nees": _NUM, "gap_position_m": _NUM,
-                              "gap_velocity_mps": _NUM}, "dfusion.Estimate"),
-    "dfusion.Tree": _obj({"timestamp": _TIME, "nodes": _arr(_STR),
-                          "links": _arr(_obj({"a": _STR, "b": _STR, "up": _BOOL}))}, "dfusion.Tree"),
+                              "gap_velocity_mps": _NUM}, "dfusion/Estimate"),
+    "dfusion/Tree": _obj({"timestamp": _TIME, "nodes": _arr(_STR),
+                          "links": _arr(_obj({"a": _STR, "b": _STR, "up": _BOOL}))}, "dfusion/Tree"),
 }
 
 _LOG_INFO, _LOG_WARNING = 2, 3
@@ -230,7 +230,7 @@ class _Builder:
                    "covariance": Pk.ravel().tolist(), "std": np.sqrt(np.maximum(np.diag(Pk), 0.0)).tolist(),
                    "nees": e, "gap_position_m": float(np.linalg.norm(d[self.pos])),
                    "gap_velocity_mps": float(np.linalg.norm(d[self.vel])) if self.vel else 0.0}
-            out.append((f"{topic}/estimate", "dfusion.Estimate", ns, est))
+            out.append((f"{topic}/estimate", "dfusion/Estimate", ns, est))
             rgb = (0.0, 0.0, 0.0) if n == "centralized" else self.colors[n]
             ell = ellipse_points(mk[:2], Pk[:2, :2], 3.0, 48)
             ents.append(_entity(ns, f"ellipse/{n}", lines=[_line(ell, rgb, kind=_LINE_STRIP, thickness=2.0)],
@@ -278,7 +278,7 @@ class _Builder:
                 continue
             lns = self.ns(tc)
             up = {e: not any(set(e) == {a, b} and t0 <= tc + 1e-9 < t1 for a, b, t0, t1 in outages) for e in edges}
-            out.append(("/tree", "dfusion.Tree", lns, {"timestamp": _stamp(lns), "nodes": self.names,
+            out.append(("/tree", "dfusion/Tree", lns, {"timestamp": _stamp(lns), "nodes": self.names,
                                                          "links": [{"a": a, "b": b, "up": up[(a, b)]} for a, b in edges]}))
             ents = [_entity(lns, f"link/{a}-{b}",
                             lines=[_line([self.anchors[a], self.anchors[b]],

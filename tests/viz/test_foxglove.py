@@ -67,7 +67,7 @@ def test_every_foxglove_message_is_a_valid_foxglove_message(recording):
     n = 0
     for topic, schema in schemas.items():
         if not schema.startswith("foxglove."):
-            assert schema in ("dfusion.Estimate", "dfusion.Tree")
+            assert schema in ("dfusion/Estimate", "dfusion/Tree")
             continue
         cls = _foxglove_type(schema)
         for _, msg in topics[topic]:
