@@ -59,7 +59,9 @@ def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str 
     covariance gets its ±3σ band; ``reference`` (e.g. the centralized EKF) is drawn in
     black in every row. One y-range for all panels, from the steady state: the
     start-up transient (until every covariance has settled, :func:`transient_end`) is
-    shaded grey and clipped. ``outages`` ``(a, b, t0, t1)`` are shaded red, dark where
+    shaded grey and clipped; after it every error curve fits, and each ±3σ band fits
+    95 % of the time (a band that balloons while a node is cut off leaves the panel:
+    the outage shading says why). ``outages`` ``(a, b, t0, t1)`` are shaded red, dark where
     the link touches the row's track. One legend explains every line and shading.
     """
     import matplotlib
@@ -98,28 +100,30 @@ def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str 
                 any_mine |= mine
                 any_other |= not mine
                 ax.axvspan(o0, o1, color="tab:red", alpha=0.22 if mine else 0.08, lw=0)
-            curves = [e[:, col]]
+            # the y-range holds every error curve after the transient, and the 3-sigma
+            # bands 95 % of that time (a band that balloons, e.g. during an outage, may leave it)
+            errors, bands = [(ts, e[:, col])], []
             if tr.cov is not None:
                 s = 3 * np.sqrt(np.maximum(np.asarray(tr.cov)[:, col, col], 0.0))
                 ax.fill_between(ts, -s, s, color=color, alpha=0.18, lw=0)
-                curves.append(s)
+                bands.append((ts, s))
             if reference is not None:
                 rt = np.asarray(reference.t, float)
                 re = np.asarray(reference.mean, float)[:, col] - truth_at(rt)[:, col]
                 ax.plot(rt, re, color="k", lw=0.9)
-                curves.append(re)
+                errors.append((rt, re))
                 if reference.cov is not None:
                     rs = 3 * np.sqrt(np.maximum(np.asarray(reference.cov)[:, col, col], 0.0))
                     ax.plot(rt, rs, color="k", lw=0.8, ls=":")
                     ax.plot(rt, -rs, color="k", lw=0.8, ls=":")
-                    curves.append(rs)
+                    bands.append((rt, rs))
             ax.plot(ts, e[:, col], color=color, lw=0.9)
             ax.axhline(0.0, color="tab:green", lw=0.6)
-            sel = ts >= t_tr
-            for c in curves:
-                cc = np.abs(np.asarray(c)[sel[:len(c)]] if len(c) == len(ts) else np.asarray(c))
-                if cc.size and np.isfinite(cc).any():
-                    lim = max(lim, float(np.nanmax(cc)))
+            for (tc, c), pct in [(x, 100.0) for x in errors] + [(x, 95.0) for x in bands]:
+                cc = np.abs(np.asarray(c)[np.asarray(tc) >= t_tr])
+                cc = cc[np.isfinite(cc)]
+                if cc.size:
+                    lim = max(lim, float(np.percentile(cc, pct)))
             if t_tr > t0_all:
                 ax.axvspan(t0_all, t_tr, facecolor="0.85", edgecolor="0.6", hatch="////", lw=0, zorder=0)
                 if tr.cov is not None and row == 0:
