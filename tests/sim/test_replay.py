@@ -191,3 +191,35 @@ def test_replay_command_writes_series_json_csv_and_figures(tmp_path, capsys):
     np.testing.assert_allclose([float(r["truth_x_m"]) for r in b_rows], ref.truth[:, 0], atol=1e-9)
     for f in ("e.png", "t.png", "r.mcap"):
         assert (out / f).stat().st_size > 10_000
+
+
+def _scan_record(node: str, m: Measurement):
+    def build(T, h):
+        n = m.z.size
+        return T.sensor_msgs__msg__LaserScan(
+            header=h, angle_min=-math.pi, angle_max=math.pi - 2 * math.pi / n, angle_increment=2 * math.pi / n,
+            time_increment=0.0, scan_time=0.0, range_min=0.0, range_max=10.0,
+            ranges=np.asarray(m.z, dtype=np.float32), intensities=np.zeros(0, dtype=np.float32))
+    return (f"/{node}/scan", "sensor_msgs/msg/LaserScan", ns(m.t, ORIGIN), build)
+
+
+def test_replay_of_laser_scans_into_mcl_and_icp_nodes(tmp_path):
+    """sensor_msgs/LaserScan into robot_mcl and robot_icp nodes (the scans' float32 ranges
+    in the reference world too)."""
+    from tests.frontends.test_robot_frontends import robot_scenario
+
+    spec = robot_scenario()
+    spec["duration"] = 4.0
+    spec["nodes"] = [n for n in spec["nodes"] if n["name"] in ("mcl", "icp")]
+    spec["links"] = [{"between": ["mcl", "icp"], "latency": 0.05}]
+    sc = load_scenario(spec)
+    world = simulate_world(sc)
+    w32 = World(world.times, world.states, [Measurement(m.t, m.node, m.z.astype(np.float32).astype(float), m.arrival)
+                                             for m in world.measurements])
+    recs = [_scan_record(m.node, m) for m in w32.measurements] + _truth_records(w32)
+    bag = write_bag(tmp_path / "scans", "mcap", recs)
+    ref = run_scenario(sc, world=w32)
+    got = replay_scenario(sc, bag, [TopicInput("/mcl/scan", "mcl"), TopicInput("/icp/scan", "icp")],
+                          truth_topic="/truth")
+    _compare(ref, got)
+    assert max(v["rmse"] for v in got.metrics["nodes"].values()) < 0.2   # the robots are localized
