@@ -93,6 +93,9 @@ class Monitor:
             for name in sorted(sc.nodes)
         }
         self.rejected = 0
+        #: Called as ``f(node, t, mean, cov)`` for every estimate a node publishes (a live
+        #: view: :meth:`dfusion.viz.foxglove.LiveView.node_estimate`).
+        self.listeners: list = []
         self._queue: deque = deque()
         self._alive_events: deque = deque()
         self._session = open_session(config or ZenohConfig())
@@ -147,6 +150,8 @@ class Monitor:
             rec.ready = True
         elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
             rec.mean[st.k], rec.cov[st.k], rec.have[st.k] = st.mean, st.cov, True
+            for f in self.listeners:
+                f(rec.name, round(st.k * self.sc.dt, 9), st.mean, st.cov)
             if st.output is not None:
                 if rec.out_mean is None:
                     rec.out_mean, rec.out_cov = np.full_like(rec.mean, np.nan), np.full_like(rec.cov, np.nan)

@@ -57,6 +57,12 @@ _NUM = {"type": "number"}
 _INT = {"type": "integer"}
 _STR = {"type": "string"}
 _BOOL = {"type": "boolean"}
+_NUM_OR_NULL = {"type": ["number", "null"]}   # null: unknown (no truth, no centralized estimate)
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None (JSON null) when it is not finite: JSON has no NaN."""
+    return float(x) if math.isfinite(x) else None
 
 
 def _obj(props: dict[str, Any], title: str | None = None) -> dict[str, Any]:
@@ -105,8 +111,8 @@ FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
 SCHEMAS: dict[str, dict[str, Any]] = {
     **FOXGLOVE_SCHEMAS,
     "dfusion/Estimate": _obj({"timestamp": _TIME, "t": _NUM, "node": _STR, "state": _arr(_STR), "mean": _arr(_NUM),
-                              "covariance": _arr(_NUM), "std": _arr(_NUM), "nees": _NUM, "gap_position_m": _NUM,
-                              "gap_velocity_mps": _NUM}, "dfusion/Estimate"),
+                              "covariance": _arr(_NUM), "std": _arr(_NUM), "nees": _NUM_OR_NULL,
+                              "gap_position_m": _NUM_OR_NULL, "gap_velocity_mps": _NUM_OR_NULL}, "dfusion/Estimate"),
     "dfusion/Tree": _obj({"timestamp": _TIME, "nodes": _arr(_STR),
                           "links": _arr(_obj({"a": _STR, "b": _STR, "up": _BOOL}))}, "dfusion/Tree"),
 }
@@ -221,6 +227,8 @@ class _Builder:
         ents = []
         for n, (mk, Pk) in estimates.items():
             mk, Pk = np.asarray(mk, float), np.asarray(Pk, float)
+            if not (np.all(np.isfinite(mk)) and np.all(np.isfinite(Pk))):
+                continue   # a step a node did not report (dfusion run): nothing to draw
             topic = "/centralized" if n == "centralized" else f"/nodes/{n}"
             out.append((f"{topic}/pose", "foxglove.PoseInFrame", ns,
                         {"timestamp": stamp, "frame_id": "map", "pose": _pose(mk[0], mk[1], self.heading(mk))}))
@@ -228,8 +236,8 @@ class _Builder:
             e = float(nees(mk[None], Pk[None], truth[None], self.resid)[0]) if np.all(np.isfinite(truth)) else math.nan
             est = {"timestamp": stamp, "t": float(t), "node": n, "state": self.state, "mean": mk.tolist(),
                    "covariance": Pk.ravel().tolist(), "std": np.sqrt(np.maximum(np.diag(Pk), 0.0)).tolist(),
-                   "nees": e, "gap_position_m": float(np.linalg.norm(d[self.pos])),
-                   "gap_velocity_mps": float(np.linalg.norm(d[self.vel])) if self.vel else 0.0}
+                   "nees": _finite(e), "gap_position_m": _finite(np.linalg.norm(d[self.pos])),
+                   "gap_velocity_mps": _finite(np.linalg.norm(d[self.vel])) if self.vel else None}
             out.append((f"{topic}/estimate", "dfusion/Estimate", ns, est))
             rgb = (0.0, 0.0, 0.0) if n == "centralized" else self.colors[n]
             ell = ellipse_points(mk[:2], Pk[:2, :2], 3.0, 48)
@@ -393,6 +401,16 @@ class LiveView:
             if wait > 0:
                 time.sleep(wait)
 
+    def node_estimate(self, name: str, t: float, mean: np.ndarray, cov: np.ndarray) -> None:
+        """One node's estimate at ``t`` as it arrives (``dfusion run``: a
+        :class:`~dfusion.run.monitor.Monitor` listener); no truth, NEES or gaps then."""
+        mean, cov = np.asarray(mean, float), np.asarray(cov, float)
+        nan = np.full_like(mean, np.nan)
+        for m in self._builder.step(t, {name: (mean, cov)}, nan, nan):
+            if m[0] == "/scene/estimates":   # only this node's entity: the others keep theirs
+                m[3]["entities"] = [e for e in m[3]["entities"] if e["id"] == f"ellipse/{name}"]
+            self._sink(*m)
+
     def close(self) -> None:
         if self._server is not None:
             self._server.stop()
@@ -418,6 +436,7 @@ def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:
                 channels[topic] = w.register_channel(topic, "json", schema_ids[schema])
                 seq[topic] = 0
             seq[topic] += 1
-            w.add_message(channels[topic], log_ns, json.dumps(msg, separators=(",", ":")).encode(), log_ns, seq[topic])
+            w.add_message(channels[topic], log_ns, json.dumps(msg, separators=(",", ":"), allow_nan=False).encode(), log_ns,
+                          seq[topic])
         w.finish()
     return path

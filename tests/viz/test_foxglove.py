@@ -155,3 +155,26 @@ def test_live_view_streams_every_step_as_the_recording_has_it(tmp_path):
         return (m[0], m[2], json.dumps(m[3], sort_keys=True))
     steps = {"/truth", "/scene/estimates", "/detections"} | {f"/nodes/{n}/estimate" for n in sc.nodes}
     assert sorted(map(key, (m for m in got if m[0] in steps))) == sorted(map(key, (m for m in rec if m[0] in steps)))
+
+
+def test_live_view_of_one_node_estimate():
+    """dfusion run's monitor hands each node's estimate over as it arrives."""
+    from dfusion.viz.foxglove import LiveView
+
+    sc = load_scenario(ROOT / "topologies" / "urus.scenario.toml", duration=2.0)
+    got = []
+    live = LiveView(sc, speed=0.0, sink=lambda *m: got.append(m))
+    n0 = len(got)
+    mean, cov = np.array([3.0, 10.0, 0.4, 0.0]), np.diag([0.25, 0.16, 0.01, 0.01])
+    live.node_estimate("gateway", 1.5, mean, cov)
+    msgs = {m[0]: m for m in got[n0:]}
+    assert set(msgs) == {"/nodes/gateway/pose", "/nodes/gateway/estimate", "/scene/estimates"}
+    assert all(m[2] == 1_500_000_000 for m in msgs.values())
+    assert msgs["/nodes/gateway/estimate"][3]["std"] == pytest.approx([0.5, 0.4, 0.1, 0.1])
+    ents = msgs["/scene/estimates"][3]["entities"]
+    assert [e["id"] for e in ents] == ["ellipse/gateway"]
+    est = msgs["/nodes/gateway/estimate"][3]
+    assert est["nees"] is None and est["gap_position_m"] is None   # unknown live: JSON null, not NaN
+    json.loads(json.dumps(est, allow_nan=False))
+    json_format.ParseDict(_protobuf_json(msgs["/scene/estimates"][3]), _foxglove_type("foxglove.SceneUpdate")(),
+                          ignore_unknown_fields=False)
