@@ -188,7 +188,7 @@ def _draw_layers(ax, scene: Scene, times: list[float], main: bool) -> list[Any]:
     for k, (name, (t, xy)) in enumerate(scene.truth.items()):
         xy = np.asarray(xy, float)
         tc = scene.truth_colors.get(name, TRUTH_COLOR)
-        ax.plot(xy[:, 0], xy[:, 1], color=tc, lw=2.0 if k == 0 else 1.0, alpha=0.75 if k == 0 else 0.6, zorder=3,
+        ax.plot(xy[:, 0], xy[:, 1], color=tc, lw=2.0 if k == 0 else 0.8, alpha=0.75 if k == 0 else 0.4, zorder=3,
                 ls="-" if k == 0 else (0, (4, 2)))
         ax.plot(xy[0, 0], xy[0, 1], "o", color=tc, ms=5, zorder=5)
         if k == 0 and main:
