@@ -47,8 +47,8 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _outputs(result, args: argparse.Namespace) -> None:
-    """``--json``, ``--csv``, ``--plot``, ``--topdown``, ``--mcap`` of a result."""
+def _outputs(result, args: argparse.Namespace, *, title: str | None = None) -> None:
+    """``--json``, ``--csv``, ``--plot`` (with ``title``), ``--topdown``, ``--mcap`` of a result."""
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(result.to_json(series=True))
@@ -61,7 +61,7 @@ def _outputs(result, args: argparse.Namespace) -> None:
     if args.plot:
         from dfusion.viz import plot_result
 
-        print(f"wrote {plot_result(result, args.plot)}")
+        print(f"wrote {plot_result(result, args.plot, title=title)}")
     if getattr(args, "topdown", None):
         from dfusion.viz.topdown import plot_topdown
 
@@ -104,14 +104,19 @@ def _run(args: argparse.Namespace) -> int:
     codes = {"SIGTERM": 128 + signal.SIGTERM, "SIGINT": 128 + signal.SIGINT}
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
+        from dfusion.run.common import security_from_args
         from dfusion.run.launcher import Launcher, Restart, RunOptions
+        from dfusion.run.supervision import RestartPolicy
 
+        policy = RestartPolicy(enabled=not args.no_supervise, max_restarts=args.max_restarts,
+                               backoff=args.restart_backoff, backoff_max=max(args.restart_backoff, 8.0))
         opts = RunOptions(
             scenario=args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, speed=args.speed,
             run_dir=args.run_dir, network=args.network, network_key_file=args.network_key_file,
             restarts=[Restart.parse(r) for r in args.restart], emulate_links=args.emulate_links,
             round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
+            security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
         )
         launcher = Launcher(opts)
         if stop:
@@ -120,6 +125,7 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)
+    from dfusion.run.launcher import supervision_lines
     from dfusion.run.monitor import run_table
 
     if result is None:
@@ -127,6 +133,7 @@ def _run(args: argparse.Namespace) -> int:
         return codes.get(launcher.stop_reason or "", 1)
     print(result.table())
     print(run_table(result))
+    print(supervision_lines(result))
     if args.compare:
         from dfusion.sim.runner import run_scenario
 
@@ -137,7 +144,10 @@ def _run(args: argparse.Namespace) -> int:
             r = ref["nodes"][name]
             print(f"{name:<10} {v['rmse']:9.4f} {r['rmse']:9.4f} {v['rmse'] - r['rmse']:+9.4f} "
                   f"{v['final_gap']:9.1e} {r['final_gap']:9.1e}")
-    _outputs(result, args)
+    run = result.metrics["run"]
+    title = (f"{Path(launcher.sc.path).name} as processes at x{run['speed']:g}: estimate − truth per node vs "
+             f"centralized EKF\n{run['links']}; {'mutual TLS' if run['tls'] else 'no TLS'}")
+    _outputs(result, args, title=title)
     return 1 if launcher.failures else 0
 
 
@@ -170,8 +180,21 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--restart", action="append", default=[], metavar="NAME@T[+D]",
                    help="SIGKILL node NAME at scenario time T and start it again D seconds later (repeatable)")
     r.add_argument("--network-key-file", default=None,
-                   help="authenticate every message with this key (or set $DFUSION_NETWORK_KEY_FILE / $DFUSION_NETWORK_KEY)")
-    r.add_argument("--emulate-links", action="store_true", help="apply the scenario's link drops and outages to sends")
+                   help="authenticate every message with this key (or set $DFUSION_NETWORK_KEY_FILE / "
+                        "$DFUSION_NETWORK_KEY; default: a random key for this run)")
+    r.add_argument("--emulate-links", dest="emulate_links", action="store_true", default=True,
+                   help="apply the scenario's links (latency, jitter, drops, duplicates, reordering, outages) at the "
+                        "senders (the default)")
+    r.add_argument("--foxglove", type=int, default=None, metavar="PORT",
+                   help="serve the nodes' estimates live over Foxglove's WebSocket protocol (pip install 'dfusion[live]')")
+    r.add_argument("--no-emulate-links", dest="emulate_links", action="store_false",
+                   help="send over the real network only, ignoring the scenario's link settings")
+    r.add_argument("--no-supervise", action="store_true",
+                   help="do not restart node processes that exit before their final estimate")
+    r.add_argument("--max-restarts", type=int, default=10, metavar="N",
+                   help="restarts per node at most (default 10)")
+    r.add_argument("--restart-backoff", type=float, default=0.5, metavar="S",
+                   help="seconds before a restart; doubles with every quick failure in a row, up to 8 s (default 0.5)")
     r.add_argument("--round-timeout", type=float, default=10.0,
                    help="seconds a node waits for a live neighbour's message of a final-phase round")
     r.add_argument("--run-dir", default=None, help="keep logs, state logs and results here (default: a temporary directory)")
@@ -181,6 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; every node process loads it too)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    from dfusion.run.common import add_tls_arguments
+
+    add_tls_arguments(r)
     r.set_defaults(func=_run)
 
     b = sub.add_parser("replay", help="run a scenario's nodes on the measurements of a ROS bag (docs/ros.md)")

@@ -32,7 +32,7 @@ import numpy as np
 from dfusion.errors import MessageError
 from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.channel import time_key
-from dfusion.run.common import Status, load_network_key
+from dfusion.run.common import Status, add_tls_arguments, load_network_key, security_from_args
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
@@ -387,6 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plugin", action="append", default=[], metavar="MODULE", help="plug-in module or .py file")
     p.add_argument("--json", default=None)
     p.add_argument("--plot", default=None)
+    add_tls_arguments(p)   # --tls-dir: DIR/monitor.pem and .key (else DIR/node.pem)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     stop: list[int] = []
@@ -394,7 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda s, f: stop.append(s))
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
                        plugins=args.plugin)
-    cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else ())
+    cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else (),
+                      tls=security_from_args(args).tls_files("monitor"))
     with Monitor(sc, args.network, cfg, network_key=load_network_key(args.network_key_file)) as mon:
         deadline = time.monotonic() + args.timeout
         names = sorted(sc.nodes)
