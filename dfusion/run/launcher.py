@@ -153,6 +153,8 @@ class RunOptions:
     supervision: RestartPolicy = field(default_factory=RestartPolicy)
     #: Restart nodes from a warm standby process (imports done: about 0.1-0.3 s instead of 1-4 s).
     warm_restarts: bool = True
+    #: Serve the nodes' estimates live to Foxglove on this WebSocket port (needs ``dfusion[live]``).
+    foxglove: int | None = None
 
 
 @dataclass
@@ -524,11 +526,17 @@ class Launcher:
     def run(self):
         """Launch, follow and finish the run; returns the result (``None`` if stopped)."""
         t_wall = time.monotonic()
+        live = None
         try:
             self._prepare_run_dir()
             self.monitor = Monitor(self.sc, self.network,
                                    ZenohConfig(connect=tuple(self.endpoints.values()), tls=self.tls),
                                    network_key=self.key)
+            if self.opts.foxglove is not None:
+                from dfusion.viz.foxglove import LiveView
+
+                live = LiveView(self.sc, port=self.opts.foxglove, speed=0)
+                self.monitor.listeners.append(live.node_estimate)
             for name in self.procs:
                 self._spawn(name)
             if not self._wait_ready():
@@ -568,6 +576,8 @@ class Launcher:
             self.terminate()
             if self.monitor is not None:
                 self.monitor.close()
+            if live is not None:
+                live.close()
             if self._lock is not None:
                 self._lock.release()
             failed = self.failures or self.stop_reason is not None
