@@ -624,13 +624,21 @@ class FusionNode:
         return len(deltas)
 
     def _within_reach(self, deltas: list) -> tuple[list, list]:
-        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest."""
+        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest.
+
+        A delta at a time already held back changes that entry and holds no new time: it is
+        always within reach (else a full message would turn it into a zero entry of the
+        channel while the store keeps the old value, which is double counted later).
+        """
         f = self.filter
         horizon = f.latest_time + self.max_ahead + f.time_tol
         room = self.max_held - self._total.count_after(time_key(f.latest_time + f.time_tol))
+        held = self._total.keys
         ok, far = [], []
         for d in deltas:
             if d[0] <= f.latest_time + f.time_tol:
+                ok.append(d)
+            elif find_keys(held, np.array([time_key(d[0])]))[0][0]:
                 ok.append(d)
             elif d[0] <= horizon and room > 0:
                 ok.append(d)
