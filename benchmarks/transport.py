@@ -64,7 +64,7 @@ PACES = (("busy", 0.003), ("idle", 0.020))
 
 def make_node(name: str, neighbors, window: int, fill: bool) -> FusionNode:
     """A node whose window is full (with one measurement per state if ``fill``)."""
-    node = FusionNode(name, neighbors, MOTION, window=window, prior=PRIOR, epoch=hash(name) & 0xFFFF)
+    node = FusionNode(name, neighbors, MOTION, window=window, prior=PRIOR, epoch=(hash(name) & 0xFFFF) + 1)
     rng = np.random.default_rng(len(name))
     for k in range(1, window + 1):
         node.predict(k * DT)

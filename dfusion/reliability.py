@@ -72,7 +72,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.interpolate import PchipInterpolator
 
 from dfusion.errors import ShapeError, ValidationError
 from dfusion.linalg import Array
@@ -360,6 +359,10 @@ class ScoreErrorTable:
         if np.any(np.diff(e) > 1e-12) or np.any(e < 0):
             raise ValidationError("errors must be non-negative and non-increasing in the score")
         self.scores, self.errors = s, e
+        from scipy.interpolate import (
+            PchipInterpolator,  # here: node programs need not load scipy
+        )
+
         self._f = PchipInterpolator(s, e, extrapolate=False)
 
     @classmethod

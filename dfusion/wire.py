@@ -32,7 +32,6 @@ returning a message and raises :class:`~dfusion.errors.MessageError` naming the 
 """
 from __future__ import annotations
 
-import hashlib
 import hmac
 import math
 import struct

@@ -1,22 +1,13 @@
 """Readers of public datasets used to evaluate dfusion (data not bundled; pass the path)."""
-from dfusion.datasets.ble_rssi import (
-    BLERSSIDataset,
-    Receiver,
-    Track,
-    find_dataset_root,
-    read_devices,
-    read_track,
-)
-from dfusion.datasets.carmen import CarmenLog, LaserScan, beam_angles, read_carmen
-from dfusion.datasets.mrclam import (
-    ROBOTS,
-    MRCLAMDataset,
-    RobotLog,
-    integrate_odometry,
-    interpolate_poses,
-    mean_velocities,
-    read_mrclam,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.datasets.ble_rssi import BLERSSIDataset, Receiver, Track, find_dataset_root, read_devices, read_track
+    from dfusion.datasets.carmen import CarmenLog, LaserScan, beam_angles, read_carmen
+    from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog, integrate_odometry, interpolate_poses, mean_velocities, read_landmarks, read_mrclam
 
 __all__ = [
     "BLERSSIDataset",
@@ -32,8 +23,47 @@ __all__ = [
     "RobotLog",
     "MRCLAMDataset",
     "read_mrclam",
+    "read_landmarks",
     "integrate_odometry",
     "interpolate_poses",
     "mean_velocities",
     "ROBOTS",
 ]
+
+_WHERE = {
+    "read_landmarks": ("dfusion.datasets.mrclam", "read_landmarks"),
+    "BLERSSIDataset": ("dfusion.datasets.ble_rssi", 'BLERSSIDataset'),
+    "Receiver": ("dfusion.datasets.ble_rssi", 'Receiver'),
+    "Track": ("dfusion.datasets.ble_rssi", 'Track'),
+    "find_dataset_root": ("dfusion.datasets.ble_rssi", 'find_dataset_root'),
+    "read_devices": ("dfusion.datasets.ble_rssi", 'read_devices'),
+    "read_track": ("dfusion.datasets.ble_rssi", 'read_track'),
+    "CarmenLog": ("dfusion.datasets.carmen", 'CarmenLog'),
+    "LaserScan": ("dfusion.datasets.carmen", 'LaserScan'),
+    "beam_angles": ("dfusion.datasets.carmen", 'beam_angles'),
+    "read_carmen": ("dfusion.datasets.carmen", 'read_carmen'),
+    "ROBOTS": ("dfusion.datasets.mrclam", 'ROBOTS'),
+    "MRCLAMDataset": ("dfusion.datasets.mrclam", 'MRCLAMDataset'),
+    "RobotLog": ("dfusion.datasets.mrclam", 'RobotLog'),
+    "integrate_odometry": ("dfusion.datasets.mrclam", 'integrate_odometry'),
+    "interpolate_poses": ("dfusion.datasets.mrclam", 'interpolate_poses'),
+    "mean_velocities": ("dfusion.datasets.mrclam", 'mean_velocities'),
+    "read_mrclam": ("dfusion.datasets.mrclam", 'read_mrclam'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

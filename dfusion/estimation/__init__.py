@@ -1,24 +1,17 @@
 """Estimators: the estimate type, information-form Gaussians, EIF, delayed-state EIF, centralized EKF, the particle-filter engine."""
-from dfusion.estimation.centralized import CentralizedEKF, History
-from dfusion.estimation.delayed_state import measurement_information, DelayedStateEIF
-from dfusion.estimation.eif import ExtendedInformationFilter
-from dfusion.estimation.estimate import Estimate, Estimator
-from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
-from dfusion.estimation.particle_filter import (
-    ParticleFilter,
-    ParticleDepletionError,
-    effective_sample_size,
-    normalize_log_weights,
-    systematic_counts,
-    systematic_resample,
-    stratified_resample,
-    multinomial_resample,
-    roughening_std,
-    weighted_mean_cov,
-    RESAMPLERS,
-    gaussian_summary,
-)
-from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.estimation.centralized import CentralizedEKF, History
+    from dfusion.estimation.delayed_state import measurement_information, DelayedStateEIF
+    from dfusion.estimation.eif import ExtendedInformationFilter
+    from dfusion.estimation.estimate import Estimate, Estimator
+    from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
+    from dfusion.estimation.particle_filter import ParticleFilter, ParticleDepletionError, effective_sample_size, normalize_log_weights, systematic_counts, systematic_resample, stratified_resample, multinomial_resample, roughening_std, weighted_mean_cov, RESAMPLERS, gaussian_summary
+    from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
 
 __all__ = [
     "CentralizedEKF",
@@ -45,3 +38,46 @@ __all__ = [
     "MotionFactor",
     "TrajectoryInformation",
 ]
+
+_WHERE = {
+    "CentralizedEKF": ("dfusion.estimation.centralized", 'CentralizedEKF'),
+    "History": ("dfusion.estimation.centralized", 'History'),
+    "measurement_information": ("dfusion.estimation.delayed_state", 'measurement_information'),
+    "DelayedStateEIF": ("dfusion.estimation.delayed_state", 'DelayedStateEIF'),
+    "ExtendedInformationFilter": ("dfusion.estimation.eif", 'ExtendedInformationFilter'),
+    "Estimate": ("dfusion.estimation.estimate", 'Estimate'),
+    "Estimator": ("dfusion.estimation.estimate", 'Estimator'),
+    "InformationGaussian": ("dfusion.estimation.gaussian", 'InformationGaussian'),
+    "project_psd_information": ("dfusion.estimation.gaussian", 'project_psd_information'),
+    "ParticleFilter": ("dfusion.estimation.particle_filter", 'ParticleFilter'),
+    "ParticleDepletionError": ("dfusion.estimation.particle_filter", 'ParticleDepletionError'),
+    "effective_sample_size": ("dfusion.estimation.particle_filter", 'effective_sample_size'),
+    "normalize_log_weights": ("dfusion.estimation.particle_filter", 'normalize_log_weights'),
+    "systematic_counts": ("dfusion.estimation.particle_filter", 'systematic_counts'),
+    "systematic_resample": ("dfusion.estimation.particle_filter", 'systematic_resample'),
+    "stratified_resample": ("dfusion.estimation.particle_filter", 'stratified_resample'),
+    "multinomial_resample": ("dfusion.estimation.particle_filter", 'multinomial_resample'),
+    "roughening_std": ("dfusion.estimation.particle_filter", 'roughening_std'),
+    "weighted_mean_cov": ("dfusion.estimation.particle_filter", 'weighted_mean_cov'),
+    "RESAMPLERS": ("dfusion.estimation.particle_filter", 'RESAMPLERS'),
+    "gaussian_summary": ("dfusion.estimation.particle_filter", 'gaussian_summary'),
+    "MotionFactor": ("dfusion.estimation.trajectory", 'MotionFactor'),
+    "TrajectoryInformation": ("dfusion.estimation.trajectory", 'TrajectoryInformation'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

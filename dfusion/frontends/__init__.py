@@ -1,17 +1,16 @@
 """Front ends: one base class and one module per sensor kind (camera, WSN, MCL, ICP, environmental camera)."""
-from dfusion.frontends.base import (
-    EIFFrontEnd,
-    FrontEnd,
-    FrontEndStats,
-    embed_source,
-    fit_difference_information,
-    position_information,
-)
-from dfusion.frontends.camera import CameraFrontEnd, CameraStats, gate_threshold
-from dfusion.frontends.env_camera import EnvCameraFrontEnd
-from dfusion.frontends.icp import ICPFrontEnd
-from dfusion.frontends.mcl import MCLFrontEnd
-from dfusion.frontends.wsn import WSNFrontEnd, WSNStats
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.frontends.base import EIFFrontEnd, FrontEnd, FrontEndStats, embed_source, fit_difference_information, position_information
+    from dfusion.frontends.camera import CameraFrontEnd, CameraStats, gate_threshold
+    from dfusion.frontends.env_camera import EnvCameraFrontEnd
+    from dfusion.frontends.icp import ICPFrontEnd
+    from dfusion.frontends.mcl import MCLFrontEnd
+    from dfusion.frontends.wsn import WSNFrontEnd, WSNStats
 
 __all__ = [
     "FrontEnd",
@@ -29,3 +28,37 @@ __all__ = [
     "WSNFrontEnd",
     "WSNStats",
 ]
+
+_WHERE = {
+    "EIFFrontEnd": ("dfusion.frontends.base", 'EIFFrontEnd'),
+    "FrontEnd": ("dfusion.frontends.base", 'FrontEnd'),
+    "FrontEndStats": ("dfusion.frontends.base", 'FrontEndStats'),
+    "embed_source": ("dfusion.frontends.base", 'embed_source'),
+    "fit_difference_information": ("dfusion.frontends.base", 'fit_difference_information'),
+    "position_information": ("dfusion.frontends.base", 'position_information'),
+    "CameraFrontEnd": ("dfusion.frontends.camera", 'CameraFrontEnd'),
+    "CameraStats": ("dfusion.frontends.camera", 'CameraStats'),
+    "gate_threshold": ("dfusion.frontends.camera", 'gate_threshold'),
+    "EnvCameraFrontEnd": ("dfusion.frontends.env_camera", 'EnvCameraFrontEnd'),
+    "ICPFrontEnd": ("dfusion.frontends.icp", 'ICPFrontEnd'),
+    "MCLFrontEnd": ("dfusion.frontends.mcl", 'MCLFrontEnd'),
+    "WSNFrontEnd": ("dfusion.frontends.wsn", 'WSNFrontEnd'),
+    "WSNStats": ("dfusion.frontends.wsn", 'WSNStats'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -38,7 +38,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from dfusion.errors import ValidationError
 from dfusion.estimation.estimate import Estimate
@@ -62,6 +61,10 @@ def gate_threshold(gate: float, dof: int = 2) -> float:
         return math.inf
     if dof == 2:
         return -2.0 * math.log1p(-gate)
+    from scipy.stats import (
+        chi2,  # here, not at the top: a camera node needs only the 2-dof case
+    )
+
     return float(chi2.ppf(gate, dof))
 
 

@@ -14,7 +14,7 @@ from dfusion.frontends.base import (
 from dfusion.fusion.node import FusionNode
 from dfusion.geometry import heading_of, se2_compose, se2_inverse
 from dfusion.linalg import Array
-from dfusion.localization.icp import ScanMatcher, scan_to_points
+from dfusion.localization.scan_matching import ScanMatcher, scan_to_points
 from dfusion.models.laser import LaserConfig
 from dfusion.reliability import covariance_reliability
 

@@ -1,14 +1,12 @@
 """Decentralized fusion: channel filters and fusion nodes."""
-from dfusion.fusion.channel import (
-    ChannelFilter,
-    Entry,
-    Plan,
-    find_keys,
-    nonzero_blocks,
-    time_key,
-    time_keys,
-)
-from dfusion.fusion.node import FusionNode, NodeStats
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.fusion.channel import ChannelFilter, Entry, Plan, find_keys, nonzero_blocks, time_key, time_keys
+    from dfusion.fusion.node import FusionNode, NodeStats
 
 __all__ = [
     "time_key",
@@ -21,3 +19,32 @@ __all__ = [
     "NodeStats",
     "FusionNode",
 ]
+
+_WHERE = {
+    "ChannelFilter": ("dfusion.fusion.channel", 'ChannelFilter'),
+    "Entry": ("dfusion.fusion.channel", 'Entry'),
+    "Plan": ("dfusion.fusion.channel", 'Plan'),
+    "find_keys": ("dfusion.fusion.channel", 'find_keys'),
+    "nonzero_blocks": ("dfusion.fusion.channel", 'nonzero_blocks'),
+    "time_key": ("dfusion.fusion.channel", 'time_key'),
+    "time_keys": ("dfusion.fusion.channel", 'time_keys'),
+    "FusionNode": ("dfusion.fusion.node", 'FusionNode'),
+    "NodeStats": ("dfusion.fusion.node", 'NodeStats'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

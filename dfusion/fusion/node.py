@@ -63,6 +63,9 @@ from dfusion.wire import MAX_MESSAGE_BYTES, FrameKey, InfoMessage, decode, encod
 log = logging.getLogger(__name__)
 
 FUSION_MODES = ("channel", "naive")
+#: ``"partial"``: what changed (the protocol); ``"full"``: the whole window in every message,
+#: as the previous protocol did (for comparison: ``benchmarks/scale.py``).
+MESSAGE_MODES = ("partial", "full")
 #: Default bounds of a node (see the module docstring).
 MAX_AHEAD = 10.0
 LOG_INTERVAL = 10.0
@@ -325,6 +328,9 @@ class FusionNode:
         newest state received information may be held back (default ``window`` times).
     log_interval : float
         Seconds between two log lines about rejected messages.
+    messages : {"partial", "full"}
+        ``"full"`` sends the whole window in every message (the previous protocol's
+        behaviour, kept for comparison); the default sends what changed.
 
     Attributes
     ----------
@@ -354,6 +360,7 @@ class FusionNode:
         max_ahead: float = MAX_AHEAD,
         max_held: int | None = None,
         log_interval: float = LOG_INTERVAL,
+        messages: str = "partial",
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValidationError("node name must be a non-empty string")
@@ -364,11 +371,14 @@ class FusionNode:
             raise ValidationError(f"fusion must be one of {FUSION_MODES}, got {fusion!r}")
         if prior is None:
             raise ValidationError("a prior (t0, mean, cov) common to all nodes is required")
+        if messages not in MESSAGE_MODES:
+            raise ValidationError(f"messages must be one of {MESSAGE_MODES}, got {messages!r}")
         if network_key is not None and (not isinstance(network_key, (bytes, bytearray)) or len(network_key) < 16):
             raise ValidationError("network_key must be at least 16 bytes (or None to turn authentication off)")
         self.name = name
         self.neighbors = nbrs
         self.fusion = fusion
+        self.messages = messages
         self.policy: Policy = policy or InformationFusionPolicy()
         self.frame_key = None if network_key is None else FrameKey(bytes(network_key), network, run)
         self.epoch = time.time_ns() if epoch is None else int(epoch)
@@ -505,7 +515,7 @@ class FusionNode:
         f = self.filter
         oldest_key = time_key(f.oldest_time) - 1
         tot = self._total
-        full = self.fusion == "naive" or ch.next_is_full()
+        full = self.fusion == "naive" or self.messages == "full" or ch.next_is_full()
         if full:
             keys = tot.keys[tot.keys >= oldest_key]
             if self.fusion == "naive":

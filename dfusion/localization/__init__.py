@@ -1,41 +1,53 @@
 """Localizers and trackers, each an :class:`~dfusion.estimation.Estimator`: MCL, ICP, odometry EKF, landmark EKF, environmental camera, WSN tracker; radio maps and their calibration; scan similarity."""
-from dfusion.localization.env_camera import EnvironmentCameraLocalizer
-from dfusion.localization.icp import ICPResult, ScanMatcher, icp, scan_to_points, estimate_normals
-from dfusion.localization.landmark_ekf import LandmarkEKF
-from dfusion.localization.mcl import MonteCarloLocalization, kld_sample_size
-from dfusion.localization.odometry_ekf import OdometryEKF
-from dfusion.localization.radio_calibration import (
-    PathLossCalibration,
-    calibrate_path_loss,
-    calibrate_radio_map,
-    held_out_residuals,
-    held_out_score,
-    select_radio_map_settings,
-    MAP_SETTINGS_GRID,
-    NOISE_MODELS,
-    weighted_centroid,
-    run_tracker,
-)
-from dfusion.localization.radio_map import (
-    RadioMap,
-    fit_radio_map,
-    fit_radio_maps,
-    kernel_residual_map,
-    binned_residual_stats,
-    split_normal_logpdf,
-    fit_split_normal,
-    path_loss_design,
-    fit_directional_path_loss,
-)
-from dfusion.localization.similarity import (
-    SimilarityResult,
-    SimilarityRate,
-    correntropy_similarity,
-    trimmed_overlap_ratio,
-    similarity_rate,
-    overlap_ratio,
-)
-from dfusion.localization.wsn_tracker import WSNTracker, MOTIONS
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.localization.env_camera import EnvironmentCameraLocalizer
+    from dfusion.localization.scan_matching import (
+        ICPResult,
+        ScanMatcher,
+        estimate_normals,
+        icp,
+        scan_to_points,
+    )
+    from dfusion.localization.landmark_ekf import LandmarkEKF
+    from dfusion.localization.mcl import MonteCarloLocalization, kld_sample_size
+    from dfusion.localization.odometry_ekf import OdometryEKF
+    from dfusion.localization.radio_calibration import (
+        MAP_SETTINGS_GRID,
+        NOISE_MODELS,
+        PathLossCalibration,
+        calibrate_path_loss,
+        calibrate_radio_map,
+        held_out_residuals,
+        held_out_score,
+        run_tracker,
+        select_radio_map_settings,
+        weighted_centroid,
+    )
+    from dfusion.localization.radio_map import (
+        RadioMap,
+        binned_residual_stats,
+        fit_directional_path_loss,
+        fit_radio_map,
+        fit_radio_maps,
+        fit_split_normal,
+        kernel_residual_map,
+        path_loss_design,
+        split_normal_logpdf,
+    )
+    from dfusion.localization.similarity import (
+        SimilarityRate,
+        SimilarityResult,
+        correntropy_similarity,
+        overlap_ratio,
+        similarity_rate,
+        trimmed_overlap_ratio,
+    )
+    from dfusion.localization.wsn_tracker import MOTIONS, WSNTracker
 
 __all__ = [
     "EnvironmentCameraLocalizer",
@@ -76,3 +88,60 @@ __all__ = [
     "WSNTracker",
     "MOTIONS",
 ]
+
+_WHERE = {
+    "EnvironmentCameraLocalizer": ("dfusion.localization.env_camera", 'EnvironmentCameraLocalizer'),
+    "ICPResult": ("dfusion.localization.scan_matching", 'ICPResult'),
+    "ScanMatcher": ("dfusion.localization.scan_matching", 'ScanMatcher'),
+    "estimate_normals": ("dfusion.localization.scan_matching", 'estimate_normals'),
+    "icp": ("dfusion.localization.scan_matching", 'icp'),
+    "scan_to_points": ("dfusion.localization.scan_matching", 'scan_to_points'),
+    "LandmarkEKF": ("dfusion.localization.landmark_ekf", 'LandmarkEKF'),
+    "MonteCarloLocalization": ("dfusion.localization.mcl", 'MonteCarloLocalization'),
+    "kld_sample_size": ("dfusion.localization.mcl", 'kld_sample_size'),
+    "OdometryEKF": ("dfusion.localization.odometry_ekf", 'OdometryEKF'),
+    "MAP_SETTINGS_GRID": ("dfusion.localization.radio_calibration", 'MAP_SETTINGS_GRID'),
+    "NOISE_MODELS": ("dfusion.localization.radio_calibration", 'NOISE_MODELS'),
+    "PathLossCalibration": ("dfusion.localization.radio_calibration", 'PathLossCalibration'),
+    "calibrate_path_loss": ("dfusion.localization.radio_calibration", 'calibrate_path_loss'),
+    "calibrate_radio_map": ("dfusion.localization.radio_calibration", 'calibrate_radio_map'),
+    "held_out_residuals": ("dfusion.localization.radio_calibration", 'held_out_residuals'),
+    "held_out_score": ("dfusion.localization.radio_calibration", 'held_out_score'),
+    "run_tracker": ("dfusion.localization.radio_calibration", 'run_tracker'),
+    "select_radio_map_settings": ("dfusion.localization.radio_calibration", 'select_radio_map_settings'),
+    "weighted_centroid": ("dfusion.localization.radio_calibration", 'weighted_centroid'),
+    "RadioMap": ("dfusion.localization.radio_map", 'RadioMap'),
+    "binned_residual_stats": ("dfusion.localization.radio_map", 'binned_residual_stats'),
+    "fit_directional_path_loss": ("dfusion.localization.radio_map", 'fit_directional_path_loss'),
+    "fit_radio_map": ("dfusion.localization.radio_map", 'fit_radio_map'),
+    "fit_radio_maps": ("dfusion.localization.radio_map", 'fit_radio_maps'),
+    "fit_split_normal": ("dfusion.localization.radio_map", 'fit_split_normal'),
+    "kernel_residual_map": ("dfusion.localization.radio_map", 'kernel_residual_map'),
+    "path_loss_design": ("dfusion.localization.radio_map", 'path_loss_design'),
+    "split_normal_logpdf": ("dfusion.localization.radio_map", 'split_normal_logpdf'),
+    "SimilarityRate": ("dfusion.localization.similarity", 'SimilarityRate'),
+    "SimilarityResult": ("dfusion.localization.similarity", 'SimilarityResult'),
+    "correntropy_similarity": ("dfusion.localization.similarity", 'correntropy_similarity'),
+    "overlap_ratio": ("dfusion.localization.similarity", 'overlap_ratio'),
+    "similarity_rate": ("dfusion.localization.similarity", 'similarity_rate'),
+    "trimmed_overlap_ratio": ("dfusion.localization.similarity", 'trimmed_overlap_ratio'),
+    "MOTIONS": ("dfusion.localization.wsn_tracker", 'MOTIONS'),
+    "WSNTracker": ("dfusion.localization.wsn_tracker", 'WSNTracker'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -32,12 +32,11 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
-from dfusion.errors import ValidationError
+from dfusion.errors import NotInitializedError, ValidationError
 from dfusion.estimation.estimate import Estimate
 from dfusion.linalg import as_vector, symmetrize
 from dfusion.models.camera import PinholeCamera
 from dfusion.reliability import camera_geometry, camera_reliability
-from dfusion.errors import NotInitializedError
 
 __all__ = ["EnvironmentCameraLocalizer"]
 

@@ -9,7 +9,7 @@ the distance travelled and the heading change since the previous step. Predictio
     Fx = [[1, 0, -Delta d sin theta], [0, 1, Delta d cos theta], [0, 0, 1]]
     Fu = [[cos theta, 0], [sin theta, 0], [0, 1]]
 
-A scan matcher (e.g. :class:`~dfusion.localization.icp.ScanMatcher`) gives a pose ``x_s``
+A scan matcher (e.g. :class:`~dfusion.localization.scan_matching.ScanMatcher`) gives a pose ``x_s``
 with covariance ``Sigma_s``; the update (eq. 7-8) is the information-weighted average::
 
     x     = (Sigma'^-1 + Sigma_s^-1)^-1 (Sigma'^-1 x' + Sigma_s^-1 x_s)

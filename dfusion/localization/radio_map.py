@@ -64,8 +64,6 @@ from typing import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.ndimage import gaussian_filter
-from scipy.optimize import minimize_scalar
 
 from dfusion.errors import ShapeError, ValidationError
 from dfusion.linalg import Array
@@ -123,6 +121,7 @@ def fit_split_normal(u: ArrayLike) -> tuple[float, float, float]:
     lo, hi = cand[max(k - 1, 0)], cand[min(k + 1, cand.size - 1)]
     m = float(cand[k])
     if hi > lo:
+        from scipy.optimize import minimize_scalar  # here: fitting only, a tracker needs no scipy
         r = minimize_scalar(lambda v: float(crit(v)), bounds=(lo, hi), method="bounded",
                             options=dict(xatol=1e-10 * max(1.0, float(np.ptp(x)))))
         if r.fun <= crit(m):
@@ -532,6 +531,7 @@ def fit_radio_maps(positions: ArrayLike, receiver: ArrayLike, rssi: ArrayLike,
         if bw > 0:
             sig = bw / cell
             # gaussian_filter's kernel sums to 1 over the nodes: kernel-weighted counts per cell, like K above.
+            from scipy.ndimage import gaussian_filter  # here: fitting only, a tracker needs no scipy
             Cs, Ss, Qs = (gaussian_filter(a, sigma=(0, sig, sig), mode="constant", cval=0.0, truncate=4.0)
                           for a in (C, S, Q))
         for w0 in pws:

@@ -74,8 +74,9 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from dfusion.errors import ShapeError, ValidationError
-from dfusion.geometry import NearestPointGrid, transform_points
+from dfusion.geometry import transform_points
 from dfusion.linalg import Array
+from dfusion.maps.nearest import NearestPointGrid
 
 __all__ = [
     "SimilarityResult",

@@ -53,6 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from dfusion.errors import NotInitializedError, ShapeError, ValidationError
+from dfusion.estimation.estimate import Estimate
 from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
 from dfusion.estimation.particle_filter import (
     ParticleDepletionError,
@@ -65,7 +66,6 @@ from dfusion.maps.grid import OccupancyGrid as MapGrid
 from dfusion.maps.lattice import NodeLattice, as_map_grid
 from dfusion.models.measurement import RSSISensor
 from dfusion.models.motion import ConstantVelocity
-from dfusion.estimation.estimate import Estimate
 from dfusion.reliability import covariance_reliability
 
 __all__ = [

@@ -42,7 +42,6 @@ from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.ndimage import distance_transform_edt
 
 from dfusion.errors import NonFiniteError, ShapeError, ValidationError
 from dfusion.geometry import wrap_angle
@@ -52,6 +51,15 @@ __all__ = ["OccupancyGrid", "FREE", "OCCUPIED", "UNKNOWN"]
 
 #: ROS occupancy values.
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
+
+
+
+def distance_transform_edt(mask: np.ndarray) -> Array:
+    """:func:`scipy.ndimage.distance_transform_edt` (imported on first use: only maps with a
+    distance field need scipy, not every node program that reads a grid)."""
+    from scipy.ndimage import distance_transform_edt as edt
+
+    return edt(mask)
 
 
 # ----------------------------------------------------------------------------------------
@@ -440,6 +448,10 @@ class OccupancyGrid:
         if "edt" not in self._cache:
             occ = self.occupied
             if occ.any():
+                from scipy.ndimage import (
+                    distance_transform_edt,  # here: only maps with a distance field need scipy
+                )
+
                 d = distance_transform_edt(~occ) * self.resolution
             else:
                 d = np.full(self.shape, np.inf)

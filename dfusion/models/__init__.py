@@ -1,27 +1,16 @@
 """Motion and measurement models (``f, F, Q`` and ``h, H, R``), laser and odometry models."""
-from dfusion.models.base import MeasurementModel, MotionModel
-from dfusion.models.camera import PinholeCamera, SceneCamera
-from dfusion.models.laser import (
-    BeamErfcModel,
-    LaserConfig,
-    LaserScanSensor,
-    LikelihoodFieldModel,
-)
-from dfusion.models.measurement import (
-    LandmarkRangeBearing,
-    PositionFix,
-    PositionSensor,
-    RangeBearing,
-    RSSISensor,
-    TargetRangeBearing,
-    fit_path_loss,
-)
-from dfusion.models.motion import ConstantVelocity, Unicycle
-from dfusion.models.odometry import (
-    OdometryMotionModel,
-    VelocityOdometry,
-    odometry_increment,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.models.base import MeasurementModel, MotionModel
+    from dfusion.models.camera import PinholeCamera, SceneCamera
+    from dfusion.models.laser import BeamErfcModel, LaserConfig, LaserScanSensor, LikelihoodFieldModel
+    from dfusion.models.measurement import LandmarkRangeBearing, PositionFix, PositionSensor, RangeBearing, RSSISensor, TargetRangeBearing, fit_path_loss
+    from dfusion.models.motion import ConstantVelocity, Unicycle
+    from dfusion.models.odometry import OdometryMotionModel, VelocityOdometry, odometry_increment
 
 __all__ = [
     "MotionModel",
@@ -45,3 +34,43 @@ __all__ = [
     "VelocityOdometry",
     "odometry_increment",
 ]
+
+_WHERE = {
+    "MeasurementModel": ("dfusion.models.base", 'MeasurementModel'),
+    "MotionModel": ("dfusion.models.base", 'MotionModel'),
+    "PinholeCamera": ("dfusion.models.camera", 'PinholeCamera'),
+    "SceneCamera": ("dfusion.models.camera", 'SceneCamera'),
+    "BeamErfcModel": ("dfusion.models.laser", 'BeamErfcModel'),
+    "LaserConfig": ("dfusion.models.laser", 'LaserConfig'),
+    "LaserScanSensor": ("dfusion.models.laser", 'LaserScanSensor'),
+    "LikelihoodFieldModel": ("dfusion.models.laser", 'LikelihoodFieldModel'),
+    "LandmarkRangeBearing": ("dfusion.models.measurement", 'LandmarkRangeBearing'),
+    "PositionFix": ("dfusion.models.measurement", 'PositionFix'),
+    "PositionSensor": ("dfusion.models.measurement", 'PositionSensor'),
+    "RangeBearing": ("dfusion.models.measurement", 'RangeBearing'),
+    "RSSISensor": ("dfusion.models.measurement", 'RSSISensor'),
+    "TargetRangeBearing": ("dfusion.models.measurement", 'TargetRangeBearing'),
+    "fit_path_loss": ("dfusion.models.measurement", 'fit_path_loss'),
+    "ConstantVelocity": ("dfusion.models.motion", 'ConstantVelocity'),
+    "Unicycle": ("dfusion.models.motion", 'Unicycle'),
+    "OdometryMotionModel": ("dfusion.models.odometry", 'OdometryMotionModel'),
+    "VelocityOdometry": ("dfusion.models.odometry", 'VelocityOdometry'),
+    "odometry_increment": ("dfusion.models.odometry", 'odometry_increment'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

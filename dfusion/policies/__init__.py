@@ -1,24 +1,13 @@
 """Output policies beside fusion: the policy interface, switching policies, the component life cycle."""
-from dfusion.policies.base import InformationFusionPolicy, Policy
-from dfusion.policies.lifecycle import (
-    TRANSITIONS,
-    Component,
-    InvalidTransition,
-    LifecycleEvent,
-    State,
-    Supervisor,
-)
-from dfusion.policies.switching import (
-    BlendedTransitionPolicy,
-    FusionFloorPolicy,
-    GreedySwitchingPolicy,
-    HysteresisSwitchingPolicy,
-    Switch,
-    SwitchingPolicy,
-    effective_reliability,
-    information_fusion,
-    select_punishment,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.policies.base import InformationFusionPolicy, Policy
+    from dfusion.policies.lifecycle import TRANSITIONS, Component, InvalidTransition, LifecycleEvent, State, Supervisor
+    from dfusion.policies.switching import BlendedTransitionPolicy, FusionFloorPolicy, GreedySwitchingPolicy, HysteresisSwitchingPolicy, Switch, SwitchingPolicy, effective_reliability, information_fusion, select_punishment
 
 __all__ = [
     "Policy",
@@ -39,3 +28,40 @@ __all__ = [
     "select_punishment",
     "information_fusion",
 ]
+
+_WHERE = {
+    "InformationFusionPolicy": ("dfusion.policies.base", 'InformationFusionPolicy'),
+    "Policy": ("dfusion.policies.base", 'Policy'),
+    "TRANSITIONS": ("dfusion.policies.lifecycle", 'TRANSITIONS'),
+    "Component": ("dfusion.policies.lifecycle", 'Component'),
+    "InvalidTransition": ("dfusion.policies.lifecycle", 'InvalidTransition'),
+    "LifecycleEvent": ("dfusion.policies.lifecycle", 'LifecycleEvent'),
+    "State": ("dfusion.policies.lifecycle", 'State'),
+    "Supervisor": ("dfusion.policies.lifecycle", 'Supervisor'),
+    "BlendedTransitionPolicy": ("dfusion.policies.switching", 'BlendedTransitionPolicy'),
+    "FusionFloorPolicy": ("dfusion.policies.switching", 'FusionFloorPolicy'),
+    "GreedySwitchingPolicy": ("dfusion.policies.switching", 'GreedySwitchingPolicy'),
+    "HysteresisSwitchingPolicy": ("dfusion.policies.switching", 'HysteresisSwitchingPolicy'),
+    "Switch": ("dfusion.policies.switching", 'Switch'),
+    "SwitchingPolicy": ("dfusion.policies.switching", 'SwitchingPolicy'),
+    "effective_reliability": ("dfusion.policies.switching", 'effective_reliability'),
+    "information_fusion": ("dfusion.policies.switching", 'information_fusion'),
+    "select_punishment": ("dfusion.policies.switching", 'select_punishment'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

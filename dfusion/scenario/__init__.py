@@ -7,26 +7,21 @@
 * :func:`build_node`, :func:`build_nodes`, :func:`build_front_end`, :func:`build_front_ends`
   -- the one place that builds fusion nodes and front ends for ``simulate`` and ``run``.
 """
-from dfusion.scenario.build import (
-    build_front_end,
-    build_front_ends,
-    build_node,
-    build_nodes,
-)
-from dfusion.scenario.kinds import builtin_kinds
-from dfusion.scenario.loader import build_policy, load_scenario, node_policies
-from dfusion.scenario.plugins import ENTRY_POINT_GROUP, load_plugin, load_plugins
-from dfusion.scenario.spec import (
-    COMMON_NODE_KEYS,
-    Kinds,
-    MotionKind,
-    NodeSpec,
-    Scenario,
-    SensorKind,
-    TargetSpec,
-)
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.scenario.security import SecurityOptions
+    from dfusion.scenario.build import build_front_end, build_front_ends, build_node, build_nodes
+    from dfusion.scenario.kinds import builtin_kinds
+    from dfusion.scenario.loader import build_policy, load_scenario, node_policies
+    from dfusion.scenario.plugins import ENTRY_POINT_GROUP, load_plugin, load_plugins
+    from dfusion.scenario.spec import COMMON_NODE_KEYS, Kinds, MotionKind, NodeSpec, Scenario, SensorKind, TargetSpec
 
 __all__ = [
+    "SecurityOptions",
     "load_scenario",
     "Scenario",
     "NodeSpec",
@@ -46,3 +41,42 @@ __all__ = [
     "build_front_end",
     "build_front_ends",
 ]
+
+_WHERE = {
+    "SecurityOptions": ("dfusion.scenario.security", "SecurityOptions"),
+    "build_front_end": ("dfusion.scenario.build", 'build_front_end'),
+    "build_front_ends": ("dfusion.scenario.build", 'build_front_ends'),
+    "build_node": ("dfusion.scenario.build", 'build_node'),
+    "build_nodes": ("dfusion.scenario.build", 'build_nodes'),
+    "builtin_kinds": ("dfusion.scenario.kinds", 'builtin_kinds'),
+    "build_policy": ("dfusion.scenario.loader", 'build_policy'),
+    "load_scenario": ("dfusion.scenario.loader", 'load_scenario'),
+    "node_policies": ("dfusion.scenario.loader", 'node_policies'),
+    "ENTRY_POINT_GROUP": ("dfusion.scenario.plugins", 'ENTRY_POINT_GROUP'),
+    "load_plugin": ("dfusion.scenario.plugins", 'load_plugin'),
+    "load_plugins": ("dfusion.scenario.plugins", 'load_plugins'),
+    "COMMON_NODE_KEYS": ("dfusion.scenario.spec", 'COMMON_NODE_KEYS'),
+    "Kinds": ("dfusion.scenario.spec", 'Kinds'),
+    "MotionKind": ("dfusion.scenario.spec", 'MotionKind'),
+    "NodeSpec": ("dfusion.scenario.spec", 'NodeSpec'),
+    "Scenario": ("dfusion.scenario.spec", 'Scenario'),
+    "SensorKind": ("dfusion.scenario.spec", 'SensorKind'),
+    "TargetSpec": ("dfusion.scenario.spec", 'TargetSpec'),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name on first use, so that importing the package loads nothing else."""
+    where = _WHERE.get(name)
+    if where is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module, attribute = where
+    obj = importlib.import_module(module)
+    if attribute is not None:
+        obj = getattr(obj, attribute)
+    globals()[name] = obj
+    return obj
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

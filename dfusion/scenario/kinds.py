@@ -26,17 +26,8 @@ from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.models.measurement import PositionSensor
 from dfusion.models.motion import ConstantVelocity
 from dfusion.policies.base import InformationFusionPolicy
-from dfusion.policies.switching import (
-    make_blend,
-    make_fusion_floor,
-    make_greedy,
-    make_hysteresis,
-)
-from dfusion.scenario.camera_kind import CAMERA
-from dfusion.scenario.robot_kinds import ROBOT_ENV_CAMERA, ROBOT_ICP, ROBOT_MCL
-from dfusion.scenario.spec import Kinds, MotionKind, Scenario, SensorKind
+from dfusion.scenario.spec import Kinds, LazyTable, MotionKind, Scenario, SensorKind
 from dfusion.scenario.values import check_keys, number
-from dfusion.scenario.wsn_kind import WSN_RSSI
 
 __all__ = ["POSITION", "CONSTANT_VELOCITY", "SENSOR_KINDS", "POLICY_KINDS", "MOTION_KINDS", "builtin_kinds"]
 
@@ -61,12 +52,20 @@ def _fusion_policy(params: Mapping[str, Any]) -> InformationFusionPolicy:
     return InformationFusionPolicy()
 
 
-#: Built-in sensor kinds by name.
-SENSOR_KINDS: dict[str, SensorKind] = {k.name: k for k in (POSITION, CAMERA, WSN_RSSI, ROBOT_MCL, ROBOT_ICP,
-                                                           ROBOT_ENV_CAMERA)}
-#: Built-in policies: ``name -> factory(params)``.
-POLICY_KINDS = {"fusion": _fusion_policy, "greedy": make_greedy, "hysteresis": make_hysteresis,
-                "blend": make_blend, "fusion_floor": make_fusion_floor}
+#: Built-in sensor kinds by name (a kind's module is imported when a scenario names it).
+SENSOR_KINDS: dict[str, SensorKind | str] = {
+    "position": POSITION,
+    "camera": "dfusion.scenario.camera_kind:CAMERA",
+    "wsn_rssi": "dfusion.scenario.wsn_kind:WSN_RSSI",
+    "robot_mcl": "dfusion.scenario.robot_kinds:ROBOT_MCL",
+    "robot_icp": "dfusion.scenario.robot_kinds:ROBOT_ICP",
+    "robot_env_camera": "dfusion.scenario.robot_kinds:ROBOT_ENV_CAMERA",
+}
+#: Built-in policies: ``name -> factory(params)`` (imported when a scenario names one).
+POLICY_KINDS = {"fusion": _fusion_policy, "greedy": "dfusion.policies.switching:make_greedy",
+                "hysteresis": "dfusion.policies.switching:make_hysteresis",
+                "blend": "dfusion.policies.switching:make_blend",
+                "fusion_floor": "dfusion.policies.switching:make_fusion_floor"}
 #: The ``constant_velocity`` motion model (``q``: acceleration noise density, m^2 s^-3).
 CONSTANT_VELOCITY = MotionKind("constant_velocity", frozenset({"q"}), _constant_velocity,
                                "constant velocity in 2-D or 3-D (q)")
@@ -76,5 +75,5 @@ MOTION_KINDS: dict[str, MotionKind] = {CONSTANT_VELOCITY.name: CONSTANT_VELOCITY
 
 def builtin_kinds() -> Kinds:
     """dfusion's own sensor kinds, policies and motion models."""
-    return Kinds(dict(SENSOR_KINDS), dict(POLICY_KINDS), dict(MOTION_KINDS))
+    return Kinds(LazyTable(SENSOR_KINDS), LazyTable(POLICY_KINDS), LazyTable(MOTION_KINDS))
 

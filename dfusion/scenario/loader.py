@@ -28,6 +28,7 @@ from dfusion.errors import DfusionError, ScenarioError, TopologyError
 from dfusion.policies.base import Policy
 from dfusion.scenario.kinds import builtin_kinds
 from dfusion.scenario.plugins import load_plugins
+from dfusion.scenario.security import security_options
 from dfusion.scenario.spec import (
     COMMON_NODE_KEYS,
     FUSION_MODES,
@@ -46,14 +47,14 @@ log = logging.getLogger(__name__)
 
 #: Keys of the top level of a scenario file.
 TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "spanning_tree", "plugins",
-                            "target", "nodes", "links"})
+                            "target", "nodes", "links", "security"})
 #: Keys of ``[target]`` every motion model takes (each motion adds its own, e.g. ``q``).
 TARGET_KEYS = frozenset({"motion", "initial_mean", "initial_cov_diag"})
 #: Keys of a ``[[links]]`` table.
 LINK_KEYS = frozenset({"between", "quality", "latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay",
                        "outages"})
 _TABLES = {"target": "a table [target]", "nodes": "an array of tables [[nodes]]",
-           "links": "an array of tables [[links]]"}
+           "links": "an array of tables [[links]]", "security": "a table [security]"}
 
 
 def _fail(src: str, where: str, msg: str) -> ScenarioError:
@@ -94,15 +95,15 @@ def _check_top_level(src: str, raw: Mapping[str, Any]) -> None:
         if key not in TOP_LEVEL_KEYS:
             hint = suggest(key, TOP_LEVEL_KEYS)
             if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-                raise _fail(src, f"[[{key}]]", f"unknown table{hint}; tables are [target], [[nodes]] and [[links]]")
+                raise _fail(src, f"[[{key}]]", f"unknown table{hint}; tables are [target], [[nodes]], [[links]] and [security]")
             if isinstance(value, dict):
-                raise _fail(src, f"[{key}]", f"unknown table{hint}; tables are [target], [[nodes]] and [[links]]")
+                raise _fail(src, f"[{key}]", f"unknown table{hint}; tables are [target], [[nodes]], [[links]] and [security]")
             raise _fail(src, key, f"unknown top-level key{hint}; known: {', '.join(sorted(TOP_LEVEL_KEYS))}")
     for key, what in _TABLES.items():
         value = raw.get(key)
         if value is None:
             continue
-        ok = isinstance(value, dict) if key == "target" else (
+        ok = isinstance(value, dict) if key in ("target", "security") else (
             isinstance(value, list) and all(isinstance(v, dict) for v in value))
         if not ok:
             raise _fail(src, key, f"must be {what}, got {type(value).__name__}")
@@ -308,6 +309,10 @@ def load_scenario(
 
     target = _target(src, raw, kinds)
     sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw, kinds=kinds)
+    try:
+        sc.security = security_options(raw.get("security"), sc.base_dir)
+    except DfusionError as exc:
+        raise ScenarioError(f"{src}: {exc}") from None
     for i, tbl in enumerate(raw.get("nodes", [])):
         spec = _node(src, i, tbl, sc, kinds)
         sc.nodes[spec.name] = spec

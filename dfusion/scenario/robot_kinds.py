@@ -50,7 +50,7 @@ from dfusion.frontends.env_camera import EnvCameraFrontEnd
 from dfusion.frontends.icp import ICPFrontEnd
 from dfusion.frontends.mcl import MCLFrontEnd
 from dfusion.localization.env_camera import EnvironmentCameraLocalizer
-from dfusion.localization.icp import ScanMatcher
+from dfusion.localization.scan_matching import ScanMatcher
 from dfusion.localization.mcl import MonteCarloLocalization
 from dfusion.maps.buildings import GENERATORS
 from dfusion.maps.grid import OccupancyGrid

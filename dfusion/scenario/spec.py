@@ -5,22 +5,24 @@
 """
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
 
 import networkx as nx
 import numpy as np
 
 from dfusion.errors import ScenarioError
 from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.scenario.security import SecurityOptions
 from dfusion.transport.simulated import LinkSpec
 
 if TYPE_CHECKING:   # type names only: no import at run time
     from dfusion.frontends.base import FrontEnd
     from dfusion.policies.base import Policy
 
-__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "FUSION_MODES", "COMMON_NODE_KEYS"]
+__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "FUSION_MODES", "COMMON_NODE_KEYS"]
 
 #: Values of the top-level key ``fusion``.
 FUSION_MODES = ("channel", "naive")
@@ -75,6 +77,42 @@ class MotionKind:
     doc: str = ""
 
 
+class LazyTable(Mapping[str, Any]):
+    """A table of kinds whose entries may be given as ``"module:attribute"``, imported on first use.
+
+    A node program then loads only the sensor kind it runs (a position sensor needs no
+    camera model, no particle filter, no scipy). Iterating over the names imports nothing.
+    """
+
+    def __init__(self, entries: Mapping[str, Any]) -> None:
+        self._entries = dict(entries)
+
+    def __getitem__(self, name: str) -> Any:
+        value = self._entries[name]
+        if isinstance(value, str):
+            module, _, attribute = value.partition(":")
+            value = getattr(importlib.import_module(module), attribute)
+            self._entries[name] = value
+        return value
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._entries
+
+    def entries(self) -> dict[str, Any]:
+        """The entries as given (names to objects or ``"module:attribute"`` strings), nothing imported."""
+        return dict(self._entries)
+
+
+def _entries(table: Mapping[str, Any]) -> dict[str, Any]:
+    return table.entries() if isinstance(table, LazyTable) else dict(table)
+
+
 @dataclass(frozen=True)
 class Kinds:
     """The sensor kinds, policies and motion models a scenario may name.
@@ -97,8 +135,9 @@ class Kinds:
             clash = sorted(set(mine) & set(theirs))
             if clash:
                 raise ScenarioError(f"{source}: {what} {clash[0]!r} is already defined")
-        return Kinds({**self.sensors, **other.sensors}, {**self.policies, **other.policies},
-                     {**self.motions, **other.motions}, self.plugins + other.plugins)
+        return Kinds(LazyTable({**_entries(self.sensors), **_entries(other.sensors)}),
+                     LazyTable({**_entries(self.policies), **_entries(other.policies)}),
+                     LazyTable({**_entries(self.motions), **_entries(other.motions)}), self.plugins + other.plugins)
 
 
 @dataclass
@@ -164,6 +203,8 @@ class Scenario:
         plug-ins).
     warnings : list of str
         Degenerate settings found while loading (also logged).
+    security : SecurityOptions
+        The ``[security]`` table: the network key file and mutual TLS of ``dfusion run``.
     """
 
     path: str
@@ -180,6 +221,7 @@ class Scenario:
     raw: dict[str, Any]
     kinds: Kinds | None = None
     warnings: list[str] = field(default_factory=list)
+    security: SecurityOptions = field(default_factory=SecurityOptions)
 
     @property
     def steps(self) -> int:

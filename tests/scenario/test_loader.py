@@ -133,3 +133,14 @@ def test_shipped_scenarios_are_strictly_valid():
     for path in sorted((root / "topologies").glob("*.scenario.toml")) + sorted((root / "tests" / "data").rglob("*.scenario.toml")):
         sc = load_scenario(path)
         assert sc.nodes, path
+
+
+def test_the_security_table_is_checked_when_the_scenario_is_loaded(tmp_path):
+    good = GOOD + '\n[security]\nnetwork_key_file = "net.key"\n[security.tls]\ndir = "certs"\n'
+    sc = load_scenario(write(tmp_path, good))
+    assert sc.security.network_key_file == str(tmp_path / "net.key")
+    assert sc.security.tls_dir == str(tmp_path / "certs") and sc.security.tls
+    msg = error_of(write(tmp_path, good.replace('dir = "certs"', 'dri = "certs"')))
+    assert "security.tls.dri" in msg and "unknown key" in msg
+    msg = error_of(write(tmp_path, 'security = "on"\n' + GOOD))
+    assert "security" in msg and "must be a table [security]" in msg

@@ -58,8 +58,9 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from dfusion.errors import ShapeError, ValidationError
-from dfusion.geometry import NearestPointGrid, rotation, wrap_angle
+from dfusion.geometry import rotation, wrap_angle
 from dfusion.linalg import Array, as_vector
+from dfusion.maps.nearest import NearestPointGrid
 from dfusion.reliability import covariance_reliability
 
 __all__ = ["ICPResult", "ScanMatcher", "icp", "scan_to_points", "estimate_normals"]
