@@ -13,9 +13,11 @@ from __future__ import annotations
 import hashlib
 import hmac
 import math
+import re
 import struct
 import time
 import zlib
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -980,3 +982,44 @@ def test_a_position_fix_on_a_4d_state_costs_38_bytes():
         return len(encode(make_msg(n=4, m=m, info=info, vec=vec, times=0.5 + 0.1 * np.arange(m))))
     assert size(11, False) - size(10, False) == 4 + 2 + 4 * 8 == 38
     assert size(11, True) - size(10, True) == 4 + 2 + 14 * 8 == 118
+
+
+# ---------------------------------------------------------------- the worked example of the docs
+DOC = Path(__file__).resolve().parents[1] / "docs" / "wire-format.md"
+
+
+def test_worked_example_of_the_docs():
+    """docs/wire-format.md shows a message, its bytes and a byte-by-byte reading: the code
+    runs, the bytes are what encode writes and what the reference encoder writes, every
+    line of the reading matches its offset, and the keyed variant is as described."""
+    text = DOC.read_text(encoding="utf-8")
+    example = text[text.index("## Worked example"):text.index("## Versioning")]
+    blocks = re.findall(r"```(\w*)\n(.*?)```", example, re.S)
+    code = [b for lang, b in blocks if lang == "python"]
+    dumps = [b for lang, b in blocks if lang == ""]
+    assert len(code) == 1 and len(dumps) == 2
+    scope: dict = {}
+    exec(code[0], scope)                       # noqa: S102 (the documented example, run as shown)
+    msg = scope["msg"]
+    data = bytes.fromhex(dumps[0].replace("\n", ""))
+    assert encode(msg) == data == reference_frame(msg)
+    assert f"Without a key, {len(data)} bytes" in example
+    lines = [line for line in dumps[1].splitlines() if line.strip()]
+    covered = 0
+    for line in lines:
+        m = re.match(r"^([0-9a-f]{4})\s+((?:[0-9a-f]{2} )*[0-9a-f]{2})\s{2,}", line)
+        assert m, line
+        offset, shown = int(m.group(1), 16), bytes.fromhex(m.group(2))
+        assert data[offset:offset + len(shown)] == shown, line
+        covered += len(shown)
+    assert covered == len(data)                # the reading covers every byte once
+    crc = re.search(r"crc32 0x([0-9a-f]{8}) of bytes 0000-([0-9a-f]{4})", example)
+    assert int(crc.group(1), 16) == zlib.crc32(data[:int(crc.group(2), 16) + 1])
+    # the keyed variant
+    keyed_text = re.search(r'network key `b"(\w+)"`, network `"([\w-]+)"` and run `"([\w-]+)"`', example)
+    network_key, network, run = keyed_text.group(1).encode(), keyed_text.group(2), keyed_text.group(3)
+    keyed = encode(msg, FrameKey(network_key, network, run))
+    assert f"{len(keyed)} bytes" in example and keyed[3] == 0x01
+    assert keyed[:3] == data[:3] and keyed[4:len(data) - 4] == data[4:-4]
+    assert keyed[-16:] == reference_mac(keyed[:-16], network_key, network, run)
+    assert decode(keyed, FrameKey(network_key, network, run)).ack_mask == 3
