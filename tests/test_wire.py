@@ -419,15 +419,19 @@ def test_oversized_frame_is_rejected_before_anything_is_read():
     rejected(data, reason="oversized", max_bytes=len(data) - 1)
     assert decode(data, max_bytes=len(data)).seq == 7
     # no byte is read: a 4 MiB + 1 frame is refused in far less time than one pass over it
-    t0 = time.perf_counter()
-    for _ in range(100):
+    # (medians and minima: robust to a loaded machine)
+    refuse = []
+    for _ in range(21):
+        t0 = time.perf_counter()
         with pytest.raises(MessageError):
             check_frame(big)
-    refuse = (time.perf_counter() - t0) / 100
-    t0 = time.perf_counter()
-    zlib.crc32(big)
-    one_pass = time.perf_counter() - t0
-    assert refuse < one_pass / 10, (refuse, one_pass)
+        refuse.append(time.perf_counter() - t0)
+    one_pass = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        zlib.crc32(big)
+        one_pass.append(time.perf_counter() - t0)
+    assert np.median(refuse) < min(one_pass) / 10, (np.median(refuse), min(one_pass))
 
 
 def test_every_truncation_is_rejected():

@@ -291,15 +291,17 @@ def test_an_oversized_frame_is_rejected_before_it_is_parsed():
     assert f"exceeds the limit of {MAX_MESSAGE_BYTES}" in str(err)
     # fast: far less than one pass over the frame (a CRC over 4 MiB)
     times = []
-    for _ in range(20):
+    for _ in range(21):
         t0 = time.perf_counter()
         with pytest.raises(MessageError):
             b.receive(big)
         times.append(time.perf_counter() - t0)
-    t0 = time.perf_counter()
-    zlib.crc32(big)
-    one_pass = time.perf_counter() - t0
-    assert np.median(times) < one_pass / 5, (np.median(times), one_pass)
+    one_pass = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        zlib.crc32(big)
+        one_pass.append(time.perf_counter() - t0)
+    assert np.median(times) < min(one_pass) / 5, (np.median(times), min(one_pass))
     # the limit is the node's own
     small = make_node("b", ["a", "c"], epoch=22, max_message_bytes=len(fresh) - 1)
     small.predict(0.5)
