@@ -589,7 +589,7 @@ class FusionNode:
             raise self._reject("previous-incarnation",
                                f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
         last = ch.last_seq if msg.epoch == ch.epoch else -1
-        if msg.seq > last + MAX_SEQ_JUMP:
+        if msg.seq > last + MAX_SEQ_JUMP and self.frame_key is None:
             raise self._reject("sequence-jump", f"sequence number {msg.seq} from {msg.src!r} jumps past {last}")
         return ch
 
@@ -622,6 +622,8 @@ class FusionNode:
                 plan = ch.plan(msg, f.oldest_time, f.time_tol)
                 deltas, outside, changed = plan.deltas, plan.outside, plan.changed
             deltas, too_far = self._within_reach(deltas)
+            if plan is not None:
+                too_far = sorted(set(too_far) | set(self._entries_out_of_reach(ch, plan)))
             if too_far and plan is not None:
                 plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
                 deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
@@ -655,6 +657,27 @@ class FusionNode:
             else:
                 far.append(d[0])
         return ok, far
+
+    def _entries_out_of_reach(self, ch: ChannelFilter, plan) -> list[float]:
+        """Times of entries ``plan`` would newly store in ``ch`` beyond ``max_ahead`` seconds or
+        ``max_held`` times ahead of the newest state.
+
+        Zero entries (a cleared time, a zero block) change no information, so
+        :meth:`_within_reach` never sees them; without this bound a message could make the
+        channel store any number of them far in the future.
+        """
+        f = self.filter
+        latest = time_key(f.latest_time + f.time_tol)
+        ahead = plan.keys[plan.keys > latest]
+        if not ahead.size:
+            return []
+        new = ahead[~find_keys(ch.keys, ahead)[0]]
+        if not new.size:
+            return []
+        horizon = time_key(f.latest_time + self.max_ahead + f.time_tol)
+        room = self.max_held - (ahead.size - new.size)
+        within = new[new <= horizon][:max(room, 0)]
+        return (np.setdiff1d(new, within, assume_unique=True) / 1e9).tolist()
 
     def _apply(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list, changed: np.ndarray,
                too_far: list, outside: int) -> None:
@@ -738,8 +761,10 @@ class _Numerical(Exception):
 
 
 def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
-    """``msg`` without the blocks at ``times``."""
-    drop = np.isin(time_keys(msg.times), time_keys(np.asarray(times)))
+    """``msg`` without the blocks and the cleared times at ``times``."""
+    gone = time_keys(np.asarray(times))
+    drop = np.isin(time_keys(msg.times), gone)
+    cleared = msg.cleared[~np.isin(time_keys(msg.cleared), gone)] if msg.cleared.size else msg.cleared
     return InfoMessage(msg.src, msg.dst, msg.epoch, msg.seq, msg.start, msg.sent_at, msg.times[~drop],
-                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.ack_mask, msg.cleared,
+                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.ack_mask, cleared,
                        msg.full, msg.naive)

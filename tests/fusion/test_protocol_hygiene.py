@@ -116,19 +116,35 @@ def test_a_message_of_an_earlier_incarnation_is_rejected():
     assert "earlier incarnation" in str(err)
 
 
-def test_a_sequence_jump_beyond_max_seq_jump_is_rejected():
-    a, b, c, fresh, _ = build_chain(KEY, network="n", run="r")
-    key = FrameKey(KEY, "n", "r")
+def test_a_sequence_jump_beyond_max_seq_jump_is_rejected_without_a_key():
+    """Without a network key, a jump past MAX_SEQ_JUMP is rejected (a stranger cannot lock the
+    sender out with one message numbered near 2^63)."""
+    a, b, c, fresh, _ = build_chain()
     b.receive(fresh)
-    msg = decode(fresh, key)
+    msg = decode(fresh)
     last = msg.seq
-    rejected(b, encode(dataclasses.replace(msg, seq=last + MAX_SEQ_JUMP + 1), key), "sequence-jump")
-    b.receive(encode(dataclasses.replace(msg, seq=last + MAX_SEQ_JUMP), key))        # the largest jump allowed
+    rejected(b, encode(dataclasses.replace(msg, seq=last + MAX_SEQ_JUMP + 1)), "sequence-jump")
+    b.receive(encode(dataclasses.replace(msg, seq=last + MAX_SEQ_JUMP)))        # the largest jump allowed
     # in a new incarnation the count starts again from -1
     fresh_epoch = dataclasses.replace(msg, epoch=msg.epoch + 1)
-    rejected(b, encode(dataclasses.replace(fresh_epoch, seq=MAX_SEQ_JUMP), key), "sequence-jump")
-    b.receive(encode(dataclasses.replace(fresh_epoch, seq=MAX_SEQ_JUMP - 1), key))
+    rejected(b, encode(dataclasses.replace(fresh_epoch, seq=MAX_SEQ_JUMP)), "sequence-jump")
+    b.receive(encode(dataclasses.replace(fresh_epoch, seq=MAX_SEQ_JUMP - 1)))
     assert b.stats.rejections == {"sequence-jump": 2}
+
+
+def test_with_a_key_a_link_that_lost_more_than_max_seq_jump_messages_comes_back():
+    """With a network key the jump bound is not applied: a sender whose last 1,000,001 messages
+    were all lost (28 h at 10 Hz) is heard again, and both nodes end on the centralized filter."""
+    a, b, meas = pair(key=KEY)
+    exchange(a, b, 0.5)
+    measure(a, 0.6, [1.0, 2.0], meas)
+    measure(b, 0.7, [-1.0, 0.5], meas)
+    ch = a.channels["b"]
+    ch.seq_out += MAX_SEQ_JUMP + 1                      # as if that many messages had been lost
+    for t in (0.8, 0.9, 1.0, 1.1):
+        exchange(a, b, t)
+    assert b.stats.rejections == {}
+    assert_exact([a, b], meas, 1.1)
 
 
 def test_a_forged_sender_without_the_key_is_rejected():
@@ -282,6 +298,32 @@ def test_full_message_updating_held_times_at_max_held_is_not_double_counted():
         exchange(a, b, t)
         assert_not_over_confident(b, meas, t)
     assert_exact([a, b], meas, 1.6)
+
+
+def test_cleared_times_ahead_are_bounded_like_blocks():
+    """Cleared times (and zero blocks) change no information, so only the channel's own bound
+    stops them: one valid message clearing 100,000 times in the future, sent five times,
+    leaves b's channel with at most ``max_held`` entries ahead of its newest state (before
+    the bound: 500,000 entries, 93 MB); the message's other blocks are fused, it is not
+    acknowledged, and the network still ends on the centralized filter."""
+    a, b, meas = pair(max_held=8)
+    exchange(a, b, 1.0)
+    measure(a, 1.0, [1.0, 2.0], meas)
+    msg = decode(a.message_to("b"))
+    assert not msg.full
+    cleared = 1.0 + 0.05 * np.arange(1, 100_001)          # 1.05 .. 5001 s: some within 10 s, most beyond
+    for i in range(5):
+        forged = dataclasses.replace(msg, seq=msg.seq + i, cleared=cleared)
+        b.receive(encode(forged))
+        ch = b.channels["a"]
+        ahead = np.count_nonzero(ch.keys > 1_000_000_000)
+        assert ahead <= b.max_held, ahead
+        assert decode(b.message_to("a")).ack < forged.seq        # not acknowledged: a sends again
+    assert b.channels["a"].keys.size <= b.max_held + len(b.filter.times) + 1
+    for t in (1.1, 1.2, 1.3):
+        exchange(a, b, t)
+        assert_not_over_confident(b, meas, t)
+    assert_exact([a, b], meas, 1.3)
 
 
 def test_an_oversized_frame_is_rejected_before_it_is_parsed():
