@@ -67,6 +67,29 @@ class Schedule:
     window: int = 400
     fusion: str = "channel"
     stds: dict = field(default_factory=dict)
+    #: Measurements of a simulated constant-velocity truth (the filters' model) instead of
+    #: arbitrary values: a healthy network, for consistency tests.
+    truth: bool = False
+    #: ``FusionNode(guard=...)`` of every node (None: no consistency test); a callable is called
+    #: with the node's sorted neighbours and returns that node's guard.
+    guard: object = None
+
+
+class CVTruth:
+    """A constant-velocity trajectory drawn from the filters' own model (prior ``N(0, P0 I)``,
+    process noise ``cv_Q``), sampled at increasing times on demand."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.t = 0.0
+        self.x = rng.normal(0.0, np.sqrt(P0), size=4)
+
+    def at(self, t: float) -> np.ndarray:
+        if t > self.t:
+            dt = t - self.t
+            self.x = cv_F(dt) @ self.x + np.linalg.cholesky(cv_Q(dt)) @ self.rng.standard_normal(4)
+            self.t = t
+        return self.x
 
 
 def random_tree(n: int, seed: int) -> nx.Graph:
@@ -94,9 +117,11 @@ def run_network(graph: nx.Graph, s: Schedule, final_rounds: bool = True):
     prior = (0.0, np.zeros(4), np.eye(4) * P0)
     names = sorted(graph.nodes)
     nodes = {
-        n: FusionNode(n, sorted(graph.neighbors(n)), motion, window=s.window, prior=prior, fusion=s.fusion)
+        n: FusionNode(n, sorted(graph.neighbors(n)), motion, window=s.window, prior=prior, fusion=s.fusion,
+                      guard=s.guard(sorted(graph.neighbors(n))) if callable(s.guard) else s.guard)
         for n in names
     }
+    truth = CVTruth(np.random.default_rng(s.seed + 7919)) if s.truth else None
     stds = {n: s.stds.get(n, float(rng.uniform(0.3, 1.5))) for n in names}
     sensors = {n: PositionSensor(2, stds[n]) for n in names}
     links = [(a, b) for a, b in graph.edges] + [(b, a) for a, b in graph.edges]
@@ -110,13 +135,18 @@ def run_network(graph: nx.Graph, s: Schedule, final_rounds: bool = True):
         t = round(k * s.dt, 12)
         for n in names:
             nodes[n].predict(t)
+        step = []
         for n in names:   # new measurements, delivered to their node after a random delay
             if rng.random() < s.meas_prob:
                 tm = t - (rng.uniform(0, s.dt) if s.irregular else 0.0)
                 tm = round(max(tm, 0.0), 9)
                 z = rng.normal(0.0, 3.0, size=2)
-                measurements.append((tm, z, stds[n]))
-                waiting.append((tm + rng.uniform(0, s.max_meas_delay), n, tm, z))
+                step.append((tm, n, z, rng.uniform(0, s.max_meas_delay)))
+        if truth is not None:   # the truth at the measurement times, in time order
+            step = [(tm, n, truth.at(tm)[:2] + stds[n] * z / 3.0, d) for tm, n, z, d in sorted(step, key=lambda e: e[0])]
+        for tm, n, z, d in step:
+            measurements.append((tm, z, stds[n]))
+            waiting.append((tm + d, n, tm, z))
         for item in sorted([w for w in waiting if w[0] <= t], key=lambda w: w[0]):
             deliver_measurement(nodes[item[1]], item[2], item[3], sensors[item[1]])
         waiting = [w for w in waiting if w[0] > t]
