@@ -258,7 +258,7 @@ class NeighbourGuard:
             r.dof_sum += dof
         r.recent.append(failed)
         if failed:
-            log.info("neighbour %s failed the consistency test: D^2 = %.3g > %.3g (%d dof)",
+            log.debug("neighbour %s failed the consistency test: D^2 = %.3g > %.3g (%d dof)",
                      j, stat, self.threshold(dof), dof)
         if r.recent_failures >= self.config.failures:
             r.quarantined = True

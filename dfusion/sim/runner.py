@@ -7,7 +7,7 @@ Every step ``t = k dt``:
 2. measurements that have reached their node by ``t`` are fused (late ones at
    their own time stamp; one older than the window is refused and counted);
    the measurements of one frame (same node, time and arrival: a camera's
-   detections) go to the front end together (:meth:`FrontEnd.process_frame`:
+   detections) go to the front end together (:meth:`dfusion.frontends.base.FrontEnd.process_frame`:
    data association);
 3. messages that have arrived by ``t`` are received;
 4. a node whose send period has elapsed sends a message to each neighbour;
@@ -24,7 +24,7 @@ centralized one.
 Two centralized references run on the world's measurements, in time order and
 without delay (:class:`References`): the *fair* one (``centralized``) gets every
 detection, false ones included, through the same gate and clutter model as the
-camera nodes (:meth:`FrontEnd.reference_frame`), and is what the gaps are
+camera nodes (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`), and is what the gaps are
 measured against; the *oracle* (``centralized_oracle``) skips the false
 detections (it knows which they are) and gates nothing.
 
@@ -300,7 +300,7 @@ class References:
     """The two centralized references of a run (see the module docstring).
 
     ``fair``: every measurement of a frame through its node's front end as the reference
-    applies it (:meth:`FrontEnd.reference_frame`: a camera's gate and clutter model), or as
+    applies it (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`: a camera's gate and clutter model), or as
     EKF updates with the sensor's model. ``oracle``: every true measurement as an EKF update,
     false detections skipped.
     """
