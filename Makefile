@@ -5,7 +5,7 @@ VENV := .venv
 STAMP := $(VENV)/.installed-stamp
 OUT ?= out
 
-.PHONY: demo test bench docs clean venv
+.PHONY: demo test bench docs certs clean venv
 
 $(STAMP): pyproject.toml
 	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,14 @@ test: $(STAMP)
 # are errors): HTML in $(OUT)/api/, start at $(OUT)/api/index.html. See docs/api-reference.md.
 docs: $(STAMP)
 	$(VENV)/bin/python docs/build_api.py $(OUT)/api
+
+# A test CA and certificates for mutual TLS (openssl), into $(CERTS): one per node of
+# $(SCENARIO) plus launcher and monitor, or a shared node certificate without SCENARIO.
+# Then: dfusion run SCENARIO --tls-dir $(CERTS). See docs/security.md.
+CERTS ?= $(OUT)/certs
+SCENARIO ?=
+certs: $(STAMP)
+	$(VENV)/bin/python -m dfusion.run.certs $(CERTS) $(if $(SCENARIO),--scenario $(SCENARIO))
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/estimation.py --quick

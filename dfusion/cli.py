@@ -7,6 +7,14 @@ the centralized EKF, with message counts and the consistency diagnostics (``docs
 ``dfusion run SCENARIO [--speed X] [--json OUT] [--plot OUT.png] [--restart NAME@T[+D]] ...``
 runs the same scenario with one OS process per node over Zenoh and prints the
 same table (``docs/processes.md``).
+
+``dfusion replay SCENARIO BAG --topic TOPIC=NODE ... [--truth TOPIC] [--arrival stamp|record]``
+runs the scenario's nodes on the measurements of a ROS 1 or ROS 2 bag instead of the
+simulated world (``docs/ros.md``).
+
+Outputs of all three: ``--json`` (the figures and the per-step series), ``--csv``
+(the series), ``--plot`` (error plots), ``--topdown`` (the top-down figure),
+``--mcap`` (a recording for Foxglove, ``docs/ros.md``).
 """
 from __future__ import annotations
 
@@ -24,16 +32,62 @@ def _simulate(args: argparse.Namespace) -> int:
 
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin,
                        protection=False if args.no_protection else None)
-    result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet)
+    live = None
+    if args.foxglove is not None:
+        from dfusion.viz.foxglove import LiveView
+
+        live = LiveView(sc, port=args.foxglove, speed=args.speed)
+        print(f"Foxglove live view on ws://127.0.0.1:{args.foxglove} (scenario time x{args.speed:g})", flush=True)
+    try:
+        result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet and live is None, on_step=live)
+    finally:
+        if live is not None:
+            live.close()
     print(result.table())
+    _outputs(result, args)
+    return 0
+
+
+def _outputs(result, args: argparse.Namespace, *, title: str | None = None) -> None:
+    """``--json``, ``--csv``, ``--plot`` (with ``title``), ``--topdown``, ``--mcap`` of a result."""
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(result.to_json())
+        Path(args.json).write_text(result.to_json(series=True))
         print(f"wrote {args.json}")
-    if args.plot:
-        from dfusion.plots import plot_result
+    if getattr(args, "csv", None):
+        from dfusion.sim.runner import write_series_csv
 
-        print(f"wrote {plot_result(result, args.plot)}")
+        write_series_csv(result, args.csv)
+        print(f"wrote {args.csv}")
+    if args.plot:
+        from dfusion.viz import plot_result
+
+        print(f"wrote {plot_result(result, args.plot, title=title)}")
+    if getattr(args, "topdown", None):
+        from dfusion.viz.topdown import plot_topdown
+
+        print(f"wrote {plot_topdown(result, args.topdown)}")
+    if getattr(args, "mcap", None):
+        from dfusion.viz.foxglove import record_mcap
+
+        print(f"wrote {record_mcap(result, args.mcap, start_ns=getattr(args, 'start_ns', 0))} (open it in Foxglove)")
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from dfusion.scenario.loader import load_scenario
+    from dfusion.sim.replay import parse_topic_input, replay_scenario
+
+    if not args.topic:
+        print("dfusion: error: map at least one bag topic to a node with --topic TOPIC=NODE", file=sys.stderr)
+        return 2
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
+    inputs = [parse_topic_input(t) for t in args.topic]
+    result = replay_scenario(sc, args.bag, inputs, truth_topic=args.truth, arrival=args.arrival,
+                             origin_ns=args.origin_ns, progress=sys.stderr.isatty() and not args.quiet)
+    print(result.table())
+    if args.truth is None:
+        print("(no --truth topic: RMSE and ANEES are unknown)")
+    _outputs(result, args)
     return 0
 
 
@@ -51,14 +105,19 @@ def _run(args: argparse.Namespace) -> int:
     codes = {"SIGTERM": 128 + signal.SIGTERM, "SIGINT": 128 + signal.SIGINT}
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
+        from dfusion.run.common import security_from_args
         from dfusion.run.launcher import Launcher, Restart, RunOptions
+        from dfusion.run.supervision import RestartPolicy
 
+        policy = RestartPolicy(enabled=not args.no_supervise, max_restarts=args.max_restarts,
+                               backoff=args.restart_backoff, backoff_max=max(args.restart_backoff, 8.0))
         opts = RunOptions(
             scenario=args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, speed=args.speed,
             run_dir=args.run_dir, network=args.network, network_key_file=args.network_key_file,
             restarts=[Restart.parse(r) for r in args.restart], emulate_links=args.emulate_links,
             round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
+            security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
         )
         launcher = Launcher(opts)
         if stop:
@@ -67,6 +126,7 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)
+    from dfusion.run.launcher import supervision_lines
     from dfusion.run.monitor import run_table
 
     if result is None:
@@ -74,6 +134,7 @@ def _run(args: argparse.Namespace) -> int:
         return codes.get(launcher.stop_reason or "", 1)
     print(result.table())
     print(run_table(result))
+    print(supervision_lines(result))
     if args.compare:
         from dfusion.sim.runner import run_scenario
 
@@ -84,14 +145,10 @@ def _run(args: argparse.Namespace) -> int:
             r = ref["nodes"][name]
             print(f"{name:<10} {v['rmse']:9.4f} {r['rmse']:9.4f} {v['rmse'] - r['rmse']:+9.4f} "
                   f"{v['final_gap']:9.1e} {r['final_gap']:9.1e}")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(result.to_json())
-        print(f"wrote {args.json}")
-    if args.plot:
-        from dfusion.plots import plot_result
-
-        print(f"wrote {plot_result(result, args.plot)}")
+    run = result.metrics["run"]
+    title = (f"{Path(launcher.sc.path).name} as processes at x{run['speed']:g}: estimate − truth per node vs "
+             f"centralized EKF\n{run['links']}; {'mutual TLS' if run['tls'] else 'no TLS'}")
+    _outputs(result, args, title=title)
     return 1 if launcher.failures else 0
 
 
@@ -104,14 +161,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     s.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     s.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
-    s.add_argument("--json", metavar="OUT", help="write the figures as JSON")
-    s.add_argument("--plot", metavar="OUT.png", help="write a PNG of every node against the centralized EKF")
+    _output_options(s)
     s.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; docs/new-sensor-kind.md)")
     s.add_argument("--no-protection", action="store_true",
                    help="no clutter model (cameras: hard gate only) and no consistency test of neighbours "
                         "(protection.enabled = false; docs/clutter.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--foxglove", type=int, default=None, metavar="PORT",
+                   help="serve the run live to Foxglove on this port (needs pip install 'dfusion[live]'; docs/ros.md)")
+    s.add_argument("--speed", type=float, default=1.0,
+                   help="with --foxglove: scenario seconds per wall-clock second (default 1)")
     s.set_defaults(func=_simulate)
 
     r = sub.add_parser("run", help="run a scenario with one OS process per node, over Zenoh (docs/processes.md)")
@@ -120,13 +180,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     r.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     r.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
-    r.add_argument("--json", metavar="OUT", help="write the figures as JSON (the keys of simulate, plus 'run')")
-    r.add_argument("--plot", metavar="OUT.png", help="write a PNG of every node against the centralized EKF")
+    _output_options(r)
     r.add_argument("--restart", action="append", default=[], metavar="NAME@T[+D]",
                    help="SIGKILL node NAME at scenario time T and start it again D seconds later (repeatable)")
     r.add_argument("--network-key-file", default=None,
-                   help="authenticate every message with this key (or set $DFUSION_NETWORK_KEY_FILE / $DFUSION_NETWORK_KEY)")
-    r.add_argument("--emulate-links", action="store_true", help="apply the scenario's link drops and outages to sends")
+                   help="authenticate every message with this key (or set $DFUSION_NETWORK_KEY_FILE / "
+                        "$DFUSION_NETWORK_KEY; default: a random key for this run)")
+    r.add_argument("--emulate-links", dest="emulate_links", action="store_true", default=True,
+                   help="apply the scenario's links (latency, jitter, drops, duplicates, reordering, outages) at the "
+                        "senders (the default)")
+    r.add_argument("--foxglove", type=int, default=None, metavar="PORT",
+                   help="serve the nodes' estimates live over Foxglove's WebSocket protocol (pip install 'dfusion[live]')")
+    r.add_argument("--no-emulate-links", dest="emulate_links", action="store_false",
+                   help="send over the real network only, ignoring the scenario's link settings")
+    r.add_argument("--no-supervise", action="store_true",
+                   help="do not restart node processes that exit before their final estimate")
+    r.add_argument("--max-restarts", type=int, default=10, metavar="N",
+                   help="restarts per node at most (default 10)")
+    r.add_argument("--restart-backoff", type=float, default=0.5, metavar="S",
+                   help="seconds before a restart; doubles with every quick failure in a row, up to 8 s (default 0.5)")
     r.add_argument("--round-timeout", type=float, default=10.0,
                    help="seconds a node waits for a live neighbour's message of a final-phase round")
     r.add_argument("--run-dir", default=None, help="keep logs, state logs and results here (default: a temporary directory)")
@@ -136,8 +208,41 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; every node process loads it too)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    from dfusion.run.common import add_tls_arguments
+
+    add_tls_arguments(r)
     r.set_defaults(func=_run)
+
+    b = sub.add_parser("replay", help="run a scenario's nodes on the measurements of a ROS bag (docs/ros.md)")
+    b.add_argument("scenario", help="scenario TOML file: the nodes, their sensor kinds, the tree")
+    b.add_argument("bag", help="ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP)")
+    b.add_argument("--topic", action="append", default=[], metavar="TOPIC=NODE[:FILE.py:FUNC]",
+                   help="feed NODE from TOPIC (standard message types, or a function f(msg, t) -> z); repeatable")
+    b.add_argument("--truth", default=None, metavar="TOPIC", help="ground truth (Odometry, PoseStamped, ...)")
+    b.add_argument("--arrival", choices=("stamp", "record"), default="stamp",
+                   help="when a message reaches its node: at its header stamp (default) or at its record time "
+                        "(late messages are then late measurements)")
+    b.add_argument("--origin-ns", type=int, default=None,
+                   help="header stamp (ns) of scenario time 0 (default: the earliest stamp of the topics read)")
+    b.add_argument("--seed", type=int, default=None, help="override the scenario's seed (particle filters)")
+    b.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
+    b.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
+    _output_options(b)
+    b.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                   help="load sensor kinds / policies from this module or .py file (repeatable)")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    b.set_defaults(func=_replay)
     return p
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", metavar="OUT", help="write the figures and the per-step series as JSON")
+    p.add_argument("--csv", metavar="OUT.csv", help="write the per-step series (truth, estimates, variances, NEES, "
+                                                    "gaps per node) as CSV")
+    p.add_argument("--plot", metavar="OUT.png", help="write a PNG of every node's error against the centralized EKF")
+    p.add_argument("--topdown", metavar="OUT.png", help="write the top-down figure (truth, estimates with 3-sigma "
+                                                        "ellipses, sensors, the tree)")
+    p.add_argument("--mcap", metavar="OUT.mcap", help="write an MCAP recording to open in Foxglove (docs/ros.md)")
 
 
 def main(argv: list[str] | None = None) -> int:

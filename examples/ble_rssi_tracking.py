@@ -167,7 +167,8 @@ def evaluate_track(ds: BLERSSIDataset, track_file: str | Path, *, particles: int
     tracker = WSNTracker(sensors, particles, motion=motion, q=q, grid=grid,
                          bounds=None if grid is not None else ds.limits, seed=seed, **tracker_kw)
     t0 = time.perf_counter()
-    est = run_tracker(track, tracker)
+    cov = np.empty((len(track), 2, 2))
+    est = run_tracker(track, tracker, cov_out=cov)
     elapsed = time.perf_counter() - t0
     base = weighted_centroid(track, ds.receiver_positions, window=window)
     err = np.linalg.norm(est - track.truth[:, :2], axis=1)
@@ -193,6 +194,8 @@ def evaluate_track(ds: BLERSSIDataset, track_file: str | Path, *, particles: int
         "calibration_tracks": cal_tracks,
         "_errors": err,
         "_baseline_errors": berr,
+        "_series": {"t": np.asarray(track.t, float), "truth": track.truth[:, :2], "mean": est, "cov": cov,
+                    "baseline": base},
     }
 
 
@@ -232,6 +235,35 @@ def format_map_settings(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def figures(ds: BLERSSIDataset, r: dict, out: Path, grid_cell: float = DEFAULTS["grid_cell"]) -> list[Path]:
+    """``out/ble_<track>_topdown.png`` (the floor plan, the receivers, the true track, the
+    particle filter's estimate with 3-sigma ellipses and the weighted-centroid baseline)
+    and ``out/ble_<track>_errors.png`` (X and Y errors of both, the filter's ±3σ)."""
+    from dfusion.viz.plots import plot_track_errors
+    from dfusion.viz.topdown import Scene, Track, draw_scene
+
+    ser = r["_series"]
+    t, truth = ser["t"] - ser["t"][0], ser["truth"]   # seconds since the track's first packet
+    pf = Track("particle filter (WSN tracker)", t, ser["mean"], ser["cov"], "tab:blue")
+    wc = Track("weighted centroid (baseline)", t, ser["baseline"], None, "tab:orange", style=":", width=0.8)
+    grid = None
+    try:
+        grid = ds.load_grid(grid_cell).map
+    except DfusionError:
+        pass
+    scene = Scene(title=f"BLE RSSI {r['track']}: {r['rows']} packets, {r['duration_s']:.0f} s",
+                  truth={"walker (annotated positions)": (t, truth)}, tracks=[pf, wc],
+                  points={"BLE receivers": (ds.receiver_positions[:, :2], "^", "tab:red")}, grid=grid,
+                  labels=[(p[:2], rc.mac[-5:]) for p, rc in zip(ds.receiver_positions, ds.receivers)],
+                  note=f"RMSE: particle filter {r['rmse']:.2f} m, weighted centroid {r['baseline_rmse']:.2f} m")
+    out.mkdir(parents=True, exist_ok=True)
+    a = draw_scene(scene, out / f"ble_{r['track']}_topdown.png")
+    b = plot_track_errors(t, truth, [pf, wc], out / f"ble_{r['track']}_errors.png",
+                          title=f"BLE RSSI {r['track']}: position errors (particle filter with its own ±3σ; "
+                                f"weighted centroid); time since the first packet")
+    return [a, b]
+
+
 def public(r: dict) -> dict:
     return {k: v for k, v in r.items() if not k.startswith("_")}
 
@@ -242,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("track_file", nargs="?", help="a trk/*_all_sensors.mbd file")
     ap.add_argument("--dataset", type=Path, help="dataset directory (default: inferred from TRACK_FILE)")
     ap.add_argument("--all", action="store_true", help="run every track in DIR/trk and print the pooled table")
-    ap.add_argument("--json", type=Path, help="write the metrics as JSON")
+    ap.add_argument("--json", type=Path, help="write the metrics and each track's per-packet series as JSON")
+    ap.add_argument("--plot", type=Path, metavar="DIR", help="write each track's top-down figure and error plot into DIR")
     ap.add_argument("--particles", type=int, default=DEFAULTS["particles"])
     ap.add_argument("--motion", choices=("random_walk", "constant_velocity"), default=DEFAULTS["motion"])
     ap.add_argument("--q", type=float, default=DEFAULTS["q"],
@@ -328,8 +361,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"time per packet: {np.mean([r['ms_per_packet'] for r in results]):.2f} ms")
     if args.model == "radio-map":
         print(format_map_settings(results))
+    if args.plot:
+        for r in results:
+            print("wrote " + ", ".join(str(p) for p in figures(ds, r, args.plot, args.grid_cell)))
     if args.json:
         out = public(rows[-1]) if len(results) == 1 else {**public(rows[-1]), "tracks": [public(r) for r in results]}
+        out["series"] = {r["track"]: {k: np.asarray(v).tolist() for k, v in r["_series"].items()} for r in results}
         out["config"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in kw.items()}
         args.json.write_text(json.dumps(out, indent=2) + "\n")
     return 0

@@ -3,13 +3,18 @@ r"""Map-based localization on a real CARMEN laser log: MCL and scan matching + o
 
 Usage::
 
-    python examples/carmen_localization.py LOG.gz [--json OUT] [--max-scans N] [--seed S]
+    python examples/carmen_localization.py LOG.gz [--json OUT] [--plot DIR] [--max-scans N] [--seed S]
+    python examples/carmen_localization.py --bag BAG ...   (scans and poses from a ROS bag)
 
 ``LOG`` is a CARMEN log with corrected poses, e.g. ``DATA/carmen/intel-corrected.log.gz``
 (where to get it: ``tests/data/carmen/README.md``; the slice
 ``tests/data/carmen/intel-160scans.log.gz`` runs as is) (read with
 :func:`dfusion.datasets.carmen.read_carmen`, which handles the log's pitfalls: repeated
 ``ODOM`` copies after each scan, backward time stamps, 81.83 m "no return" readings).
+
+With ``--bag BAG`` the scans (``/scan``, ``sensor_msgs/LaserScan``), their corrected poses
+(``/scan_pose``, ``geometry_msgs/PoseStamped``) and the odometry stream (``/odom``) come
+from a ROS 1 or ROS 2 bag (:func:`dfusion.bags.carmen_from_bag`, ``docs/ros.md``).
 
 Protocol (scans in time order, the first ``--max-scans`` of them if given):
 
@@ -129,9 +134,21 @@ def summary(pos: np.ndarray, head: np.ndarray) -> dict:
     }
 
 
-def run(args: argparse.Namespace) -> dict:
+def load_log(args: argparse.Namespace):
+    """The CARMEN log ``args.log``, or the bag ``args.bag``."""
+    if getattr(args, "bag", None):
+        from dfusion.bags import carmen_from_bag
+
+        return carmen_from_bag(args.bag)
+    if args.log is None:
+        raise ValidationError("give a CARMEN log or --bag")
+    return read_carmen(args.log)
+
+
+def run(args: argparse.Namespace, log=None) -> dict:
+    """The protocol of the module docstring on ``log`` (default: :func:`load_log`)."""
     t_wall = time.perf_counter()
-    log = read_carmen(args.log)
+    log = load_log(args) if log is None else log
     scans = log.scans[: args.max_scans] if args.max_scans else log.scans
     if len(scans) < 6:
         raise ValidationError(f"need at least 6 scans, got {len(scans)}")
@@ -168,12 +185,14 @@ def run(args: argparse.Namespace) -> dict:
     )
     mcl.predict(times[k0], odom[k0])
     mcl.initialize_gaussian(poses[k0], P0, t=times[k0])
-    mcl_est = []
+    mcl_est, mcl_cov = [], []
     for k in range(k0, len(scans)):
         mcl.predict(times[k], odom[k])
         if k % 2 == 1:
             mcl.update(times[k], ranges[k])
-            mcl_est.append(mcl.estimate().mean)
+            e = mcl.estimate()
+            mcl_est.append(e.mean)
+            mcl_cov.append(e.cov)
     mcl_est = np.array(mcl_est)
     t_mcl = time.perf_counter() - t0
 
@@ -183,7 +202,7 @@ def run(args: argparse.Namespace) -> dict:
                                     tolerance=1e-4, max_iterations=40)
     ekf = OdometryEKF(poses[k0], P0, k_d=1.5 * k_s, k_theta=1.5 * k_r, k_dtheta=1.5 * k_rd,
                       s_d=0.01, s_theta=0.005, gate=16.3)
-    sm_est = []
+    sm_est, sm_cov = [], []
     icp_fail = 0
     for k in range(k0, len(scans)):
         if k > k0:
@@ -202,6 +221,7 @@ def run(args: argparse.Namespace) -> dict:
             else:
                 icp_fail += 1
         sm_est.append(ekf.x)
+        sm_cov.append(ekf.P.copy())
     sm_est = np.array(sm_est)
     t_sm = time.perf_counter() - t0
 
@@ -219,9 +239,43 @@ def run(args: argparse.Namespace) -> dict:
                           "ms_per_scan": 1e3 * t_sm / loc_idx.size, "icp_failures": icp_fail,
                           "gated_out": ekf.rejected},
         "seed": args.seed,
+        # per localized scan (lists, for --json): time (s), truth and each localizer's pose
+        # (x m, y m, theta rad) with its 3x3 covariance
+        "series": {"t": times[loc_idx].tolist(), "truth": truth.tolist(), "odometry": odom[loc_idx].tolist(),
+                   "mcl": {"mean": np.asarray(mcl_est).tolist(), "cov": np.asarray(mcl_cov).tolist()},
+                   "scan_matching": {"mean": sm_est.tolist(), "cov": np.asarray(sm_cov).tolist()}},
     }
     out["runtime_s"] = time.perf_counter() - t_wall
+    out["_plot"] = {"grid": grid, "map_poses": poses[map_idx]}   # for the figures; not written to JSON
     return out
+
+
+def figures(res: dict, grid, out: Path) -> list[Path]:
+    """``out/carmen_topdown.png`` (the map built from the even scans, the true path of the
+    localized scans, each localizer's estimate with 3-sigma ellipses, the drifting
+    odometry) and ``out/carmen_errors.png`` (X and Y errors of both localizers with their
+    own ±3σ)."""
+    from dfusion.viz.plots import plot_track_errors
+    from dfusion.viz.topdown import Scene, Track, draw_scene
+
+    ser = res["series"]
+    t = np.asarray(ser["t"])
+    truth = np.asarray(ser["truth"])[:, :2]
+    mcl = Track("MCL (likelihood field)", t, np.asarray(ser["mcl"]["mean"])[:, :2],
+                np.asarray(ser["mcl"]["cov"])[:, :2, :2], "tab:blue")
+    sm = Track("ICP + odometry EKF", t, np.asarray(ser["scan_matching"]["mean"])[:, :2],
+               np.asarray(ser["scan_matching"]["cov"])[:, :2, :2], "tab:orange")
+    odo = Track("odometry (dead reckoning)", t, np.asarray(ser["odometry"])[:, :2], None, "0.45", style=":")
+    scene = Scene(title=f"CARMEN {Path(res['log']).name}: {res['localized_scans']} scans localized in a map of "
+                        f"{res['map_scans']} others",
+                  truth={"robot (corrected poses)": (t, truth)}, tracks=[mcl, sm, odo], grid=grid,
+                  note=f"RMSE: MCL {res['mcl']['rmse']:.3f} m, ICP + EKF {res['scan_matching']['rmse']:.3f} m, "
+                       f"odometry {res['odometry']['rmse']:.2f} m")
+    out.mkdir(parents=True, exist_ok=True)
+    a = draw_scene(scene, out / "carmen_topdown.png")
+    b = plot_track_errors(t, truth, [mcl, sm], out / "carmen_errors.png",
+                          title=f"CARMEN {Path(res['log']).name}: position error of each localizer with its own ±3σ")
+    return [a, b]
 
 
 def print_table(res: dict) -> None:
@@ -240,23 +294,33 @@ def print_table(res: dict) -> None:
     print(f"ICP failures {sm['icp_failures']}, gated out {sm['gated_out']}; run time {res['runtime_s']:.1f} s")
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("log", type=Path, help="CARMEN log (plain or .gz) with corrected poses")
-    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("log", type=Path, nargs="?", default=None, help="CARMEN log (plain or .gz) with corrected poses")
+    ap.add_argument("--bag", type=Path, default=None, help="read scans, scan poses and odometry from this ROS bag")
+    ap.add_argument("--json", type=Path, default=None, help="write the results and the per-scan series as JSON")
+    ap.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                    help="write the top-down figure and the error plot (PNG) into DIR")
     ap.add_argument("--max-scans", type=int, default=None, help="use only the first N scans")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--resolution", type=float, default=0.05, help="map cell size (m)")
     ap.add_argument("--map-range", type=float, default=30.0, help="readings below this are hits when mapping (m)")
     ap.add_argument("--laser-range", type=float, default=30.0, help="readings at or above this are ignored (m)")
     ap.add_argument("--odom-noise", type=float, default=1.0, help="scale of the simulated odometry noise")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
         res = run(args)
     except (DfusionError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print_table(res)
+    plot = res.pop("_plot")
+    if args.plot:
+        print("wrote " + ", ".join(str(p) for p in figures(res, plot["grid"], args.plot)))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(res, indent=2))

@@ -3,7 +3,8 @@ r"""Decentralized tracking of robot 1 by robots 2-5 on the UTIAS MRCLAM dataset.
 
 Usage::
 
-    python examples/mrclam_tracking.py DATASET_DIR [--duration S] [--json OUT]
+    python examples/mrclam_tracking.py DATASET_DIR [--duration S] [--json OUT] [--plot DIR]
+    python examples/mrclam_tracking.py DATASET_DIR --bag BAG ...    (the robots' data from a ROS bag)
 
 ``DATASET_DIR`` is an MRCLAM dataset directory (e.g. ``DATA/mrclam/dataset6``, the
 folder ``MRCLAM_Dataset6``, see ``tests/data/mrclam/README.md`` for where to get it; or
@@ -51,6 +52,11 @@ zero velocity with 0.1 m/s (``cv``): the same knowledge of
 the start as the dead-reckoning baseline, which integrates robot 1's own odometry from
 its true initial pose.
 
+With ``--bag BAG`` the robots' odometry, sightings and ground truth come from a ROS 1 or
+ROS 2 bag (topics ``/robot<n>/odom``, ``/robot<n>/sightings``, ``/robot<n>/ground_truth``,
+:func:`dfusion.bags.mrclam_from_bag`, ``docs/ros.md``); ``DATASET_DIR`` then only gives
+the landmark map (``Landmark_Groundtruth.dat``).
+
 References:
 
 * ``centralized``: one EKF over the joint state (robot 1's state, pose or constant velocity, and
@@ -84,7 +90,7 @@ from pathlib import Path
 import numpy as np
 
 
-from dfusion.datasets import integrate_odometry, mean_velocities, read_mrclam  # noqa: E402
+from dfusion.datasets import integrate_odometry, mean_velocities, read_landmarks, read_mrclam  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402
 from dfusion.fusion import FusionNode  # noqa: E402
 from dfusion.localization import LandmarkEKF
@@ -207,9 +213,19 @@ def rmse(err: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.atleast_2d(err) ** 2, axis=-1)))) if len(err) else float("nan")
 
 
-def run(args: argparse.Namespace) -> dict:
+def load_dataset(args: argparse.Namespace):
+    """The dataset directory, or the bag ``args.bag`` with the directory's landmark map."""
+    if getattr(args, "bag", None):
+        from dfusion.bags import mrclam_from_bag
+
+        return mrclam_from_bag(args.bag, read_landmarks(args.dataset)[1], duration=args.duration)
+    return read_mrclam(args.dataset, duration=args.duration)
+
+
+def run(args: argparse.Namespace, ds=None) -> dict:
+    """Track the target on ``ds`` (default: :func:`load_dataset`); see the module docstring."""
     t_wall = time.perf_counter()
-    ds = read_mrclam(args.dataset, duration=args.duration)
+    ds = load_dataset(args) if ds is None else ds
     target = args.target
     observers = list(args.observers)
     if target in observers or target not in ds.robots or any(o not in ds.robots for o in observers):
@@ -277,6 +293,8 @@ def run(args: argparse.Namespace) -> dict:
     R0 = np.diag([args.range_std**2, args.bearing_std**2])
     counts = {o: {"landmarks": 0, "landmarks_rejected": 0, "target": 0, "target_rejected": 0} for o in observers}
     rec_nodes = {o: np.empty((eval_t.size, 2)) for o in observers}
+    rec_cov = {o: np.empty((eval_t.size, 2, 2)) for o in observers}
+    rec_loc_cov = {o: np.empty((eval_t.size, 3, 3)) for o in observers}
     rec_loc = {o: np.empty((eval_t.size, 3)) for o in observers}
     rec_joint = np.empty((eval_t.size, 2))
     rec_ct = np.empty((eval_t.size, 2))
@@ -352,9 +370,11 @@ def run(args: argparse.Namespace) -> dict:
         for o in observers:
             node = nodes[o]
             advance(node, tg, k)
-            rec_nodes[o][ke] = node.estimate(tg)[0][:2]
+            m_, P_ = node.estimate(tg)
+            rec_nodes[o][ke], rec_cov[o][ke] = m_[:2], P_[:2, :2]
             ekfs[o].predict(tg)
             rec_loc[o][ke] = ekfs[o].x
+            rec_loc_cov[o][ke] = ekfs[o].P
         joint.predict_to(tg)
         rec_joint[ke] = joint.x[:2]
         advance(central_trk, tg, k)
@@ -402,10 +422,65 @@ def run(args: argparse.Namespace) -> dict:
         dr = integrate_odometry(rl.odom_t, rl.odom, rl.truth_at(0.0), 0.0, eval_t)
         out["dead_reckoning"][str(r)] = {"rmse": rmse(dr[:, :2] - rl.truth_at(eval_t)[:, :2])}
     out["runtime_s"] = time.perf_counter() - t_wall
-    if getattr(args, "series", False):
-        out["series"] = {"t": eval_t, "truth": truth1, "nodes": rec_nodes, "centralized": rec_joint,
-                         "centralized_tracking": rec_ct}
+    dr1 = integrate_odometry(tr.odom_t, tr.odom, tr.truth_at(0.0), 0.0, eval_t)
+    # per evaluation point (lists, for --json): time (s); robot 1's true position, each node's
+    # estimate (m) with its 2x2 covariance (m^2); each observer's own pose (x, y m, theta rad),
+    # its landmark EKF estimate and covariance; the references
+    out["series"] = {
+        "t": eval_t.tolist(), "truth": truth1.tolist(),
+        "nodes": {str(o): {"mean": rec_nodes[o].tolist(), "cov": rec_cov[o].tolist()} for o in observers},
+        "observers": {str(o): {"truth": ds.robots[o].truth_at(eval_t).tolist(), "mean": rec_loc[o].tolist(),
+                               "cov": rec_loc_cov[o].tolist()} for o in observers},
+        "centralized": rec_joint.tolist(), "centralized_tracking": rec_ct.tolist(),
+        "dead_reckoning": dr1[:, :2].tolist(),
+    }
+    out["landmarks"] = {str(k): [float(v) for v in xy] for k, xy in landmarks.items()}
     return out
+
+
+def figures(res: dict, out: Path) -> list[Path]:
+    """``out/mrclam_topdown.png`` (the robots, the landmarks, robot 1's path and every node's
+    estimate of it with 3-sigma ellipses, the chain) and ``out/mrclam_errors.png`` (each
+    node's X and Y error of robot 1 against the centralized joint EKF's)."""
+    from dfusion.viz.plots import plot_track_errors
+    from dfusion.viz.topdown import Scene, Track, draw_scene
+
+    ser = res["series"]
+    t = np.asarray(ser["t"])
+    truth = np.asarray(ser["truth"])
+    tgt = res["target"]
+    colors = ["tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:cyan"]
+    names = {o: f"robot{o}" for o in ser["nodes"]}
+    node_colors = {names[o]: colors[i % len(colors)] for i, o in enumerate(ser["nodes"])}
+    node_colors[f"robot{tgt}"] = "tab:green"
+    tracks = [Track(names[o], t, np.asarray(v["mean"]), np.asarray(v["cov"]), node_colors[names[o]])
+              for o, v in ser["nodes"].items()]
+    joint = Track("centralized (joint EKF)", t, np.asarray(ser["centralized"]), None, "k", style="--", width=0.8)
+    dr = Track(f"robot {tgt} dead reckoning", t, np.asarray(ser["dead_reckoning"]), None, "0.45", style=":",
+               width=1.0)
+    lm = res["landmarks"]
+    scene = Scene(
+        title=f"MRCLAM {Path(res['dataset']).name}: robot {tgt} tracked by robots {res['observers']} "
+              f"({res['span'][0]:.0f}-{res['span'][1]:.0f} s)",
+        truth={f"robot {tgt} (target)": (t, truth),
+               **{f"robot {o} (observer)": (t, np.asarray(v["truth"])[:, :2]) for o, v in ser["observers"].items()}},
+        tracks=[*tracks, joint, dr],
+        points={"landmarks (surveyed, numbered)": (np.array(list(lm.values())), "*", "gold")},
+        labels=[(xy, k) for k, xy in lm.items()],
+        tree=([f"robot{o}" for o in res["observers"]], [tuple(e) for e in res["tree"]]),
+        node_colors=node_colors,
+        truth_colors={f"robot {o} (observer)": node_colors[names[o]] for o in ser["observers"]},
+        note="RMSE of robot 1's position: " + ", ".join(f"robot{o} {v['rmse']:.2f} m" for o, v in res["nodes"].items())
+             + f"; joint EKF {res['centralized']['rmse']:.2f} m, dead reckoning "
+             f"{res['dead_reckoning'][str(tgt)]['rmse']:.2f} m",
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    scene.note += "\n(the nodes' estimates nearly coincide: their rings overlap; dashed paths: the observers)"
+    a = draw_scene(scene, out / "mrclam_topdown.png")
+    b = plot_track_errors(t, truth, tracks, out / "mrclam_errors.png", reference=joint,
+                          title=f"MRCLAM: each node's error of robot {tgt}'s position (coloured, with its ±3σ) "
+                                f"against the centralized joint EKF's (black)")
+    return [a, b]
 
 
 def print_tables(res: dict) -> None:
@@ -429,11 +504,14 @@ def print_tables(res: dict) -> None:
     print(f"\nrun time {res['runtime_s']:.1f} s")
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset", type=Path, help="MRCLAM dataset directory")
+    ap.add_argument("dataset", type=Path, help="MRCLAM dataset directory (with --bag: only its landmark map)")
+    ap.add_argument("--bag", type=Path, default=None, help="read the robots' data from this ROS 1 / ROS 2 bag")
     ap.add_argument("--duration", type=float, default=None, help="use the first S seconds")
-    ap.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    ap.add_argument("--json", type=Path, default=None, help="write the results (and the per-step series) as JSON")
+    ap.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                    help="write the top-down figure and the error plot (PNG) into DIR")
     ap.add_argument("--target", type=int, default=1)
     ap.add_argument("--observers", type=int, nargs="+", default=[2, 3, 4, 5], help="tree order: a chain")
     ap.add_argument("--seed", type=int, default=0, help="network seed")
@@ -442,13 +520,19 @@ def main(argv: list[str] | None = None) -> int:
                          "correct it; cv: constant velocity from the observations only")
     for k, v in DEFAULTS.items():
         ap.add_argument("--" + k.replace("_", "-"), type=float, default=v)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
         res = run(args)
     except (DfusionError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print_tables(res)
+    if args.plot:
+        print("wrote " + ", ".join(str(p) for p in figures(res, args.plot)))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(res, indent=2))

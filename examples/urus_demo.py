@@ -15,8 +15,13 @@ gap to the centralized EKF, traffic) and a few demo figures, and writes
 * ``DIR/urus_figure33.png`` (or ``--plot``): the Figure-33-style plot of one
   camera node (``--node``, default ``cam_left``) against the centralized EKF;
 * ``DIR/urus_nodes.png``: every node's error with 3-sigma bands
-  (:func:`dfusion.plots.plot_result`);
-* ``DIR/urus.json`` (or ``--json``): the metrics.
+  (:func:`dfusion.viz.plot_result`);
+* ``DIR/urus_topdown.png``: the square seen from above: the person's path, every
+  node's estimate with 3-sigma ellipses, the cameras' footprints, the receivers, the
+  tree with its outage (:func:`dfusion.viz.plot_topdown`);
+* ``DIR/urus.mcap``: the run as an MCAP recording to open in Foxglove (``docs/ros.md``);
+* ``DIR/urus_series.csv``: the per-step series (truth, estimates, variances, NEES, gaps);
+* ``DIR/urus.json`` (or ``--json``): the metrics and the per-step series.
 
 By default every node runs as its own OS process over Zenoh (``dfusion run``,
 at ``--speed`` times real time, link outages emulated) when this dfusion has
@@ -136,17 +141,22 @@ def main(argv: list[str] | None = None) -> int:
         print(line)
     print(f"mode: {mode}" + (f" (speed x{args.speed:g})" if mode == "processes" else "") + f", wall time {wall:.1f} s")
 
-    from dfusion.plots import plot_figure33, plot_result
+    from dfusion.sim.runner import series_of, write_series_csv
+    from dfusion.viz import plot_figure33, plot_result, plot_topdown, record_mcap
 
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     json_path = args.json or out / "urus.json"
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    metrics = dict(result.metrics, demo={"mode": mode, "wall_time_s": wall})
+    metrics = dict(result.metrics, demo={"mode": mode, "wall_time_s": wall}, series=series_of(result))
     json_path.write_text(json.dumps(metrics, indent=2, sort_keys=True, default=float))
     fig = plot_figure33(result, args.node, args.plot or out / "urus_figure33.png")
     nodes_png = plot_result(result, out / "urus_nodes.png")
-    print(f"wrote {json_path}, {fig}, {nodes_png}")
+    top_png = plot_topdown(result, out / "urus_topdown.png")
+    mcap_path = record_mcap(result, out / "urus.mcap")
+    csv_path = out / "urus_series.csv"
+    write_series_csv(result, csv_path)
+    print(f"wrote {json_path}, {fig}, {nodes_png}, {top_png}, {csv_path}, {mcap_path} (open it in Foxglove)")
     return 0
 
 

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.datasets.ble_rssi import BLERSSIDataset, Receiver, Track, find_dataset_root, read_devices, read_track
     from dfusion.datasets.carmen import CarmenLog, LaserScan, beam_angles, read_carmen
-    from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog, integrate_odometry, interpolate_poses, mean_velocities, read_mrclam
+    from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog, integrate_odometry, interpolate_poses, mean_velocities, read_landmarks, read_mrclam
 
 __all__ = [
     "BLERSSIDataset",
@@ -23,6 +23,7 @@ __all__ = [
     "RobotLog",
     "MRCLAMDataset",
     "read_mrclam",
+    "read_landmarks",
     "integrate_odometry",
     "interpolate_poses",
     "mean_velocities",
@@ -30,6 +31,7 @@ __all__ = [
 ]
 
 _WHERE = {
+    "read_landmarks": ("dfusion.datasets.mrclam", "read_landmarks"),
     "BLERSSIDataset": ("dfusion.datasets.ble_rssi", 'BLERSSIDataset'),
     "Receiver": ("dfusion.datasets.ble_rssi", 'Receiver'),
     "Track": ("dfusion.datasets.ble_rssi", 'Track'),

@@ -53,6 +53,7 @@ __all__ = [
     "RobotLog",
     "MRCLAMDataset",
     "read_mrclam",
+    "read_landmarks",
     "integrate_odometry",
     "interpolate_poses",
     "mean_velocities",
@@ -168,6 +169,18 @@ def _sorted(t: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
     return [t[k], *(a[k] for a in arrays)]
 
 
+def read_landmarks(root: str | Path) -> tuple[dict[int, int], dict[int, np.ndarray]]:
+    """``Barcodes.dat`` (barcode -> subject) and ``Landmark_Groundtruth.dat`` (landmark
+    subject -> ``(x, y)``) of a dataset directory: the map knowledge a recording of the
+    robots' own sensors (a bag, :func:`dfusion.bags.mrclam_from_bag`) does not hold."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ValidationError(f"{root}: not a directory")
+    bc = _load(_find(root, "Barcodes.dat"), 2)
+    lm = _load(_find(root, "Landmark_Groundtruth.dat"), 3)
+    return {int(b): int(s) for s, b in bc}, {int(s): np.array([x, y]) for s, x, y in lm}
+
+
 def read_mrclam(
     root: str | Path,
     robots: tuple[int, ...] = ROBOTS,
@@ -184,12 +197,7 @@ def read_mrclam(
     duration : keep only rows with a relative time ``<= duration`` (seconds after ``t0``)
     """
     root = Path(root)
-    if not root.is_dir():
-        raise ValidationError(f"{root}: not a directory")
-    bc = _load(_find(root, "Barcodes.dat"), 2)
-    barcodes = {int(b): int(s) for s, b in bc}
-    lm = _load(_find(root, "Landmark_Groundtruth.dat"), 3)
-    landmarks = {int(s): np.array([x, y]) for s, x, y in lm}
+    barcodes, landmarks = read_landmarks(root)
     raw: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for n in robots:
         if n not in ROBOTS:

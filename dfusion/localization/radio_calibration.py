@@ -397,12 +397,13 @@ def weighted_centroid(track: Track, receiver_positions: Array, window: float = 2
     return num / den[:, None]
 
 
-def run_tracker(track: Track, tracker, initialize: bool = True) -> Array:
+def run_tracker(track: Track, tracker, initialize: bool = True, cov_out: Array | None = None) -> Array:
     """Run a :class:`dfusion.localization.WSNTracker` over a track packet by packet.
 
     For each row: predict to its time, update with that row's single reading, record the
     weighted-mean position. The tracker starts at the first row's time (initialized
-    here, uniformly over its map, unless ``initialize=False``). Returns ``(K, 2)``.
+    here, uniformly over its map, unless ``initialize=False``). Returns ``(K, 2)``;
+    ``cov_out`` (a ``(K, 2, 2)`` array), when given, receives each row's covariance.
     """
     if initialize:
         tracker.initialize(t=float(track.t[0]))
@@ -413,7 +414,10 @@ def run_tracker(track: Track, tracker, initialize: bool = True) -> Array:
         t = float(track.t[k])
         tracker.predict(t)
         tracker.update(t, track.rssi[k:k + 1], track.receiver[k:k + 1])
-        est[k] = tracker.estimate().mean
+        e = tracker.estimate()
+        est[k] = e.mean
+        if cov_out is not None:
+            cov_out[k] = np.asarray(e.cov)[:2, :2]
     return est
 
 

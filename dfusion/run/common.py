@@ -1,16 +1,21 @@
 """What the node processes, the monitor and the launcher share.
 
 * the network key (HMAC of fusion and monitor messages): ``--network-key-file``
-  or the environment (:data:`ENV_KEY_FILE`, :data:`ENV_KEY`);
+  or the environment (:data:`ENV_KEY_FILE`, :data:`ENV_KEY`); a fresh random one
+  per run (:func:`generate_network_key`, a file of mode 0600);
+* the security options of a run from the command line (:func:`add_tls_arguments`;
+  a scenario's ``[security]`` table is :mod:`dfusion.scenario.security`);
 * the monitor message (msgpack; authenticated like fusion messages when a key is set);
 * the number of rounds of the final phase.
 """
 from __future__ import annotations
 
+import argparse
 import hashlib
 import hmac
 import logging
 import os
+import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +24,7 @@ import msgpack
 import numpy as np
 
 from dfusion.errors import MessageError, ValidationError
+from dfusion.scenario.security import SecurityOptions
 from dfusion.scenario.spec import Scenario
 from dfusion.topology import settling_rounds
 
@@ -55,6 +61,53 @@ def load_network_key(path: str | Path | None = None) -> bytes | None:
     if len(key) < 16:
         log.warning("the network key from %s has only %d bytes: use at least 16 random bytes", source, len(key))
     return key
+
+
+def write_secret(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to a new file of mode 0600 (created so: never readable by others, even briefly)."""
+    path = Path(path)
+    path.unlink(missing_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+    return path
+
+
+def generate_network_key(path: str | Path) -> bytes:
+    """A fresh random network key (32 bytes from :func:`secrets.token_bytes`, written as 64 hex
+    characters) in a new file of mode 0600; returns the key as :func:`load_network_key` reads it."""
+    key = secrets.token_bytes(32).hex().encode()
+    write_secret(path, key + b"\n")
+    return key
+
+
+def new_run_id() -> str:
+    """A random identifier of one run (16 hex characters)."""
+    return secrets.token_hex(8)
+
+
+
+
+
+
+
+
+def add_tls_arguments(parser: argparse.ArgumentParser, *, directory: bool = True) -> None:
+    """``--tls-ca``, ``--tls-cert``, ``--tls-key`` (and ``--tls-dir``) on a command line."""
+    g = parser.add_argument_group("mutual TLS (every endpoint tls/..., every peer needs a certificate of the CA)")
+    if directory:
+        g.add_argument("--tls-dir", default=None, metavar="DIR",
+                       help="certificates made by python -m dfusion.run.certs: DIR/ca.pem, DIR/NAME.pem and .key "
+                            "(else DIR/node.pem and .key)")
+    g.add_argument("--tls-ca", default=None, metavar="PEM", help="the CA certificate every peer must be signed by")
+    g.add_argument("--tls-cert", default=None, metavar="PEM", help="this process's certificate")
+    g.add_argument("--tls-key", default=None, metavar="PEM", help="this process's private key")
+
+
+def security_from_args(args: argparse.Namespace) -> SecurityOptions:
+    """The :class:`SecurityOptions` of parsed :func:`add_tls_arguments` (and ``--network-key-file``)."""
+    return SecurityOptions(getattr(args, "network_key_file", None), getattr(args, "tls_dir", None),
+                           args.tls_ca, args.tls_cert, args.tls_key)
 
 
 def final_rounds(sc: Scenario) -> int:

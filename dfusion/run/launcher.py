@@ -2,29 +2,43 @@
 
 The launcher
 
-1. picks a free loopback port per node and a fresh network name, so that
-   concurrent runs never see each other;
-2. opens the :class:`~dfusion.run.monitor.Monitor` (connected to every node);
-3. starts one ``python -m dfusion.run.node_process`` per node with
-   ``subprocess.Popen(start_new_session=True)``: each node is the leader of its
-   own process group, so the launcher can signal the whole group; each node also
-   stops by itself when the launcher is no longer its parent (``--parent-pid``);
+1. takes the run directory's lock (``RUN_DIR/launcher.lock``: its liveliness, see
+   :mod:`dfusion.run.supervision`), picks a free loopback port per node, a fresh
+   network name and a random run identifier, so that concurrent runs never see
+   each other, and a network key: the one given (``--network-key-file``, the
+   scenario's ``[security]`` table or the environment) or a fresh random one, in
+   ``RUN_DIR/network.key`` (mode 0600; never on a command line);
+2. opens the :class:`~dfusion.run.monitor.Monitor` (connected to every node;
+   over mutual TLS when TLS is on);
+3. starts one ``python -m dfusion.run.node_process --run-dir RUN_DIR ...`` per node
+   with ``subprocess.Popen(start_new_session=True)``: each node is the leader of its
+   own process group, so the launcher can signal the whole group. The command line
+   of each node is written to ``RUN_DIR/commands/NAME.sh``: run by hand, it restarts
+   that node into the running run;
 4. waits until every node reported ``ready`` (its neighbours are up), then
    writes the common start time to ``RUN_DIR/start`` (scenario time 0 is that
    UNIX time, on every node);
-5. follows the run (progress bar on stderr when it is a terminal), kills and
-   restarts nodes as asked (``--restart NAME@T[+D]``), and waits for every node
-   to exit after its final phase;
+5. follows the run (progress bar on stderr when it is a terminal): restarts a
+   node process that exits before its final estimate, after a backoff, at most
+   ``max_restarts`` times per node (:class:`~dfusion.run.supervision.RestartPolicy`;
+   ``--no-supervise`` turns it off); follows a node restarted by hand instead;
+   kills and restarts nodes as asked (``--restart NAME@T[+D]``); and waits for
+   every node to exit after its final phase;
 6. builds the result from the nodes' final estimates (``RUN_DIR/results``) and
-   the monitor's records (:func:`~dfusion.run.monitor.build_result`).
+   the monitor's records (:func:`~dfusion.run.monitor.build_result`), with the
+   restarts and their reasons in ``run.supervision``.
 
 On SIGTERM or SIGINT (or any error) every node group gets SIGTERM, then SIGKILL
-after :data:`TERM_GRACE` seconds: nothing is left behind within 2 s.
+after :data:`TERM_GRACE` seconds: nothing is left behind within 2 s. If the
+launcher itself is killed (SIGKILL), every node stops by itself: the kernel
+sends it SIGTERM (parent-death signal) and its lock watch sees the launcher's
+lock free.
 
 ``RUN_DIR`` (``--run-dir``, default a temporary directory removed after a
 successful run) holds ``logs/NAME.log`` (every incarnation's output),
-``state/`` (the measurement logs), ``results/NAME.json``, ``pids.json`` and
-``start``.
+``state/`` (the measurement logs), ``results/NAME.json``, ``commands/NAME.sh``,
+``locks/`` (one per node, held while it runs), ``launcher.lock``,
+``network.key``, ``run.json``, ``pids.json`` and ``start``.
 """
 from __future__ import annotations
 
@@ -32,6 +46,7 @@ import json
 import logging
 import math
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -41,10 +56,34 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from dfusion.errors import DfusionError
-from dfusion.run.common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
+from dfusion.run.common import (
+    ENV_KEY,
+    ENV_KEY_FILE,
+    ROUND_TIMEOUT,
+    Status,
+    final_rounds,
+    generate_network_key,
+    load_network_key,
+    new_run_id,
+    write_secret,
+)
+from dfusion.run.links import describe as describe_links
+from dfusion.scenario.security import SecurityOptions, security_options
 from dfusion.run.monitor import Monitor, build_result
+from dfusion.run.supervision import (
+    EXIT_ALREADY_RUNNING,
+    LAUNCHER_LOCK,
+    FileLock,
+    RestartPolicy,
+    child_command,
+    exit_reason,
+    lock_holder,
+    node_lock_path,
+    pid_running,
+)
 from dfusion.scenario.loader import load_scenario
 from dfusion.transport.zenoh import ZenohConfig, check_name, free_tcp_endpoints
 
@@ -56,6 +95,8 @@ TERM_GRACE = 1.2
 START_MARGIN = 0.3
 #: Launcher loop period (seconds).
 TICK = 0.02
+#: Seconds after the start, or after one was used, before a (new) warm standby process is started.
+STANDBY_DELAY = 1.0
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -84,7 +125,12 @@ class Restart:
 
 @dataclass
 class RunOptions:
-    """Options of :func:`run_processes` (the ``dfusion run`` flags)."""
+    """Options of :func:`run_processes` (the ``dfusion run`` flags).
+
+    ``security`` (command line) takes precedence over the scenario's ``[security]``
+    table; ``network_key_file`` over both. ``emulate_links`` (default on) applies
+    the scenario's links at the senders (:mod:`dfusion.run.links`).
+    """
 
     scenario: str
     seed: int | None = None
@@ -95,7 +141,7 @@ class RunOptions:
     network: str | None = None
     network_key_file: str | None = None
     restarts: list[Restart] = field(default_factory=list)
-    emulate_links: bool = False
+    emulate_links: bool = True
     round_timeout: float = ROUND_TIMEOUT
     progress: bool = False
     startup_timeout: float = 60.0
@@ -103,6 +149,12 @@ class RunOptions:
     python: str = sys.executable
     node_args: list[str] = field(default_factory=list)
     plugins: list[str] = field(default_factory=list)
+    security: SecurityOptions = field(default_factory=SecurityOptions)
+    supervision: RestartPolicy = field(default_factory=RestartPolicy)
+    #: Restart nodes from a warm standby process (imports done: about 0.1-0.3 s instead of 1-4 s).
+    warm_restarts: bool = True
+    #: Serve the nodes' estimates live to Foxglove on this WebSocket port (needs ``dfusion[live]``).
+    foxglove: int | None = None
 
 
 @dataclass
@@ -113,10 +165,18 @@ class _Proc:
     incarnations: int = 0
     killed_by_us: bool = False
     exit_codes: list[int] = field(default_factory=list)
+    started: float = 0.0                 # monotonic time of the last spawn
+    restarts: int = 0                    # unplanned exits followed by a restart
+    in_a_row: int = 0                    # quick failures in a row (backoff)
+    restart_at: float | None = None      # monotonic time of a planned supervision restart
+    gave_up: bool = False
+    external: int | None = None          # pid of an incarnation started by hand, while it runs
+    by_hand: int = 0                     # incarnations started by hand that the launcher followed
+    waiting_back: dict | None = None     # the supervision event waiting for the new incarnation's first step
 
 
 class Launcher:
-    """Starts, follows and stops the node processes of one run (see the module docstring)."""
+    """Starts, follows, restarts and stops the node processes of one run (see the module docstring)."""
 
     def __init__(self, opts: RunOptions) -> None:
         if not (opts.speed > 0 and math.isfinite(opts.speed)):
@@ -129,18 +189,22 @@ class Launcher:
         for r in opts.restarts:
             if r.node not in self.sc.nodes:
                 raise DfusionError(f"--restart: {r.node!r} is not a node of {self.sc.path}")
-        self.key = load_network_key(opts.network_key_file)
-        self.network = opts.network or f"run{os.getpid()}x{int(time.time() * 1000) % 10**8}"
+        self.security = opts.security.over(scenario_security(self.sc))
+        self.policy = opts.supervision
+        self.run_id = new_run_id()
+        self.network = opts.network or f"run{os.getpid()}x{self.run_id[:8]}"
         check_name(self.network, "network name")
         self._tmp = opts.run_dir is None
-        self.run_dir = Path(opts.run_dir or tempfile.mkdtemp(prefix="dfusion-run-"))
-        for sub in ("logs", "state", "results"):
-            (self.run_dir / sub).mkdir(parents=True, exist_ok=True)
-        for stale in [self.run_dir / "start", *self.run_dir.joinpath("results").glob("*.json")]:
-            stale.unlink(missing_ok=True)
+        self.run_dir = Path(opts.run_dir or tempfile.mkdtemp(prefix="dfusion-run-")).resolve()
+        self.key_file, self.key_source = self._key_file()
+        self.key: bytes | None = None
+        self.tls = self.security.tls_files("launcher")   # checks the launcher's files now
+        for name in self.sc.nodes:
+            self.security.tls_files(name)                 # and every node's
         self.rounds = final_rounds(self.sc)
         names = sorted(self.sc.nodes)
-        self.endpoints = dict(zip(names, free_tcp_endpoints(len(names))))
+        scheme = "tls" if self.tls is not None else "tcp"
+        self.endpoints = dict(zip(names, free_tcp_endpoints(len(names), scheme=scheme)))
         self.procs = {name: _Proc(name, self._command(name)) for name in names}
         self.monitor: Monitor | None = None
         self.start: float | None = None
@@ -148,15 +212,41 @@ class Launcher:
         self._pending = sorted(opts.restarts, key=lambda r: r.at)
         self._relaunch: list[tuple[float, str]] = []
         self.failures: list[str] = []
+        self.events: list[dict[str, Any]] = []
+        self._lock: FileLock | None = None
+        self.standby: subprocess.Popen | None = None
+        self._standby_due: float | None = None
+        #: Every process this launcher started (nodes and standbys), for the record and the tests.
+        self.spawned: list[int] = []
+
+    # ------------------------------------------------------------------ security
+    def _key_file(self) -> tuple[Path, str]:
+        """Where the nodes read the network key, and where it comes from."""
+        given = self.opts.network_key_file or self.security.network_key_file
+        if given:
+            return Path(given).resolve(), "given"
+        if os.environ.get(ENV_KEY_FILE):
+            return Path(os.environ[ENV_KEY_FILE]).resolve(), f"${ENV_KEY_FILE}"
+        if os.environ.get(ENV_KEY):
+            return self.run_dir / "network.key", f"${ENV_KEY}"
+        return self.run_dir / "network.key", "generated"
+
+    def _write_key(self) -> None:
+        if self.key_source == "generated":
+            self.key = generate_network_key(self.key_file)
+        elif self.key_source == f"${ENV_KEY}":
+            self.key = load_network_key(None)
+            write_secret(self.key_file, self.key + b"\n")
+        else:
+            self.key = load_network_key(self.key_file)
+        log.info("network key: %s (%s)", self.key_file, self.key_source)
 
     # ------------------------------------------------------------------ commands and processes
     def _command(self, name: str) -> list[str]:
         o, sc = self.opts, self.sc
-        cmd = [o.python, "-m", "dfusion.run.node_process", "--scenario", str(o.scenario), "--node", name,
-               "--network", self.network, "--listen", self.endpoints[name],
-               "--speed", repr(o.speed), "--start-file", str(self.run_dir / "start"),
-               "--state-dir", str(self.run_dir / "state"), "--run-id", self.network,
-               "--result", str(self.run_dir / "results" / f"{name}.json"), "--parent-pid", str(os.getpid()),
+        cmd = [o.python, "-m", "dfusion.run.node_process", "--scenario", str(Path(o.scenario).resolve()),
+               "--node", name, "--run-dir", str(self.run_dir), "--network", self.network, "--run-id", self.run_id,
+               "--listen", self.endpoints[name], "--speed", repr(o.speed), "--network-key-file", str(self.key_file),
                "--round-timeout", repr(o.round_timeout)]
         for nb in sorted(sc.graph.neighbors(name)):
             cmd += ["--connect", self.endpoints[nb]]
@@ -166,30 +256,89 @@ class Launcher:
             cmd += ["--fusion", o.fusion]
         if o.duration is not None:
             cmd += ["--duration", repr(o.duration)]
-        if o.network_key_file is not None:
-            cmd += ["--network-key-file", str(Path(o.network_key_file).resolve())]
         if o.emulate_links:
             cmd.append("--emulate-links")
+        tls = self.security.tls_files(name)
+        if tls is not None:
+            cmd += ["--tls-ca", str(Path(tls.ca).resolve()), "--tls-cert", str(Path(tls.cert).resolve()),
+                    "--tls-key", str(Path(tls.key).resolve())]
         for plugin in o.plugins:
             cmd += ["--plugin", _absolute_plugin(plugin)]
         return cmd + list(o.node_args)
 
-    def _spawn(self, name: str) -> None:
-        p = self.procs[name]
+    def _env(self) -> dict[str, str]:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-        with (self.run_dir / "logs" / f"{name}.log").open("ab") as out:
-            out.write(f"--- incarnation {p.incarnations + 1} ---\n".encode())
+        return env
+
+    def _write_commands(self) -> None:
+        """``RUN_DIR/commands/NAME.sh``: the command that (re)starts node NAME into this run."""
+        d = self.run_dir / "commands"
+        d.mkdir(exist_ok=True)
+        pypath = self._env()["PYTHONPATH"]
+        for name, p in self.procs.items():
+            (d / f"{name}.sh").write_text(
+                "#!/bin/sh\n"
+                f"# node {name} of run {self.run_id} (network {self.network}). Run this while dfusion run is\n"
+                "# running to restart the node by hand: it joins the run (it refuses to start when the node\n"
+                "# already runs or the launcher is gone).\n"
+                f"cd {shlex.quote(os.getcwd())} && PYTHONPATH={shlex.quote(pypath)} exec {shlex.join(p.cmd)}\n")
+
+    def _spawn(self, name: str) -> None:
+        p = self.procs[name]
+        log_path = self.run_dir / "logs" / f"{name}.log"
+        warm = self.standby is not None and self.standby.poll() is None
+        with log_path.open("ab") as out:
+            out.write(f"--- incarnation {p.incarnations + 1}{' (warm standby)' if warm else ''} ---\n".encode())
             out.flush()
-            p.popen = subprocess.Popen(p.cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                                       env=env, start_new_session=True, cwd=os.getcwd())
+            if warm:   # the standby becomes the node: same arguments, its imports already done
+                sb, self.standby = self.standby, None
+                try:
+                    sb.stdin.write((json.dumps({"argv": p.cmd[3:], "log": str(log_path)}) + "\n").encode())
+                    sb.stdin.close()
+                    p.popen = sb
+                except OSError:   # it died meanwhile: start cold
+                    warm = False
+                self._standby_due = time.monotonic() + STANDBY_DELAY
+            if not warm:
+                # close_fds (the default): the launcher's lock is not inherited, so it dies with the launcher
+                cmd = child_command(p.cmd[0], p.cmd[2], p.cmd[3:])   # p.cmd, with the parent-death signal first
+                p.popen = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                                           env=self._env(), start_new_session=True, cwd=os.getcwd())
+                self.spawned.append(p.popen.pid)
         p.incarnations += 1
         p.killed_by_us = False
-        log.info("node %s started (pid %d, incarnation %d)", name, p.popen.pid, p.incarnations)
+        p.started = time.monotonic()
+        log.info("node %s started (pid %d, incarnation %d%s)", name, p.popen.pid, p.incarnations,
+                 ", from the warm standby" if warm else "")
         self._write_pids()
+
+    def _keep_standby(self) -> None:
+        """Keep one warm standby process ready for the next restart (started when due)."""
+        if not (self.opts.warm_restarts and self.policy.enabled) or self._standby_due is None:
+            return
+        if self.standby is not None and self.standby.poll() is None:
+            return
+        if self.standby is not None:   # it died: reap it, start another later
+            log.warning("the warm standby process exited with status %s", self.standby.returncode)
+            self.standby = None
+            self._standby_due = time.monotonic() + STANDBY_DELAY
+        if time.monotonic() < self._standby_due:
+            return
+        with (self.run_dir / "logs" / "standby.log").open("ab") as out:
+            cmd = child_command(self.opts.python, "dfusion.run.node_process", ["--standby", str(self.run_dir)])
+            self.standby = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=out,
+                                            stderr=subprocess.STDOUT, env=self._env(), start_new_session=True,
+                                            cwd=os.getcwd())
+        self.spawned.append(self.standby.pid)
+        self._write_pids()
+        log.info("warm standby started (pid %d)", self.standby.pid)
 
     def _write_pids(self) -> None:
         pids = {n: p.popen.pid for n, p in self.procs.items() if p.popen is not None}
+        pids.update({n: p.external for n, p in self.procs.items() if p.external is not None})
+        if self.standby is not None:
+            pids["standby"] = self.standby.pid
         pids["launcher"] = os.getpid()
         tmp = self.run_dir / "pids.json.tmp"
         tmp.write_text(json.dumps(pids))
@@ -210,13 +359,32 @@ class Launcher:
             p.popen.wait()
             log.warning("node %s killed (SIGKILL) at scenario time %.2f", name, self.now())
 
+    def _external_pids(self) -> list[int]:
+        """Nodes started by hand that hold their lock now (not the launcher's children)."""
+        mine = {p.popen.pid for p in self.procs.values() if p.popen is not None}
+        out = []
+        for name in self.procs:
+            pid = lock_holder(node_lock_path(self.run_dir, name))
+            if pid is not None and pid > 0 and pid not in mine:
+                out.append(pid)
+        return out
+
     def terminate(self, grace: float = TERM_GRACE) -> None:
-        """SIGTERM every node group, SIGKILL what is left after ``grace`` seconds, reap everything."""
+        """SIGTERM every node group (and node started by hand), SIGKILL what is left after ``grace``
+        seconds, reap every child."""
+        if self.standby is not None:
+            self._signal_group(self.standby, signal.SIGKILL)   # it holds nothing: no need to be gentle
+            self.standby.wait()
+            self.standby = None
         live = [p.popen for p in self.procs.values() if p.popen is not None and p.popen.poll() is None]
         for pp in live:
             self._signal_group(pp, signal.SIGTERM)
+        external = self._external_pids() if self._lock is not None else []
+        for pid in external:
+            _signal(pid, signal.SIGTERM)
         deadline = time.monotonic() + grace
-        while any(pp.poll() is None for pp in live) and time.monotonic() < deadline:
+        while (any(pp.poll() is None for pp in live) or any(pid_running(pid) for pid in external)) \
+                and time.monotonic() < deadline:
             time.sleep(0.01)
         for pp in live:
             if pp.poll() is None:
@@ -226,6 +394,10 @@ class Launcher:
                 pp.wait(timeout=1.0)
             except subprocess.TimeoutExpired:
                 log.error("node pid %d did not die", pp.pid)
+        for pid in external:
+            if pid_running(pid):
+                log.warning("node pid %d (started by hand) ignored SIGTERM: killing it", pid)
+                _signal(pid, signal.SIGKILL)
 
     def request_stop(self, reason: str) -> None:
         """Ask :meth:`run` to stop (only sets a flag: safe in a signal handler)."""
@@ -242,6 +414,10 @@ class Launcher:
             return ""
         return "\n".join(text[-lines:])
 
+    def _finished(self, name: str) -> bool:
+        return (self.run_dir / "results" / f"{name}.json").exists()
+
+    # ------------------------------------------------------------------ supervision
     def _check_exits(self) -> None:
         for name, p in self.procs.items():
             if p.popen is None or p.popen.returncode is not None:
@@ -250,23 +426,123 @@ class Launcher:
             if rc is None:
                 continue
             p.exit_codes.append(rc)
-            if rc != 0 and not p.killed_by_us:
-                msg = f"node {name} exited with status {rc}"
-                self.failures.append(msg)
-                log.error("%s; its log ends with:\n%s", msg, self._log_tail(name))
+            finished = self._finished(name)
+            if p.killed_by_us or (rc == 0 and finished):
+                continue
+            if rc == EXIT_ALREADY_RUNNING:   # an incarnation started by hand holds the node's lock
+                log.warning("node %s: an incarnation started by hand runs: following it", name)
+                continue
+            reason = exit_reason(rc, finished)
+            if rc > 0:
+                log.error("node %s: %s; its log ends with:\n%s", name, reason, self._log_tail(name))
+            if self.start is None:   # before the run: a configuration error, restarting would not help
+                self.failures.append(f"node {name} {reason} before the start")
+                continue
+            self._plan_restart(p, reason)
+
+    def _plan_restart(self, p: _Proc, reason: str) -> None:
+        now = time.monotonic()
+        event: dict[str, Any] = {"node": p.name, "t": round(self.now(), 3), "reason": reason,
+                                 "restarted": False, "backoff_s": None, "back_after_s": None, "by_hand": False}
+        self.events.append(event)
+        pol = self.policy
+        if not pol.enabled or p.restarts >= pol.max_restarts:
+            why = "supervision is off" if not pol.enabled else f"restart limit {pol.max_restarts} reached"
+            p.gave_up = True
+            log.error("node %s %s at scenario time %.2f; not restarted (%s): restart it by hand with "
+                      "sh %s", p.name, reason, self.now(), why, self.run_dir / "commands" / f"{p.name}.sh")
+            event["given_up"] = why
+            p.waiting_back = event   # a restart by hand is still timed
+            event["_exit"] = now
+            event["_epochs"] = len(self.monitor.records[p.name].epochs) if self.monitor is not None else 0
+            return
+        p.in_a_row = 1 if now - p.started >= pol.stable else p.in_a_row + 1
+        delay = pol.delay(p.in_a_row)
+        p.restart_at = now + delay
+        event["backoff_s"] = round(delay, 3)
+        event["_exit"] = now
+        event["_epochs"] = len(self.monitor.records[p.name].epochs) if self.monitor is not None else 0
+        p.waiting_back = event
+        log.warning("node %s %s at scenario time %.2f: restarting it in %.2f s (restart %d of at most %d)",
+                    p.name, reason, self.now(), delay, p.restarts + 1, pol.max_restarts)
+
+    def _supervise(self) -> None:
+        """Planned restarts that are due; incarnations started by hand; the new incarnations' return."""
+        now = time.monotonic()
+        for name, p in self.procs.items():
+            child_running = p.popen is not None and p.popen.poll() is None
+            if not child_running:
+                holder = lock_holder(node_lock_path(self.run_dir, name))
+                ext = holder if holder is not None and holder > 0 else None
+                if ext is not None and ext != p.external:
+                    p.by_hand += 1
+                    p.restart_at = None
+                    log.warning("node %s: an incarnation started by hand runs (pid %d): following it", name, ext)
+                    if p.waiting_back is not None:
+                        p.waiting_back["by_hand"] = True
+                if ext != p.external:
+                    p.external = ext
+                    self._write_pids()
+            if p.restart_at is not None and now >= p.restart_at and p.external is None:
+                p.restart_at = None
+                p.restarts += 1
+                if p.waiting_back is not None:
+                    p.waiting_back["restarted"] = True
+                self._spawn(name)
+            ev = p.waiting_back
+            if ev is not None and self.monitor is not None:
+                rec = self.monitor.records[name]
+                if len(rec.epochs) > ev["_epochs"] and rec.phase in ("run", "final"):
+                    ev["back_after_s"] = round(now - ev["_exit"], 3)
+                    p.waiting_back = None
+                    log.warning("node %s is back %.2f s after it went (scenario time %.2f)", name,
+                                ev["back_after_s"], self.now())
+
+    def _running(self) -> list[str]:
+        return [n for n, p in self.procs.items()
+                if (p.popen is not None and p.popen.poll() is None) or p.external is not None
+                or p.restart_at is not None]
 
     # ------------------------------------------------------------------ the run
+    def _prepare_run_dir(self) -> None:
+        for sub in ("logs", "state", "results", "locks"):
+            (self.run_dir / sub).mkdir(parents=True, exist_ok=True)
+        self._lock = FileLock(self.run_dir / LAUNCHER_LOCK)
+        if not self._lock.acquire():
+            self._lock = None
+            raise DfusionError(f"another dfusion run launcher works in {self.run_dir} "
+                               f"(pid {lock_holder(self.run_dir / LAUNCHER_LOCK)})")
+        for stale in [self.run_dir / "start", *self.run_dir.joinpath("results").glob("*.json")]:
+            stale.unlink(missing_ok=True)
+        self._write_key()
+        (self.run_dir / "run.json").write_text(json.dumps({
+            "run_id": self.run_id, "network": self.network, "scenario": str(Path(self.opts.scenario).resolve()),
+            "launcher_pid": os.getpid(), "speed": self.opts.speed, "endpoints": self.endpoints,
+            "tls": self.tls is not None, "links_emulated": self.opts.emulate_links,
+            "plugins": [_absolute_plugin(x) for x in self.opts.plugins],
+        }, indent=1))
+        self._write_commands()
+
     def run(self):
         """Launch, follow and finish the run; returns the result (``None`` if stopped)."""
         t_wall = time.monotonic()
+        live = None
         try:
-            self.monitor = Monitor(self.sc, self.network, ZenohConfig(connect=tuple(self.endpoints.values())),
+            self._prepare_run_dir()
+            self.monitor = Monitor(self.sc, self.network,
+                                   ZenohConfig(connect=tuple(self.endpoints.values()), tls=self.tls),
                                    network_key=self.key)
+            if self.opts.foxglove is not None:
+                from dfusion.viz.foxglove import LiveView
+
+                live = LiveView(self.sc, port=self.opts.foxglove, speed=0)
+                self.monitor.listeners.append(live.node_estimate)
             for name in self.procs:
                 self._spawn(name)
             if not self._wait_ready():
                 return None
             self.start = time.time() + START_MARGIN
+            self._standby_due = time.monotonic() + START_MARGIN + STANDBY_DELAY
             tmp = self.run_dir / "start.tmp"
             tmp.write_text(repr(self.start))
             tmp.replace(self.run_dir / "start")
@@ -277,24 +553,57 @@ class Launcher:
             if not self._follow():
                 return None
             finals = self._finals()
+            for name in self.procs:
+                if name not in finals and not any(f.startswith(f"node {name} ") for f in self.failures):
+                    self.failures.append(f"node {name} did not finish")
             extra = {
                 "speed": self.opts.speed,
                 "network": self.network,
+                "run_id": self.run_id,
                 "wall_seconds": time.monotonic() - t_wall,
                 "restarts": [f"{r.node}@{r.at}+{r.down}" for r in self.opts.restarts],
                 "monitor_rejected": self.monitor.rejected,
                 "failures": list(self.failures),
+                "links_emulated": self.opts.emulate_links,
+                "links": describe_links(self.opts.emulate_links, self.sc.links),
+                "authenticated": self.key is not None,
+                "network_key": self.key_source,
+                "tls": self.tls is not None,
+                "supervision": self.supervision_report(),
             }
             return build_result(self.sc, self.monitor.records, finals, extra=extra)
         finally:
             self.terminate()
             if self.monitor is not None:
                 self.monitor.close()
+            if live is not None:
+                live.close()
+            if self._lock is not None:
+                self._lock.release()
             failed = self.failures or self.stop_reason is not None
             if self._tmp and not failed and not self.opts.keep_run_dir:
                 shutil.rmtree(self.run_dir, ignore_errors=True)
             elif failed:
                 log.warning("run directory (logs): %s", self.run_dir)
+
+    def supervision_report(self) -> dict[str, Any]:
+        """``run.supervision``: the policy, and per node its restarts, their reasons and durations."""
+        pol = self.policy
+        nodes = {}
+        for name, p in self.procs.items():
+            evs = [e for e in self.events if e["node"] == name]
+            nodes[name] = {
+                "restarts": p.restarts,
+                "started_by_hand": p.by_hand,
+                "exits": [e["reason"] for e in evs],
+                "gave_up": p.gave_up and p.by_hand == 0,
+                "back_after_s": [e["back_after_s"] for e in evs if e["back_after_s"] is not None],
+            }
+        return {
+            "enabled": pol.enabled, "max_restarts": pol.max_restarts, "backoff_s": [pol.backoff, pol.backoff_max],
+            "nodes": nodes,
+            "events": [{k: v for k, v in e.items() if not k.startswith("_")} for e in self.events],
+        }
 
     def _wait_ready(self) -> bool:
         deadline = time.monotonic() + self.opts.startup_timeout
@@ -339,18 +648,19 @@ class Launcher:
                     if t >= when:
                         self._relaunch.remove((when, name))
                         self._spawn(name)
+                self._supervise()
+                self._keep_standby()
                 if bar is not None:
                     shown = (max(0, self.monitor.progress()), len(self.monitor.alive()))
                     if shown != (bar.n, getattr(bar, "_alive", None)):
                         bar.n, bar._alive = shown
                         bar.set_postfix_str(f"alive {shown[1]}/{len(self.procs)}", refresh=False)
                         bar.refresh()
-                running = [p for p in self.procs.values() if p.popen is not None and p.popen.poll() is None]
+                running = self._running()
                 if not running and not self._relaunch and not self._pending:
                     return True
                 if time.time() > deadline:
-                    names = [p.name for p in running]
-                    self.failures.append(f"nodes {names} still running {deadline - end_wall:.0f} s after the end")
+                    self.failures.append(f"nodes {running} still running {deadline - end_wall:.0f} s after the end")
                     raise DfusionError(self.failures[-1] + f" (logs in {self.run_dir / 'logs'})")
                 time.sleep(TICK)
         finally:
@@ -369,6 +679,59 @@ class Launcher:
             else:
                 log.warning("node %s published no final estimate", name)
         return finals
+
+
+def scenario_security(sc) -> SecurityOptions:
+    """The scenario's ``[security]`` table as :class:`SecurityOptions` (empty options without one)."""
+    parsed = getattr(sc, "security", None)
+    if isinstance(parsed, SecurityOptions):
+        return parsed
+    raw = sc.raw.get("security") if isinstance(getattr(sc, "raw", None), dict) else None
+    return security_options(raw, sc.base_dir)
+
+
+def supervision_lines(result) -> str:
+    """What ``dfusion run`` prints after the run table: links, security, restarts per node."""
+    run = result.metrics.get("run", {})
+    lines = []
+    if "links" in run:
+        lines.append(f"links: {run['links']}")
+    if "authenticated" in run:
+        sec = ["every message authenticated (network key " + str(run.get("network_key", "?")) + ")"
+               if run["authenticated"] else "messages not authenticated"]
+        sec.append("mutual TLS" if run.get("tls") else "no TLS (readable on the network)")
+        lines.append("security: " + ", ".join(sec))
+    sup = run.get("supervision")
+    if sup:
+        head = (f"supervision: on (at most {sup['max_restarts']} restarts per node, backoff "
+                f"{sup['backoff_s'][0]:g}-{sup['backoff_s'][1]:g} s)" if sup["enabled"] else "supervision: off")
+        lines.append(head)
+        for name, v in sup["nodes"].items():
+            if not (v["exits"] or v["started_by_hand"]):
+                continue
+            counts: dict[str, int] = {}
+            for r in v["exits"]:
+                counts[r] = counts.get(r, 0) + 1
+            n = len(v["exits"])
+            bits = [f"{n} unexpected exit{'s' if n != 1 else ''} ("
+                    + ", ".join(f"{r} x{c}" for r, c in counts.items()) + ")", f"restarted {v['restarts']}x"]
+            if v["started_by_hand"]:
+                bits.append(f"started by hand {v['started_by_hand']}x")
+            if v["back_after_s"]:
+                lo, hi = min(v["back_after_s"]), max(v["back_after_s"])
+                bits.append(f"back after {lo:.1f} s wall" if f"{lo:.1f}" == f"{hi:.1f}"
+                            else f"back after {lo:.1f}-{hi:.1f} s wall")
+            if v["gave_up"]:
+                bits.append("given up")
+            lines.append(f"  {name}: " + "; ".join(bits))
+    return "\n".join(lines)
+
+
+def _signal(pid: int, sig: int) -> None:
+    try:
+        os.kill(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
 
 
 def _absolute_plugin(plugin: str) -> str:

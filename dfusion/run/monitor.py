@@ -32,7 +32,7 @@ import numpy as np
 from dfusion.errors import MessageError
 from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.channel import time_key
-from dfusion.run.common import Status, load_network_key
+from dfusion.run.common import Status, add_tls_arguments, load_network_key, security_from_args
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
@@ -93,6 +93,9 @@ class Monitor:
             for name in sorted(sc.nodes)
         }
         self.rejected = 0
+        #: Called as ``f(node, t, mean, cov)`` for every estimate a node publishes (a live
+        #: view: :meth:`dfusion.viz.foxglove.LiveView.node_estimate`).
+        self.listeners: list = []
         self._queue: deque = deque()
         self._alive_events: deque = deque()
         self._session = open_session(config or ZenohConfig())
@@ -147,6 +150,8 @@ class Monitor:
             rec.ready = True
         elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
             rec.mean[st.k], rec.cov[st.k], rec.have[st.k] = st.mean, st.cov, True
+            for f in self.listeners:
+                f(rec.name, round(st.k * self.sc.dt, 9), st.mean, st.cov)
             if st.output is not None:
                 if rec.out_mean is None:
                     rec.out_mean, rec.out_cov = np.full_like(rec.mean, np.nan), np.full_like(rec.cov, np.nan)
@@ -269,6 +274,7 @@ def build_result(
     truth = np.array([world.truth(t) for t in times])
     node_mean, node_cov, views, run_nodes, outputs = {}, {}, {}, {}, {}
     delivered = sent = refused = 0
+    tsum = {"published": 0, "dropped_emulated": 0, "messages_received": 0, "messages_rejected": 0}
     for name in sorted(records):
         rec = records[name]
         node_mean[name], node_cov[name], gaps = _filled(rec, sc)
@@ -288,6 +294,8 @@ def build_result(
         delivered += total.get("delivered", 0)
         sent += total.get("messages_sent", 0)
         refused += total.get("measurements_refused", 0)
+        for key in tsum:
+            tsum[key] += total.get(key, 0)
         run_nodes[name] = {
             "incarnations": max(1, len(rec.epochs)),
             "finished": fin is not None,
@@ -306,6 +314,17 @@ def build_result(
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)
+    # the counts of traffic_lines: built = published + dropped by link emulation; published =
+    # delivered + not received (lost by the transport, or the receiver was down); delivered =
+    # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers)
+    pub, emu = tsum["published"], tsum["dropped_emulated"]
+    ignored = max(0, delivered - tsum["messages_received"] - tsum["messages_rejected"])
+    result.metrics["traffic"] = {
+        "network": {"sent": pub + emu, "duplicated": 0, "delivered": delivered,
+                    "dropped": emu + max(0, pub - delivered), "in_flight": 0},
+        "fused": delivered - tsum["messages_rejected"] - ignored, "rejected": tsum["messages_rejected"],
+        "ignored": ignored, "final_rounds": 0, "final_rounds_over_network": True,
+    }
     result.metrics["run"] = {
         "nodes": run_nodes,
         "measurements_lost": len(lost),
@@ -368,6 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--plugin", action="append", default=[], metavar="MODULE", help="plug-in module or .py file")
     p.add_argument("--json", default=None)
     p.add_argument("--plot", default=None)
+    add_tls_arguments(p)   # --tls-dir: DIR/monitor.pem and .key (else DIR/node.pem)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     stop: list[int] = []
@@ -375,7 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda s, f: stop.append(s))
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
                        plugins=args.plugin)
-    cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else ())
+    cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else (),
+                      tls=security_from_args(args).tls_files("monitor"))
     with Monitor(sc, args.network, cfg, network_key=load_network_key(args.network_key_file)) as mon:
         deadline = time.monotonic() + args.timeout
         names = sorted(sc.nodes)
@@ -392,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(_json.dumps(result.metrics, indent=2, sort_keys=True))
     if args.plot:
-        from dfusion.plots import plot_result
+        from dfusion.viz import plot_result
 
         plot_result(result, args.plot)
     return 0 if len(finals) == len(sc.nodes) else 1

@@ -21,9 +21,19 @@
    final estimate (and writes it to ``--result``) and exits 0.
 
 SIGTERM or SIGINT stops it within a fraction of a second (the session is
-closed, exit status 0); so does the death of ``--parent-pid``. With
-``--state-dir`` every measurement is appended to a log before it is fused and
-a restarted node replays it (``docs/processes.md``).
+closed, exit status 0). With ``--state-dir`` every measurement is appended to a
+log before it is fused and a restarted node replays it (``docs/processes.md``).
+
+``--run-dir DIR`` joins the run of the ``dfusion run`` launcher working in ``DIR``
+(what the launcher gives every node, so that the same command line, run by hand,
+restarts a node): the start time, state log, result and network key are taken
+from ``DIR``; the node refuses to start when no launcher runs there or when
+another incarnation of it runs, and stops when the launcher is gone
+(:mod:`dfusion.run.supervision`: the launcher's lock, and the parent-death signal
+when the launcher is its parent).
+
+``--emulate-links`` applies the scenario's links (latency, jitter, drops,
+duplicates, reordering, outages) at the sender (:mod:`dfusion.run.links`).
 """
 from __future__ import annotations
 
@@ -40,7 +50,15 @@ from pathlib import Path
 import numpy as np
 
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError
-from dfusion.run.common import ROUND_TIMEOUT, Status, final_rounds, load_network_key
+from dfusion.run.common import (
+    ROUND_TIMEOUT,
+    Status,
+    add_tls_arguments,
+    final_rounds,
+    load_network_key,
+    security_from_args,
+)
+from dfusion.run.links import EmulatedLinks, node_links
 from dfusion.run.measurements import (
     MeasurementLog,
     OwnMeasurement,
@@ -51,8 +69,15 @@ from dfusion.run.measurements import (
 from dfusion.scenario.build import build_front_end, build_node
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
+from dfusion.run.supervision import (
+    EXIT_ALREADY_RUNNING,
+    EXIT_NO_LAUNCHER,
+    FileLock,
+    LauncherWatch,
+    node_lock_path,
+    set_parent_death_signal,
+)
 from dfusion.sim.runner import records_output
-from dfusion.transport.simulated import link_generator
 from dfusion.transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
 
 log = logging.getLogger("dfusion.node")
@@ -91,11 +116,14 @@ class NodeProcess:
     result : path, optional
         Where to write the final status (JSON).
     emulate_links : bool
-        Apply the scenario links' ``drop`` and ``outages`` to outgoing messages.
+        Apply the scenario's links (latency, jitter, drop, duplicate, reorder,
+        outages) to outgoing messages (:class:`~dfusion.run.links.EmulatedLinks`).
     round_timeout : float
         Wall-clock seconds to wait for a live neighbour's message of a final-phase round.
     parent_pid : int, optional
         Stop when this process is no longer the parent.
+    watch : LauncherWatch, optional
+        Stop when the launcher of the run directory is gone.
     """
 
     def __init__(
@@ -118,6 +146,7 @@ class NodeProcess:
         round_timeout: float = ROUND_TIMEOUT,
         parent_pid: int | None = None,
         ready_timeout: float = 5.0,
+        watch: LauncherWatch | None = None,
     ) -> None:
         if name not in sc.nodes:
             raise DfusionError(f"{name!r} is not a node of {sc.path} (nodes: {sorted(sc.nodes)})")
@@ -140,6 +169,7 @@ class NodeProcess:
         self._round_seen: dict[str, int] = {}
         self._replay: dict[int, OwnMeasurement] = {}
         self.parent_pid = parent_pid
+        self.watch = watch
         self.ready_timeout = ready_timeout
         self.stop_reason: str | None = None
         self.times = np.round(sc.dt * np.arange(sc.steps + 1), 9)
@@ -148,18 +178,14 @@ class NodeProcess:
         # the same front end as in `dfusion simulate` (EIF update, camera gate, WSN particle filter...)
         self.front = build_front_end(sc, name)
         self.send_period = spec.send_period
-        self.node = build_node(sc, name, network_key=network_key)   # a random epoch: a new one per incarnation
-        self.counters = {"skipped_not_alive": 0, "dropped_emulated": 0, "measurements_fused": 0,
+        # a random epoch: a new one per incarnation
+        self.node = build_node(sc, name, network_key=network_key, network=network, run=run_id or "")
+        self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
                          "max_lag_ms": 0}
         self.lost: list[float] = []
         self.t_started = 0.0
-        self._links = {}
-        if emulate_links:
-            for (a, b), lspec in sc.links.items():
-                if name in (a, b):
-                    other = b if a == name else a
-                    self._links[other] = (lspec, link_generator(sc.seed, name, other))
+        self.links: EmulatedLinks | None = None
         self.tr: ZenohTransport | None = None
         self._mlog: MeasurementLog | None = None
 
@@ -172,6 +198,8 @@ class NodeProcess:
     def _should_stop(self) -> bool:
         if self.parent_pid is not None and os.getppid() != self.parent_pid:
             self.request_stop(f"parent process {self.parent_pid} is gone")
+        if self.watch is not None and not self.watch.alive():
+            self.request_stop(f"the launcher is gone ({self.watch.path} is free)")
         return self.stop_reason is not None
 
     def now(self) -> float:
@@ -181,14 +209,18 @@ class NodeProcess:
         return (time.time() - self.start) * self.speed
 
     def _wait_wall(self, deadline: float) -> bool:
-        """Receive messages until the wall-clock ``deadline``; False if asked to stop."""
+        """Receive messages (and send delayed ones) until the wall-clock ``deadline``; False if asked to stop."""
         while True:
             if self._should_stop():
                 return False
-            left = deadline - time.time()
+            now = time.time()
+            if self.links is not None and self.links.next_due() <= now:
+                self.links.release_due(now)
+            left = deadline - now
             if left <= 0:
                 return True
-            if self.tr.wait(min(left, POLL)):
+            due = self.links.next_due() - now if self.links is not None else math.inf
+            if self.tr.wait(max(0.0, min(left, POLL, due))):
                 self._receive()
 
     # ------------------------------------------------------------------ the loop
@@ -197,11 +229,16 @@ class NodeProcess:
         try:
             with ZenohTransport(self.network, {self.name: self.neighbors}, self.zconfig, clock=self.now) as tr:
                 self.tr = tr
+                if self.emulate_links:
+                    self.links = EmulatedLinks(self.name, node_links(self.sc.links, self.name), self.sc.seed, tr.send,
+                                               speed=self.speed)
                 self._monitor_key = monitor_key(self.network, self.name)
                 self._pub = tr.session.declare_publisher(self._monitor_key)
                 self._run()
                 if self.stop_reason is not None:
                     log.info("%s: stopping: %s", self.name, self.stop_reason)
+                    if self.links is not None and self.links.pending():
+                        log.info("%s: %d delayed messages not sent", self.name, self.links.discard())
                     self._publish("stopped", -1)
         finally:
             if self._mlog is not None:
@@ -318,19 +355,18 @@ class NodeProcess:
         return changed
 
     def _send_all(self, t: float, *, final: bool = False) -> None:
+        emulate = self.links is not None and not final   # the final phase is lossless, as in simulate
         for nb in self.neighbors:
             if not self.tr.alive(nb):
                 self.counters["skipped_not_alive"] += 1
+                if emulate:   # simulate draws for every send: keep the link's random stream aligned
+                    self.links.send(nb, b"", t, deliver=False)
                 continue
             data = self.node.message_to(nb, sent_at=t)
-            link = None if final else self._links.get(nb)   # the final phase is lossless, as in simulate
-            if link is not None:
-                spec, rng = link
-                u = rng.random()
-                if spec.is_down(t) or u < spec.drop:
-                    self.counters["dropped_emulated"] += 1
-                    continue
-            self.tr.send(self.name, nb, data, t)
+            if emulate:
+                self.links.send(nb, data, t)
+            else:
+                self.tr.send(self.name, nb, data, t)
 
     def _final_phase(self) -> None:
         """``diameter + 2`` (:func:`dfusion.topology.settling_rounds`) synchronized rounds without new measurements, then the final estimate.
@@ -343,6 +379,8 @@ class NodeProcess:
         """
         T = float(self.times[-1])
         self.tr.quiet_loss = True   # neighbours leaving now is the normal end
+        if self.links is not None:
+            self.links.flush()   # what is still in flight arrives before the rounds (simulate: net.flush())
         self._fuse_until(math.inf)
         for r in range(1, self.rounds + 1):
             self._receive()
@@ -380,6 +418,10 @@ class NodeProcess:
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
         out.update(self.counters)
+        if self.links is not None:
+            em = self.links.totals()
+            out.update(dropped_emulated=em["dropped"], delayed_emulated=em["delayed"],
+                       duplicated_emulated=em["duplicated"])
         return out
 
     def _publish(self, phase: str, k: int) -> Status:
@@ -437,14 +479,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--network-key-file", default=None,
                    help="HMAC key file (default: $DFUSION_NETWORK_KEY_FILE or $DFUSION_NETWORK_KEY)")
     p.add_argument("--result", default=None, help="write the final estimate and counters here (JSON)")
-    p.add_argument("--emulate-links", action="store_true", help="apply the scenario's link drops and outages")
+    p.add_argument("--run-dir", default=None, metavar="DIR",
+                   help="join the run of the dfusion run launcher working in DIR (start time, state, result and "
+                        "network key from DIR); refused when no launcher runs there or this node already runs; "
+                        "stops when the launcher is gone")
+    p.add_argument("--emulate-links", action="store_true",
+                   help="apply the scenario's links (latency, jitter, drops, duplicates, reordering, outages) to sends")
     p.add_argument("--round-timeout", type=float, default=ROUND_TIMEOUT,
                    help="seconds to wait for a live neighbour's message of a final-phase round")
-    p.add_argument("--parent-pid", type=int, default=None, help="stop when this process is no longer the parent")
+    p.add_argument("--parent-pid", type=int, default=None,
+                   help="stop when this process is no longer the parent (prefer --run-dir: a restart by hand keeps it)")
     p.add_argument("--ready-timeout", type=float, default=5.0,
                    help="report ready after this many seconds even if a neighbour is not up")
     p.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable)")
+    add_tls_arguments(p, directory=False)
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
 
@@ -462,7 +511,56 @@ def _extra_options(items: list[str]) -> dict:
     return out
 
 
+def standby(run_dir: str | Path) -> int:
+    """``python -m dfusion.run.node_process --standby RUN_DIR``: a warm spare for fast restarts.
+
+    The launcher keeps one such process ready: it has imported everything (about
+    1-3 s of a node's start on a busy machine) and waits for one line on its
+    standard input, ``{"argv": [node arguments], "log": path}``. It then sends its
+    output to ``log`` and becomes that node (:func:`main` with ``argv``: the same
+    command line as ``RUN_DIR/commands/NAME.sh``). It watches the launcher like a
+    node: it exits when the launcher is gone (lock free, parent-death signal) or
+    closes its standard input.
+    """
+    import select
+
+    watch = LauncherWatch(run_dir)
+    if not watch.alive():
+        return EXIT_NO_LAUNCHER
+    if watch.launcher_pid() == os.getppid():
+        set_parent_death_signal(signal.SIGTERM)   # no handler yet: the default action ends the process
+    try:   # warm up what loading the scenario imports (sensor kinds, plug-ins)
+        info = json.loads((Path(run_dir) / "run.json").read_text())
+        load_scenario(info["scenario"], plugins=info.get("plugins", []))
+    except Exception as exc:   # only a warm-up
+        print(f"standby: warm-up skipped: {exc}", file=sys.stderr, flush=True)
+    while True:
+        if not watch.alive():
+            return 0
+        ready, _, _ = select.select([sys.stdin], [], [], POLL)
+        if ready:
+            line = sys.stdin.readline()
+            if not line:
+                return 0   # the launcher closed the pipe: not needed
+            order = json.loads(line)
+            break
+    watch.close()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    fd = os.open(order["log"], os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    return main(list(order["argv"]))
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--standby"] and len(argv) == 2:
+        return standby(argv[1])
     args = build_parser().parse_args(argv)
     proc: NodeProcess | None = None
     early: list[str] = []
@@ -477,9 +575,16 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     level = [logging.INFO, logging.DEBUG][min(args.verbose, 1)]
-    logging.basicConfig(level=level, stream=sys.stderr,
+    logging.basicConfig(level=level, stream=sys.stderr, force=True,
                         format=f"%(asctime)s %(levelname)s [{args.node}] %(name)s: %(message)s")
+    watch: LauncherWatch | None = None
+    lock: FileLock | None = None
     try:
+        if args.run_dir is not None and not args.record:
+            joined = _join_run(args)
+            if isinstance(joined, int):
+                return joined
+            watch, lock = joined
         sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
                            plugins=args.plugin)
         if args.record:
@@ -488,13 +593,13 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         meas = load_recording(args.measurements, args.node) if args.measurements else None
         zc = ZenohConfig(mode=args.mode, listen=tuple(args.listen), connect=tuple(args.connect),
-                         extra=_extra_options(args.zenoh_option))
+                         extra=_extra_options(args.zenoh_option), tls=security_from_args(args).tls_files(args.node))
         proc = NodeProcess(
             sc, args.node, network=args.network, zconfig=zc, speed=args.speed, start=args.start_time,
             start_file=args.start_file, measurements=meas, state_dir=args.state_dir, run_id=args.run_id,
             fsync=args.fsync, network_key=load_network_key(args.network_key_file), result=args.result,
             emulate_links=args.emulate_links, round_timeout=args.round_timeout, parent_pid=args.parent_pid,
-            ready_timeout=args.ready_timeout,
+            ready_timeout=args.ready_timeout, watch=watch,
         )
         if early:
             return 0
@@ -502,6 +607,48 @@ def main(argv: list[str] | None = None) -> int:
     except (DfusionError, OSError) as exc:
         log.error("%s", exc)
         return 2
+    finally:
+        if lock is not None:
+            lock.release()
+        if watch is not None:
+            watch.close()
+
+
+def _join_run(args: argparse.Namespace) -> tuple[LauncherWatch, FileLock] | int:
+    """``--run-dir``: watch the launcher, take this node's lock, and default the run's files.
+
+    Returns the watch and the lock, or the exit status when the node must not run.
+    """
+    run_dir = Path(args.run_dir)
+    watch = LauncherWatch(run_dir)
+    if not watch.alive():
+        log.error("no dfusion run launcher runs in %s (its lock %s is free): not starting", run_dir, watch.path)
+        watch.close()
+        return EXIT_NO_LAUNCHER
+    launcher = watch.launcher_pid()
+    if launcher is not None and launcher == os.getppid():
+        # started by the launcher: the kernel stops us (SIGTERM) if it dies, even between two looks at the lock
+        set_parent_death_signal(signal.SIGTERM)
+        if os.getppid() != launcher:   # it died before the prctl
+            log.error("the launcher (pid %d) is gone", launcher)
+            watch.close()
+            return EXIT_NO_LAUNCHER
+    lock = FileLock(node_lock_path(run_dir, args.node))
+    if not lock.acquire(timeout=2.0):
+        holder = lock.path.read_text().strip() if lock.path.exists() else "?"
+        log.error("node %s already runs in %s (pid %s): not starting a second incarnation", args.node, run_dir, holder)
+        watch.close()
+        return EXIT_ALREADY_RUNNING
+    if args.start_time is None and args.start_file is None:
+        args.start_file = str(run_dir / "start")
+    if args.state_dir is None:
+        args.state_dir = str(run_dir / "state")
+    if args.result is None:
+        args.result = str(run_dir / "results" / f"{args.node}.json")
+    if args.network_key_file is None and (run_dir / "network.key").exists():
+        args.network_key_file = str(run_dir / "network.key")
+    log.info("joined the run in %s (launcher pid %s, node pid %d)", run_dir, launcher, os.getpid())
+    return watch, lock
 
 
 if __name__ == "__main__":

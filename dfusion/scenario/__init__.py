@@ -13,6 +13,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.scenario.security import SecurityOptions
     from dfusion.scenario.build import build_front_end, build_front_ends, build_node, build_nodes
     from dfusion.scenario.kinds import builtin_kinds
     from dfusion.scenario.loader import build_policy, load_scenario, node_policies
@@ -20,6 +21,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.scenario.spec import COMMON_NODE_KEYS, Kinds, MotionKind, NodeSpec, Scenario, SensorKind, TargetSpec
 
 __all__ = [
+    "SecurityOptions",
     "load_scenario",
     "Scenario",
     "NodeSpec",
@@ -41,6 +43,7 @@ __all__ = [
 ]
 
 _WHERE = {
+    "SecurityOptions": ("dfusion.scenario.security", "SecurityOptions"),
     "build_front_end": ("dfusion.scenario.build", 'build_front_end'),
     "build_front_ends": ("dfusion.scenario.build", 'build_front_ends'),
     "build_node": ("dfusion.scenario.build", 'build_node'),

@@ -17,14 +17,16 @@ from dfusion.scenario.spec import Scenario
 __all__ = ["build_node", "build_nodes", "build_front_end", "build_front_ends"]
 
 
-def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epoch: int | None = None) -> FusionNode:
+def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epoch: int | None = None,
+               network: str = "", run: str = "") -> FusionNode:
     """The :class:`FusionNode` of scenario node ``name``.
 
     Its neighbours are its tree neighbours, its prior the scenario's common prior at
     time 0, its policy a copy of the node's (a policy keeps state, so every node built
     gets its own), its guard the consistency test of ``[protection]`` (channel fusion only,
     :mod:`dfusion.fusion.guard`). ``epoch`` identifies the incarnation (random when ``None``:
-    a node process gets a new one each time it starts).
+    a node process gets a new one each time it starts). ``network`` and ``run`` name the
+    network and the run the message key is derived for (``docs/security.md``).
     """
     spec = sc.nodes[name]
     return FusionNode(
@@ -37,6 +39,8 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
         fusion=sc.fusion,
         policy=copy.deepcopy(spec.policy),
         network_key=network_key,
+        network=network,
+        run=run,
         epoch=epoch,
         guard=sc.protection.node_guard() if sc.fusion == "channel" else None,
     )

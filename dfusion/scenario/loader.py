@@ -29,6 +29,7 @@ from dfusion.policies.base import Policy
 from dfusion.scenario.kinds import builtin_kinds
 from dfusion.scenario.plugins import load_plugins
 from dfusion.fusion.guard import GuardConfig
+from dfusion.scenario.security import security_options
 from dfusion.scenario.spec import (
     CLUTTER_MODELS,
     COMMON_NODE_KEYS,
@@ -50,7 +51,7 @@ log = logging.getLogger(__name__)
 
 #: Keys of the top level of a scenario file.
 TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "spanning_tree", "plugins",
-                            "target", "nodes", "links", "protection"})
+                            "target", "nodes", "links", "security", "protection"})
 #: Keys of ``[target]`` every motion model takes (each motion adds its own, e.g. ``q``).
 TARGET_KEYS = frozenset({"motion", "initial_mean", "initial_cov_diag"})
 #: Keys of a ``[[links]]`` table.
@@ -59,8 +60,9 @@ LINK_KEYS = frozenset({"between", "quality", "latency", "jitter", "drop", "dupli
 #: Keys of ``[protection]`` (``docs/scenarios.md``, ``docs/clutter.md``).
 PROTECTION_KEYS = frozenset({"enabled", "clutter_model", "network_check", "false_alarm", "quarantine", "release"})
 _TABLES = {"target": "a table [target]", "nodes": "an array of tables [[nodes]]",
-           "links": "an array of tables [[links]]", "protection": "a table [protection]"}
-_TABLE_LIST = "tables are [target], [protection], [[nodes]] and [[links]]"
+           "links": "an array of tables [[links]]", "security": "a table [security]",
+           "protection": "a table [protection]"}
+_TABLE_LIST = "tables are [target], [[nodes]], [[links]], [security] and [protection]"
 
 
 def _fail(src: str, where: str, msg: str) -> ScenarioError:
@@ -109,7 +111,7 @@ def _check_top_level(src: str, raw: Mapping[str, Any]) -> None:
         value = raw.get(key)
         if value is None:
             continue
-        ok = isinstance(value, dict) if key in ("target", "protection") else (
+        ok = isinstance(value, dict) if key in ("target", "security", "protection") else (
             isinstance(value, list) and all(isinstance(v, dict) for v in value))
         if not ok:
             raise _fail(src, key, f"must be {what}, got {type(value).__name__}")
@@ -342,6 +344,10 @@ def load_scenario(
     target = _target(src, raw, kinds)
     sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw, kinds=kinds,
                   protection=_protection(src, raw, protection))
+    try:
+        sc.security = security_options(raw.get("security"), sc.base_dir)
+    except DfusionError as exc:
+        raise ScenarioError(f"{src}: {exc}") from None
     for i, tbl in enumerate(raw.get("nodes", [])):
         spec = _node(src, i, tbl, sc, kinds)
         sc.nodes[spec.name] = spec

@@ -15,6 +15,7 @@ import numpy as np
 
 from dfusion.errors import ScenarioError
 from dfusion.models.base import MeasurementModel, MotionModel
+from dfusion.scenario.security import SecurityOptions
 from dfusion.transport.simulated import LinkSpec
 
 if TYPE_CHECKING:   # type names only: no import at run time
@@ -256,6 +257,8 @@ class Scenario:
         plug-ins).
     warnings : list of str
         Degenerate settings found while loading (also logged).
+    security : SecurityOptions
+        The ``[security]`` table: the network key file and mutual TLS of ``dfusion run``.
     protection : Protection
         The ``[protection]`` table (default: every protection on).
     """
@@ -274,6 +277,7 @@ class Scenario:
     raw: dict[str, Any]
     kinds: Kinds | None = None
     warnings: list[str] = field(default_factory=list)
+    security: SecurityOptions = field(default_factory=SecurityOptions)
     protection: Protection = field(default_factory=Protection)
 
     @property

@@ -19,13 +19,14 @@ Every step ``t = k dt``:
 At the end every message in flight is delivered, late measurements are fused,
 and ``diameter + 2`` lossless rounds are exchanged (:func:`dfusion.topology.settling_rounds`) ("once the last messages are
 delivered"); ``final_gap`` compares each node's newest mean then with the
-centralized one.
+centralized one (``final_gap_position`` in metres and ``final_gap_velocity`` in
+m/s split it by unit).
 
 Two centralized references run on the world's measurements, in time order and
 without delay (:class:`References`): the *fair* one (``centralized``) gets every
 detection, false ones included, through the same gate and clutter model as the
-camera nodes (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`), and is what the gaps are
-measured against; the *oracle* (``centralized_oracle``) skips the false
+camera nodes (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`), and is what
+the gaps are measured against; the *oracle* (``centralized_oracle``) skips the false
 detections (it knows which they are) and gates nothing.
 
 Per node the run also reports the diagnostics of ``docs/clutter.md``: the
@@ -33,6 +34,15 @@ consistency test of the neighbours' information (:mod:`dfusion.fusion.guard`),
 a camera's gated detections, NIS and track losses, and the health state per
 step (``ok``, ``degraded``, ``lost``), with ``WARNING`` lines in the table for
 nodes that were lost at some step or are inconsistent.
+
+The world is simulated from the scenario (:func:`dfusion.sim.world.simulate_world`)
+unless one is given: :mod:`dfusion.sim.replay` reads it from a ROS bag.
+
+Message counts add up (``metrics["traffic"]``, checked by the tests): the messages
+sent over the network plus the copies the links duplicated equal those delivered
+plus those dropped plus those still in flight (none at the end); every delivered
+copy is fused or rejected by its receiver; the final lossless rounds are counted
+apart.
 """
 from __future__ import annotations
 
@@ -40,7 +50,7 @@ import json
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import networkx as nx
 import numpy as np
@@ -116,46 +126,70 @@ class SimulationResult:
     node_cov: dict[str, Array]
     metrics: dict[str, Any] = field(default_factory=dict)
     outputs: dict[str, NodeOutput] = field(default_factory=dict)
+    #: What happened to each measurement a node's front end processed:
+    #: ``{"t": step time, "node", "t_meas", "z", "outcome"}`` with ``outcome`` the
+    #: front-end counters that moved (``"contributed"``, ``"gated"``, ...) while the
+    #: frame it belongs to was processed, or ``"refused"`` (older than the window).
+    #: Filled by :func:`run_scenario`.
+    events: list[dict[str, Any]] = field(default_factory=list)
     oracle_mean: Array | None = None
     oracle_cov: Array | None = None
     oracle_final: Array | None = None
     health: dict[str, list[str]] = field(default_factory=dict)
 
-    def to_json(self) -> str:
-        return json.dumps(self.metrics, indent=2, sort_keys=True)
+    def to_json(self, series: bool = False) -> str:
+        """The metrics as JSON; with ``series`` also the per-step time series
+        (:func:`dfusion.sim.runner.series_of`) under the key ``"series"``."""
+        out = dict(self.metrics, series=series_of(self)) if series else self.metrics
+        return json.dumps(out, indent=2, sort_keys=True)
 
     def table(self) -> str:
-        """The summary table printed by ``dfusion simulate``."""
+        """The summary table printed by ``dfusion simulate``: every number with its unit,
+        the ANEES in plain words, message counts that add up."""
         m = self.metrics
+        dim = m["state_dim"]
+        vel = any("final_gap_velocity" in v for v in m["nodes"].values())
         diag = all(v.get("health") is not None for v in m["nodes"].values())
-        rows = [("node", "RMSE [m]", "ANEES", "final gap", "mean gap", "sent", "bytes")
-                + (("NIS", "gated", "quar.", "health") if diag else ())]
+        head = ["node", "RMSE [m]", "ANEES [-]", "final gap pos [m]"] + (["final gap vel [m/s]"] if vel else []) + \
+            ["mean gap pos [m]"] + (["mean gap vel [m/s]"] if vel else []) + ["sent [msgs]", "sent [bytes]"] + \
+            (["NIS [-]", "gated", "quar.", "health"] if diag else [])
+        rows = [head]
         for name, v in m["nodes"].items():
-            row = (name, f"{v['rmse']:.4f}", f"{v['anees']:.3f}", f"{v['final_gap']:.2e}",
-                   f"{v['mean_gap']:.2e}", str(v["messages"]), str(v["bytes"]))
+            row = [name, f"{v['rmse']:.4f}", f"{v['anees']:.3f}", f"{v['final_gap_position']:.2e}"]
+            if vel:
+                row.append(f"{v['final_gap_velocity']:.2e}")
+            row.append(f"{v['mean_gap_position']:.2e}")
+            if vel:
+                row.append(f"{v['mean_gap_velocity']:.2e}")
+            row += [str(v["messages"]), str(v["bytes"])]
             if diag:
                 nis, gated = v.get("nis_mean"), v.get("gated")
-                row += ("-" if nis is None else f"{nis:.2f}", "-" if gated is None else str(gated),
-                        ",".join(v.get("quarantined") or []) or "-", v["health"])
+                row += ["-" if nis is None else f"{nis:.2f}", "-" if gated is None else str(gated),
+                        ",".join(v.get("quarantined") or []) or "-", v["health"]]
             rows.append(row)
         for key, label in (("centralized", "centralized"), ("centralized_oracle", "central oracle")):
             c = m.get(key)
             if c is not None:
-                rows.append((label, f"{c['rmse']:.4f}", f"{c['anees']:.3f}", "-", "-", "-", "-")
-                            + (("-",) * 4 if diag else ()))
+                rows.append([label, f"{c['rmse']:.4f}", f"{c['anees']:.3f}"] + ["-"] * (len(head) - 3))
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
         lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows]
         lines.insert(1, "-" * len(lines[0]))
         lo, hi = m["nees_interval"]
         lines.append("")
-        lines.append(f"fusion={m['fusion']} seed={m['seed']} steps={m['steps']} state dim={m['state_dim']}: "
-                     f"ANEES 95% interval for one run [{lo:.3f}, {hi:.3f}] (time-correlated: indicative)")
-        lines.append(f"messages {m['messages']} ({m['messages_delivered']} delivered, {m['messages_dropped']} lost), "
-                     f"bytes {m['bytes']}, measurements {m['measurements']} ({m['measurements_refused']} refused: older than the window)")
+        lines.append(f"fusion={m['fusion']} seed={m['seed']} steps={m['steps']} state dim={dim}; "
+                     "gap: node minus centralized EKF (pos: distance in m, vel: in m/s)")
+        lines.append(f"ANEES = NEES (e' P^-1 e, the error weighted by the filter's covariance) averaged over the run; "
+                     f"a consistent filter averages {dim}, the state dimension.")
+        a_lo, a_hi = m.get("anees_interval_independent", (lo, hi))
+        lines.append(f"  95% ranges for a consistent filter: one step's NEES [{lo:.2f}, {hi:.2f}]; the average of "
+                     f"{m['steps']} independent steps [{a_lo:.2f}, {a_hi:.2f}] (successive steps are correlated, so "
+                     f"expect more spread). Far above {dim}: overconfident; far below: too cautious.")
+        lines.extend(traffic_lines(m))
         if diag:
             lines.append("NIS: mean consistency statistic per degree of freedom of the neighbours' information "
                          "(expected 1); gated: own detections outside the gate; quar.: quarantined neighbours "
-                         f"at the end; protection: {m.get('protection', '-')}")
+                         f"at the end; protection: {m.get('protection', '-')}; centralized: the same detections "
+                         "through the same association (fair), central oracle: false detections skipped")
         lines.extend(warning_lines(m))
         outs = {name: v["output"] for name, v in m["nodes"].items() if "output" in v}
         if outs:
@@ -163,9 +197,37 @@ class SimulationResult:
             lines.append("policy outputs (node.output(): the source each node's policy chose)")
             for name, o in outs.items():
                 share = ", ".join(f"{src} {frac:.0%}" for src, frac in o["sources"].items())
-                lines.append(f"  {name}: policy {o['policy']}, RMSE {o['rmse']:.4f}, ANEES {o['anees']:.3f}, "
+                lines.append(f"  {name}: policy {o['policy']}, RMSE {o['rmse']:.4f} m, ANEES {o['anees']:.3f}, "
                              f"switches {o['switches']}; {share}")
         return "\n".join(lines)
+
+
+def traffic_lines(m: dict[str, Any]) -> list[str]:
+    """Message and measurement counts of the metrics, in words (each line adds up)."""
+    tr = m.get("traffic")
+    lines = []
+    if tr is not None:
+        net = tr["network"]
+        lines.append(f"messages over the network: {net['sent']} sent + {net['duplicated']} duplicated copies = "
+                     f"{net['delivered']} delivered + {net['dropped']} dropped + {net['in_flight']} in flight; "
+                     f"of the delivered: {tr['fused']} fused + {tr['rejected']} rejected")
+        if tr.get("ignored"):
+            lines[-1] += f" + {tr['ignored']} ignored (already had)"
+        if tr.get("final_rounds_over_network"):
+            lines.append(f"(the final rounds went over the network too); {m['messages']} messages "
+                         f"({m['bytes']} bytes) built by the nodes in all")
+        else:
+            lines.append(f"final lossless rounds: {tr['final_rounds']} messages; {m['messages']} messages "
+                         f"({m['bytes']} bytes) sent by the nodes in all")
+    else:
+        lines.append(f"messages {m['messages']} ({m['messages_delivered']} delivered), bytes {m['bytes']}")
+    mr = m.get("measurements_detail")
+    if mr is not None:
+        lines.append(f"measurements: {m['measurements']} taken = {mr['fused']} used + {mr['rejected']} rejected by "
+                     f"their front end (gate, unusable) + {m['measurements_refused']} refused (older than the window)")
+    else:
+        lines.append(f"measurements {m['measurements']} ({m['measurements_refused']} refused: older than the window)")
+    return lines
 
 
 def warning_lines(m: dict[str, Any]) -> list[str]:
@@ -192,9 +254,23 @@ def _progress(iterable, enabled: bool, total: int):
     return tqdm(iterable, total=total, unit="step", leave=False)
 
 
-def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
-    """Simulate ``sc`` with every node in this process; see the module docstring."""
-    world = simulate_world(sc)
+
+
+
+
+
+
+def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = None,
+                 on_step: Callable[..., None] | None = None) -> SimulationResult:
+    """Simulate ``sc`` with every node in this process; see the module docstring.
+
+    ``world``: the truth and measurements to use (default: simulated from ``sc``; a
+    recording, :func:`dfusion.sim.replay.world_from_bag`). ``on_step(t, estimates,
+    truth, events)`` is called after every step with each node's ``(mean, cov)`` (and
+    ``"centralized"``) and the events (:attr:`SimulationResult.events`) since the last
+    call: a live view (:class:`dfusion.viz.foxglove.LiveView`).
+    """
+    world = simulate_world(sc) if world is None else world
     nodes = build_nodes(sc)
     net = SimulatedNetwork(((a, b, spec) for (a, b), spec in sc.links.items()), seed=sc.seed)
     motion = sc.target.motion
@@ -217,16 +293,39 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
     next_send = {nm: sc.nodes[nm].send_period for nm in names}
     ia = ic = 0
     refused = 0
+    events: list[dict[str, Any]] = []
+    counts = {"fused": 0, "rejected": 0, "final_rounds": 0, "used": 0, "dropped_by_front_end": 0}
 
-    def fuse(frame: list) -> int:
-        """Fuse one frame at its node; the number of measurements refused (older than the window)."""
+    def process(frame: list, t_step: float) -> None:
+        """Fuse one frame (the measurements of one node at one time) at its node."""
+        nonlocal refused
         m0 = frame[0]
+        fe = front[m0.node]
+        before = fe.health()
         try:
-            front[m0.node].process_frame(nodes[m0.node], m0.t, np.array([m.z for m in frame]))
+            fe.process_frame(nodes[m0.node], m0.t, np.array([m.z for m in frame]))
         except OutsideWindowError:
+            refused += len(frame)
             log.info("%s: measurement at t=%.3f arrived after it left the window", m0.node, m0.t)
-            return len(frame)
-        return 0
+            events.extend({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": ["refused"]}
+                          for m in frame)
+            return
+        after = fe.health()
+        moved = [k for k, v in after.items() if k != "processed" and v != before.get(k)]
+        used = min(max(int(after.get("contributed", 0) - before.get("contributed", 0)), 0), len(frame))
+        counts["used"] += used
+        counts["dropped_by_front_end"] += len(frame) - used
+        events.extend({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": moved} for m in frame)
+
+    def deliver(dst: str, data: bytes) -> None:
+        try:
+            nodes[dst].receive(data)
+            counts["fused"] += 1
+        except MessageError as exc:  # a simulated network never corrupts; log anyway
+            counts["rejected"] += 1
+            log.warning("%s: %s", dst, exc)
+
+    seen = [0]
 
     def record(k: int) -> None:
         for nm in names:
@@ -237,6 +336,11 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
         for nm in names:
             health[nm][k] = node_health(nodes[nm], front.get(nm))
         (c_mean[k], c_cov[k]), (o_mean[k], o_cov[k]) = refs.estimate(times[k])
+        if on_step is not None:
+            est = {nm: (node_mean[nm][k], node_cov[nm][k]) for nm in names}
+            est["centralized"] = (c_mean[k], c_cov[k])
+            on_step(float(times[k]), est, truth[k], events[seen[0]:])
+            seen[0] = len(events)
 
     record(0)
     for k in _progress(range(1, K), progress, K - 1):
@@ -244,17 +348,14 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
         for nm in names:
             nodes[nm].predict(t)
         while ia < len(by_arrival) and by_arrival[ia][0].arrival <= t + 1e-9:
-            refused += fuse(by_arrival[ia])
+            process(by_arrival[ia], t)
             ia += 1
         while ic < len(by_time) and by_time[ic][0].t <= t + 1e-9:
             refs.add(by_time[ic], seq=ic)
             ic += 1
         for nm in names:
             for d in net.receive(nm, t + 1e-9):
-                try:
-                    nodes[nm].receive(d.data)
-                except MessageError as exc:  # a simulated network never corrupts; log anyway
-                    log.warning("%s: %s", nm, exc)
+                deliver(nm, d.data)
         for nm in names:
             if t + 1e-9 >= next_send[nm]:
                 for nb in nodes[nm].neighbors:
@@ -264,23 +365,31 @@ def run_scenario(sc: Scenario, *, progress: bool = False) -> SimulationResult:
         record(k)
 
     # the end: every message in flight, every late measurement, then lossless rounds
+    T = float(times[-1])
     for d in net.flush():
-        nodes[d.dst].receive(d.data)
+        deliver(d.dst, d.data)
     for frame in by_arrival[ia:]:
-        refused += fuse(frame)
+        process(frame, T)
     for frame in by_time[ic:]:
         refs.add(frame, seq=ic)
         ic += 1
     for nm, fe in front.items():
         fe.finish(nodes[nm])
-    final_rounds(nodes, sc.graph)
-    T = float(times[-1])
+    counts["final_rounds"] = final_rounds(nodes, sc.graph)
     (c_final, _), (o_final, _) = refs.estimate(T)
 
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
-                              oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final, health=health)
+                              events=events, oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final,
+                              health=health)
     result.metrics = compute_metrics(sc, result, nodes, c_final, net, len(world.measurements), refused,
                                      front_ends=front)
+    total = net.stats.total
+    result.metrics["traffic"] = {
+        "network": {"sent": int(total.sent), "duplicated": int(total.duplicated), "delivered": int(total.delivered),
+                    "dropped": int(total.dropped), "in_flight": int(total.in_flight)},
+        "fused": counts["fused"], "rejected": counts["rejected"], "final_rounds": counts["final_rounds"],
+    }
+    result.metrics["measurements_detail"] = {"fused": counts["used"], "rejected": counts["dropped_by_front_end"]}
     return result
 
 
@@ -300,9 +409,9 @@ class References:
     """The two centralized references of a run (see the module docstring).
 
     ``fair``: every measurement of a frame through its node's front end as the reference
-    applies it (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`: a camera's gate and clutter model), or as
-    EKF updates with the sensor's model. ``oracle``: every true measurement as an EKF update,
-    false detections skipped.
+    applies it (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`: a camera's gate and
+    clutter model), or as EKF updates with the sensor's model. ``oracle``: every true
+    measurement as an EKF update, false detections skipped.
     """
 
     def __init__(self, sc: Scenario, front: dict[str, Any]) -> None:
@@ -332,13 +441,16 @@ class References:
         return self.fair.estimate(t), self.oracle.estimate(t)
 
 
-def final_rounds(nodes: dict[str, FusionNode], graph: nx.Graph) -> None:
+def final_rounds(nodes: dict[str, FusionNode], graph: nx.Graph) -> int:
     """:func:`dfusion.topology.settling_rounds` rounds in which every node sends to every
-    neighbour, losslessly."""
+    neighbour, losslessly; returns the number of messages."""
+    n = 0
     for _ in range(settling_rounds(graph)):
         msgs = [(nb, nodes[nm].message_to(nb)) for nm in sorted(nodes) for nb in nodes[nm].neighbors]
         for nb, data in msgs:
             nodes[nb].receive(data)
+        n += len(msgs)
+    return n
 
 
 def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refused,
@@ -360,6 +472,7 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
         "steps": len(res.times),
         "state_dim": motion.dim,
         "nees_interval": list(chi2_interval(motion.dim, 1)),
+        "anees_interval_independent": list(chi2_interval(motion.dim, len(res.times))),
         "centralized": {
             "rmse": rmse(res.central_mean, res.truth, axes),
             "anees": float(np.mean(nees(res.central_mean, res.central_cov, res.truth, resid))),
@@ -377,19 +490,28 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
     if prot is not None:
         out["protection"] = prot.describe()
     health = getattr(res, "health", None) or {}
+    pos, vel = state_parts(motion.dim, axes)
     for nm, node in nodes.items():
         final_mean, _ = node.estimate()
-        gap = np.abs(res.node_mean[nm] - res.central_mean).max(axis=1)
+        diff = res.node_mean[nm] - res.central_mean
+        gap = np.abs(diff).max(axis=1)
+        fd = np.asarray(final_mean) - np.asarray(c_final)
         out["nodes"][nm] = {
             "rmse": rmse(res.node_mean[nm], res.truth, axes),
             "anees": float(np.mean(nees(res.node_mean[nm], res.node_cov[nm], res.truth, resid))),
             "final_gap": float(np.max(np.abs(final_mean - c_final))),
             "final_gap_oracle": float(np.max(np.abs(final_mean - o_final))) if o_final is not None else None,
             "mean_gap": float(np.mean(gap)),
+            "final_gap_position": float(np.linalg.norm(fd[pos])),
+            "mean_gap_position": float(np.mean(np.linalg.norm(diff[:, pos], axis=1))),
             "messages": node.stats.messages_sent,
             "bytes": node.stats.bytes_sent,
             "rejected": node.stats.messages_rejected,
+            "received": int(getattr(node.stats, "messages_received", 0)),
         }
+        if vel:
+            out["nodes"][nm]["final_gap_velocity"] = float(np.linalg.norm(fd[vel]))
+            out["nodes"][nm]["mean_gap_velocity"] = float(np.mean(np.linalg.norm(diff[:, vel], axis=1)))
         out["nodes"][nm].update(node_diagnostics(node, (front_ends or {}).get(nm), health.get(nm)))
         o = res.outputs.get(nm)
         if o is not None:
@@ -440,6 +562,52 @@ def node_diagnostics(node, front=None, health_series: list[str] | None = None) -
     return out
 
 
+def state_parts(dim: int, axes: int) -> tuple[list[int], list[int]]:
+    """Indices of the position and velocity components of a state: the first ``axes``
+    are positions (m); the next ``axes`` velocities (m/s) when the state is
+    ``(position, velocity)`` (``dim == 2 axes``), else none."""
+    pos = list(range(min(axes, dim)))
+    vel = list(range(axes, 2 * axes)) if dim == 2 * axes else []
+    return pos, vel
+
+
+def series_of(res: SimulationResult) -> dict[str, Any]:
+    """The per-step time series of a run, as lists (for JSON):
+
+    ``t`` (s); ``truth``; ``centralized.mean`` and ``centralized.var`` (the diagonal of
+    its covariance); for each node ``mean``, ``var``, ``nees`` (``e' P^-1 e``),
+    ``gap_position`` (m, distance to the centralized mean) and ``gap_velocity`` (m/s,
+    when the state has a velocity). ``state`` names the state components with units.
+    """
+    sc = res.scenario
+    motion = sc.target.motion
+    axes = sc.target.axes
+    pos, vel = state_parts(motion.dim, axes)
+    resid = motion.residual if motion.angle_indices else None
+    letters = "xyz"
+    names = [f"{letters[i]} [m]" for i in pos] + [f"v{letters[i - axes]} [m/s]" for i in vel]
+    names += [f"x{i}" for i in range(len(names), motion.dim)]
+    out: dict[str, Any] = {
+        "state": names,
+        "t": res.times.tolist(),
+        "truth": res.truth.tolist(),
+        "centralized": {"mean": res.central_mean.tolist(),
+                        "var": np.diagonal(res.central_cov, axis1=1, axis2=2).tolist(),
+                        "nees": nees(res.central_mean, res.central_cov, res.truth, resid).tolist()},
+        "nodes": {},
+    }
+    for nm in sorted(res.node_mean):
+        m, P = res.node_mean[nm], res.node_cov[nm]
+        d = m - res.central_mean
+        v: dict[str, Any] = {"mean": m.tolist(), "var": np.diagonal(P, axis1=1, axis2=2).tolist(),
+                             "nees": nees(m, P, res.truth, resid).tolist(),
+                             "gap_position": np.linalg.norm(d[:, pos], axis=1).tolist()}
+        if vel:
+            v["gap_velocity"] = np.linalg.norm(d[:, vel], axis=1).tolist()
+        out["nodes"][nm] = v
+    return out
+
+
 def output_metrics(o: NodeOutput, truth: Array, axes: int, resid=None) -> dict[str, Any]:
     """Figures of a node's policy output: RMSE and ANEES against the truth, the number of
     switches (changes of the chosen source between steps) and each source's share of steps."""
@@ -451,3 +619,43 @@ def output_metrics(o: NodeOutput, truth: Array, axes: int, resid=None) -> dict[s
         "switches": int(sum(a != b for a, b in zip(o.source, o.source[1:]))),
         "sources": {str(nm): float(c / len(o.source)) for nm, c in zip(names, counts)},
     }
+
+
+def write_series_csv(res: SimulationResult, path) -> None:
+    """The per-step series (:func:`series_of`) as CSV, one row per step and node (and one
+    for the centralized EKF, ``node = "centralized"``): ``t_s``, ``node``, the truth, the
+    mean and the covariance diagonal of each state component (units in the column
+    names), ``nees``, ``gap_position_m`` and ``gap_velocity_mps`` (empty for the
+    centralized rows)."""
+    import csv
+    from pathlib import Path
+
+    ser = series_of(res)
+    names = ser["state"]
+
+    def unit(n: str) -> tuple[str, str, str]:
+        base, _, u = n.partition(" [")
+        u = u.rstrip("]")
+        sq = {"m": "m2", "m/s": "m2ps2"}.get(u, u + "2" if u else "")
+        return base, u.replace("/", "p"), sq
+
+    cols = ["t_s", "node"]
+    for n in names:
+        b, u, sq = unit(n)
+        cols += [f"truth_{b}_{u}".rstrip("_"), f"mean_{b}_{u}".rstrip("_"), f"var_{b}_{sq}".rstrip("_")]
+    cols += ["nees", "gap_position_m", "gap_velocity_mps"]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        rows = [("centralized", ser["centralized"])] + list(ser["nodes"].items())
+        for k, t in enumerate(ser["t"]):
+            for name, v in rows:
+                row: list[Any] = [f"{t:.9g}", name]
+                for i in range(len(names)):
+                    row += [repr(ser["truth"][k][i]), repr(v["mean"][k][i]), repr(v["var"][k][i])]
+                row.append(repr(v["nees"][k]))
+                row.append(repr(v["gap_position"][k]) if "gap_position" in v else "")
+                row.append(repr(v["gap_velocity"][k]) if "gap_velocity" in v else "")
+                w.writerow(row)

@@ -5,7 +5,7 @@
   drops, duplicates, reordering and outages, deterministic by seed (:class:`LinkSpec`);
 * :mod:`dfusion.transport.zenoh` -- :class:`ZenohTransport` between processes and hosts.
 
-:class:`ZenohTransport` and :class:`ZenohConfig` are imported on first use, so that code
+:class:`ZenohTransport`, :class:`ZenohConfig` and :class:`TlsFiles` are imported on first use, so that code
 which only simulates never loads Zenoh.
 """
 from dfusion.transport.base import (
@@ -18,9 +18,9 @@ from dfusion.transport.base import (
 from dfusion.transport.simulated import LinkSpec, SimulatedNetwork, link_generator
 
 __all__ = ["Transport", "Delivery", "TransportStats", "StatsReport", "LinkKey", "LinkSpec", "SimulatedNetwork",
-           "link_generator", "ZenohTransport", "ZenohConfig"]
+           "link_generator", "ZenohTransport", "ZenohConfig", "TlsFiles"]
 
-_LAZY = {"ZenohTransport", "ZenohConfig"}
+_LAZY = {"ZenohTransport", "ZenohConfig", "TlsFiles"}
 
 
 def __getattr__(name: str):

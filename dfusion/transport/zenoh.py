@@ -101,22 +101,71 @@ def monitor_key(network: str, name: str = "*") -> str:
     return f"{KEY_ROOT}/{network}/monitor/{name}"
 
 
-def free_tcp_endpoints(count: int, host: str = "127.0.0.1") -> list[str]:
-    """``count`` endpoints ``tcp/HOST:PORT`` on ports that were free a moment ago.
+def free_tcp_endpoints(count: int, host: str = "127.0.0.1", scheme: str = "tcp") -> list[str]:
+    """``count`` endpoints ``SCHEME/HOST:PORT`` on TCP ports that were free a moment ago.
 
-    The ports are found by binding to port 0; another program may take one
-    before Zenoh binds it (unlikely on a test machine).
+    ``scheme`` is ``tcp`` or ``tls`` (TLS runs over TCP). The ports are found by
+    binding to port 0; another program may take one before Zenoh binds it
+    (unlikely on a test machine).
     """
+    if scheme not in ("tcp", "tls"):
+        raise ValidationError(f"scheme must be tcp or tls, got {scheme!r}")
     socks = []
     try:
         for _ in range(count):
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             s.bind((host, 0))
             socks.append(s)
-        return [f"tcp/{host}:{s.getsockname()[1]}" for s in socks]
+        return [f"{scheme}/{host}:{s.getsockname()[1]}" for s in socks]
     finally:
         for s in socks:
             s.close()
+
+
+#: Zenoh configuration path of the TLS settings (zenoh 1.x).
+TLS_PATH = "transport/link/tls"
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """Mutual TLS for one Zenoh session: the CA that signs every member, this session's
+    certificate and private key (PEM files).
+
+    The same certificate serves both sides of a link: as a server certificate on
+    the session's ``tls/`` listen endpoints and as a client certificate on its
+    ``tls/`` connections. ``enable_mtls`` is always on: a listener then refuses any
+    peer that does not present a certificate signed by ``ca``. Without it, anyone
+    holding the (public) CA certificate could connect and read everything
+    (measured: ``tests/transport/test_zenoh.py::test_mutual_tls_refuses_strangers``).
+    """
+
+    ca: str
+    cert: str
+    key: str
+
+    def __post_init__(self) -> None:
+        for what in ("ca", "cert", "key"):
+            path = getattr(self, what)
+            if not isinstance(path, str) or not path:
+                raise ValidationError(f"TLS {what} must be a file path, got {path!r}")
+            try:
+                with open(path, "rb") as f:
+                    head = f.read(4096)
+            except OSError as exc:
+                raise ValidationError(f"TLS {what} file {path!r}: {exc.strerror or exc}") from None
+            if b"-----BEGIN " not in head:
+                raise ValidationError(f"TLS {what} file {path!r} is not PEM")
+
+    def zenoh_values(self) -> dict[str, Any]:
+        """The ``transport/link/tls/...`` configuration values."""
+        return {
+            f"{TLS_PATH}/root_ca_certificate": self.ca,
+            f"{TLS_PATH}/listen_certificate": self.cert,
+            f"{TLS_PATH}/listen_private_key": self.key,
+            f"{TLS_PATH}/connect_certificate": self.cert,
+            f"{TLS_PATH}/connect_private_key": self.key,
+            f"{TLS_PATH}/enable_mtls": True,
+        }
 
 
 @dataclass(frozen=True)
@@ -144,7 +193,11 @@ class ZenohConfig:
         A killed one is detected at once (its TCP connection resets).
     extra : mapping
         Further configuration paths and JSON values, e.g.
-        ``{"transport/link/tls/root_ca_certificate": "ca.pem"}``.
+        ``{"transport/link/tx/lease": 2000}``.
+    tls : TlsFiles, optional
+        Mutual TLS: every endpoint must then be a ``tls/`` one (the default
+        listen endpoint becomes ``tls/127.0.0.1:0``), so nothing travels in clear
+        and only holders of a certificate signed by the CA can connect.
     """
 
     mode: str = "peer"
@@ -157,6 +210,7 @@ class ZenohConfig:
     retry_period_ms: int = 200
     retry_max_ms: int = 500
     extra: Mapping[str, Any] = field(default_factory=dict)
+    tls: TlsFiles | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -170,10 +224,20 @@ class ZenohConfig:
             raise ValidationError("the lowlatency transport silently drops payloads over 49,144 bytes: not allowed")
         if self.mode == "client" and not self.connect:
             raise ValidationError("client mode needs at least one router endpoint in connect")
+        if self.tls is not None:
+            if not isinstance(self.tls, TlsFiles):
+                raise ValidationError(f"tls must be a TlsFiles, got {type(self.tls).__name__}")
+            clear = [ep for ep in self.listen + self.connect if not ep.startswith("tls/")]
+            if clear:
+                raise ValidationError(f"with TLS every endpoint must be tls/HOST:PORT (nothing in clear), got {clear}")
+            overridden = sorted(k for k in self.extra if k.startswith(TLS_PATH + "/"))
+            if overridden:
+                raise ValidationError(f"TLS settings are given by tls=TlsFiles(...), not extra: {overridden}")
 
     def to_zenoh(self) -> zenoh.Config:
         """The ``zenoh.Config`` these settings describe."""
-        listen = list(self.listen) or (["tcp/127.0.0.1:0"] if self.mode != "client" else [])
+        default = "tls/127.0.0.1:0" if self.tls is not None else "tcp/127.0.0.1:0"
+        listen = list(self.listen) or ([default] if self.mode != "client" else [])
         values: dict[str, Any] = {
             "mode": self.mode,
             "listen/endpoints": listen,
@@ -191,6 +255,8 @@ class ZenohConfig:
             # 1-20% of 7 kB messages at 900 msg/s on loopback; 16 lost none
             "transport/link/tx/queue/size/data": 16,
         }
+        if self.tls is not None:
+            values.update(self.tls.zenoh_values())
         values.update(self.extra)
         cfg = zenoh.Config()
         for path, value in values.items():
@@ -200,7 +266,8 @@ class ZenohConfig:
     def with_endpoints(self, listen: Iterable[str] = (), connect: Iterable[str] = ()) -> ZenohConfig:
         """A copy with other endpoints."""
         return ZenohConfig(self.mode, tuple(listen), tuple(connect), self.multicast_scouting, self.gossip_scouting,
-                           self.open_timeout_ms, self.lease_ms, self.retry_period_ms, self.retry_max_ms, dict(self.extra))
+                           self.open_timeout_ms, self.lease_ms, self.retry_period_ms, self.retry_max_ms, dict(self.extra),
+                           self.tls)
 
 
 def open_session(config: ZenohConfig | None = None) -> zenoh.Session:

@@ -146,11 +146,17 @@ def test_error_stats():
 
 def test_example_beats_the_baseline_on_the_slice(tmp_path):
     out = tmp_path / "res.json"
-    proc = subprocess.run([sys.executable, str(EXAMPLE), str(TRACK), "--particles", "2000", "--json", str(out)],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(TRACK), "--particles", "2000", "--json", str(out),
+                           "--plot", str(tmp_path / "fig")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "straight_03" in proc.stdout and "PF RMSE" in proc.stdout
     res = json.loads(out.read_text())
+    for f in ("ble_straight_03_topdown.png", "ble_straight_03_errors.png"):
+        assert (tmp_path / "fig" / f).stat().st_size > 20_000
+    ser = res["series"]["straight_03"]   # the per-packet series: its errors give the reported RMSE
+    err = np.linalg.norm(np.subtract(ser["mean"], ser["truth"]), axis=1)
+    assert float(np.sqrt(np.mean(err**2))) == pytest.approx(res["rmse"], rel=1e-9)
+    assert np.shape(ser["cov"]) == (res["rows"], 2, 2)
     for key in ("rmse", "median_error", "baseline_rmse"):
         assert np.isfinite(res[key]) and res[key] > 0
     assert res["model"] == "radio-map"  # the default, from the shipped radio_map.npz

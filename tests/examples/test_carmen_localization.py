@@ -25,10 +25,12 @@ carmen = load_example("carmen_localization")
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     out = tmp_path_factory.mktemp("carmen") / "res.json"
-    proc = subprocess.run([sys.executable, str(EXAMPLE), str(SLICE), "--json", str(out)],
+    proc = subprocess.run([sys.executable, str(EXAMPLE), str(SLICE), "--json", str(out), "--plot", str(out.parent)],
                           capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "MCL (likelihood field)" in proc.stdout and "ICP + odometry EKF" in proc.stdout
+    for f in ("carmen_topdown.png", "carmen_errors.png"):
+        assert (out.parent / f).stat().st_size > 20_000
     return json.loads(out.read_text())
 
 
@@ -38,6 +40,16 @@ def test_protocol(result):
     assert result["map"]["occupied_cells"] > 1000
     # the simulated odometry drifts by metres: the localizers have work to do
     assert result["odometry"]["rmse"] > 1.0
+
+
+def test_series_give_the_table(result):
+    """The per-scan series in the JSON reproduce the reported RMSE (computed here from them)."""
+    ser = result["series"]
+    truth = np.asarray(ser["truth"])[:, :2]
+    for key in ("mcl", "scan_matching"):
+        e = np.asarray(ser[key]["mean"])[:, :2] - truth
+        assert float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) == pytest.approx(result[key]["rmse"], rel=1e-9)
+        assert np.shape(ser[key]["cov"]) == (result["localized_scans"], 3, 3)
 
 
 def test_accuracy(result):

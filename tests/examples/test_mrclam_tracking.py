@@ -113,7 +113,8 @@ def example_runs(tmp_path_factory):
     procs = {}
     for model in ("cv", "odometry"):
         js = out / f"{model}.json"
-        flag = [] if model == "odometry" else ["--target-model", model]  # odometry: the default
+        # odometry: the default; it also writes the figures
+        flag = ["--plot", str(out / "fig")] if model == "odometry" else ["--target-model", model]
         procs[model] = (subprocess.Popen([sys.executable, str(EXAMPLE), str(SLICE), *flag,
                                           "--json", str(js)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                          text=True, cwd=ROOT), js)
@@ -123,6 +124,8 @@ def example_runs(tmp_path_factory):
         assert p.returncode == 0, stderr
         assert "node robot2" in stdout and "dead reckoning" in stdout
         res[model] = json.loads(js.read_text())
+    for f in ("mrclam_topdown.png", "mrclam_errors.png"):
+        assert (out / "fig" / f).stat().st_size > 20_000
     return res
 
 
@@ -147,6 +150,11 @@ def test_example_cv_target(example_runs):
 
 def test_example_odometry_target(example_runs):
     r = example_runs["odometry"]
+    # the per-step series reproduce the reported RMSE; the figures are written
+    ser = r["series"]
+    for o, v in r["nodes"].items():
+        e = np.asarray(ser["nodes"][o]["mean"]) - np.asarray(ser["truth"])
+        assert float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) == pytest.approx(v["rmse"], rel=1e-9)
     assert r["target_model"] == "odometry" and r["eval_points"] == 359  # the default model
     # measured on the slice: nodes 0.216-0.228 m, joint EKF 0.184, union 0.204
     for o, v in r["nodes"].items():

@@ -60,7 +60,7 @@ def test_demo_runs_in_process_shortened_and_writes_its_figures(tmp_path, capsys,
     assert "not available" in caplog.text
     out = capsys.readouterr().out
     assert "centralized" in out and "mode: in-process" in out and "outage gateway - cam_left" in out
-    for name in ("fig33.png", "urus_nodes.png", "urus.json"):
+    for name in ("fig33.png", "urus_nodes.png", "urus.json", "urus_topdown.png", "urus.mcap", "urus_series.csv"):
         assert (tmp_path / name).stat().st_size > 1000
     m = json.loads((tmp_path / "urus.json").read_text())
     assert m["demo"]["mode"] == "in-process" and m["steps"] == 451
@@ -86,7 +86,7 @@ def test_outage_shows_and_heals_in_the_gap(tmp_path):
 
 
 def test_plot_figure33_needs_a_known_node(tmp_path):
-    from dfusion.plots import plot_figure33
+    from dfusion.viz import plot_figure33
     from dfusion.sim import run_scenario
 
     res = run_scenario(load_scenario(SCENARIO, duration=3.0))

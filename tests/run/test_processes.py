@@ -83,21 +83,38 @@ def pid_alive(pid: int) -> bool:
     """True for a running process (a zombie counts as gone)."""
     try:
         import psutil
-
-        try:
-            return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
-        except psutil.NoSuchProcess:
-            return False
     except ImportError:
-        try:
-            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-            return state not in ("Z", "X")
-        except (OSError, IndexError):
-            try:
-                os.kill(pid, 0)
-                return True
-            except ProcessLookupError:
-                return False
+        from dfusion.run.supervision import pid_running
+
+        return pid_running(pid)
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
+def start_cli_run(scenario: Path, run_dir: Path, timeout: float = 90.0) -> subprocess.Popen:
+    """``dfusion run SCENARIO --run-dir RUN_DIR`` as a process, returned once the run has started (every
+    node up, the start time written). The caller kills it in a ``finally``."""
+    launcher = subprocess.Popen([sys.executable, "-m", "dfusion.cli", "run", str(scenario), "--run-dir", str(run_dir),
+                                 "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        deadline = time.monotonic() + timeout
+        while not (run_dir / "start").exists():
+            assert launcher.poll() is None, launcher.communicate()
+            assert time.monotonic() < deadline, "the run never started"
+            time.sleep(0.05)
+    except BaseException:
+        launcher.kill()
+        launcher.wait()
+        raise
+    return launcher
+
+
+def node_pids(run_dir: Path) -> dict[str, int]:
+    """Every process of the run but the launcher (nodes, and the warm standby once started)."""
+    return {n: p for n, p in json.loads((run_dir / "pids.json").read_text()).items() if n != "launcher"}
 
 
 def kill_pids(pids) -> None:
@@ -120,7 +137,11 @@ def test_run_ends_where_simulate_ends(tmp_path, capsys):
     assert rc == 0, printed
     got = json.loads(out_json.read_text())
     ref = run_scenario(load_scenario(scenario)).metrics
-    assert set(got) == set(ref) | {"run"}
+    # run has no front-end counters (measurements_detail); --json adds the per-step series
+    assert set(got) == (set(ref) - {"measurements_detail"}) | {"run", "series"}
+    tr = got["traffic"]["network"]   # the counts add up for run too
+    assert tr["sent"] + tr["duplicated"] == tr["delivered"] + tr["dropped"] + tr["in_flight"]
+    assert got["traffic"]["fused"] + got["traffic"]["rejected"] + got["traffic"]["ignored"] == tr["delivered"]
     assert set(got["nodes"]) == set(ref["nodes"]) == {"a", "b", "c"}
     for name, v in got["nodes"].items():
         assert set(v) == set(ref["nodes"][name])
@@ -163,19 +184,12 @@ def test_sigkilled_node_restarts_and_the_network_reconverges(tmp_path):
 def test_sigterm_to_the_launcher_stops_everything_within_2s(tmp_path):
     scenario = chain3(tmp_path, duration=60.0)
     run_dir = tmp_path / "run"
-    launcher = subprocess.Popen([sys.executable, "-m", "dfusion.cli", "run", str(scenario), "--run-dir", str(run_dir),
-                                 "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+    launcher = start_cli_run(scenario, run_dir)
     pids: list[int] = []
     try:
-        deadline = time.monotonic() + 60
-        while not (run_dir / "start").exists():   # every node is up and the run has started
-            assert launcher.poll() is None, launcher.communicate()
-            assert time.monotonic() < deadline, "the run never started"
-            time.sleep(0.05)
         time.sleep(0.5)
-        pids = [p for n, p in json.loads((run_dir / "pids.json").read_text()).items() if n != "launcher"]
-        assert len(pids) == 3 and all(pid_alive(p) for p in pids)
+        pids = list(node_pids(run_dir).values())
+        assert len(pids) >= 3 and all(pid_alive(p) for p in pids)
         t0 = time.monotonic()
         launcher.send_signal(signal.SIGTERM)
         launcher.wait(timeout=10)
@@ -210,7 +224,8 @@ def test_authenticated_network_rejects_a_stranger(tmp_path):
     recording.write_text("".join(save_recording(tmp_path / f"{n}.jsonl", n, world_measurements(sc, n)).read_text()
                                  for n in sorted(sc.nodes)))
     opts = RunOptions(scenario=str(scenario), speed=3.0, run_dir=str(tmp_path / "run"),
-                      network_key_file=str(key_file), node_args=["--measurements", str(recording)])
+                      network_key_file=str(key_file), node_args=["--measurements", str(recording)],
+                      emulate_links=False)   # the real network only (the default emulates the links)
     launcher = Launcher(opts)
     box: dict = {}
     thread = threading.Thread(target=lambda: box.setdefault("result", launcher.run()), daemon=True)
@@ -247,6 +262,7 @@ def test_authenticated_network_rejects_a_stranger(tmp_path):
         assert v["final_gap"] < 1e-6, (name, v["final_gap"])
         assert v["messages"] > 0
     assert forged_sent == 5
+    assert m["run"]["links_emulated"] is False and m["run"]["network_key"] == "given"
     assert m["run"]["nodes"]["b"]["measurements_fused"] == len(world_measurements(sc, "b"))
 
 

@@ -135,6 +135,17 @@ def test_shipped_scenarios_are_strictly_valid():
         assert sc.nodes, path
 
 
+def test_the_security_table_is_checked_when_the_scenario_is_loaded(tmp_path):
+    good = GOOD + '\n[security]\nnetwork_key_file = "net.key"\n[security.tls]\ndir = "certs"\n'
+    sc = load_scenario(write(tmp_path, good))
+    assert sc.security.network_key_file == str(tmp_path / "net.key")
+    assert sc.security.tls_dir == str(tmp_path / "certs") and sc.security.tls
+    msg = error_of(write(tmp_path, good.replace('dir = "certs"', 'dri = "certs"')))
+    assert "security.tls.dri" in msg and "unknown key" in msg
+    msg = error_of(write(tmp_path, 'security = "on"\n' + GOOD))
+    assert "security" in msg and "must be a table [security]" in msg
+
+
 def test_the_protection_table_is_checked_strictly(tmp_path):
     from dfusion.fusion.guard import GuardConfig
 

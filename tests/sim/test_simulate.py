@@ -166,8 +166,11 @@ def test_simulate_prints_the_table(capsys):
     code = main(["simulate", str(ROOT / "topologies" / "star5.scenario.toml"), "--duration", "5", "-q"])
     assert code == 0
     out = capsys.readouterr().out
-    header = out.splitlines()[0].split()
-    assert header[:2] == ["node", "RMSE"] and "ANEES" in header and "gap" in header and "bytes" in header
+    header = out.splitlines()[0]
+    assert header.split()[:3] == ["node", "RMSE", "[m]"]
+    for col in ("ANEES [-]", "final gap pos [m]", "final gap vel [m/s]", "mean gap pos [m]", "sent [msgs]",
+                "sent [bytes]"):
+        assert col in header, col
     for name in ("h", "s1", "s2", "s3", "s4", "centralized"):
         assert any(line.split()[:1] == [name] for line in out.splitlines()), name
     assert "messages" in out and "bytes" in out

@@ -15,7 +15,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from dfusion.errors import ValidationError  # noqa: E402
-from dfusion.transport.zenoh import ZenohConfig, ZenohTransport  # noqa: E402
+from dfusion.transport.zenoh import TlsFiles, ZenohConfig, ZenohTransport  # noqa: E402
 from dfusion.transport.zenoh import free_tcp_endpoints, link_key, open_session  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -230,3 +230,69 @@ def test_names_are_checked(bad):
 def test_lowlatency_is_refused():
     with pytest.raises(ValidationError, match="lowlatency"):
         ZenohConfig(extra={"transport/unicast/lowlatency": True})
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory):
+    from tests.helpers.pki import make_pki
+
+    return make_pki(tmp_path_factory.mktemp("pki"))
+
+
+def test_tls_settings_are_checked(pki, tmp_path):
+    tls = pki.member("a")
+    cfg = ZenohConfig(tls=tls).to_zenoh()
+    assert cfg.get_json("listen/endpoints") == '["tls/127.0.0.1:0"]'
+    assert cfg.get_json("transport/link/tls/enable_mtls") == "true"
+    assert cfg.get_json("transport/link/tls/connect_certificate") == f'"{tls.cert}"'
+    with pytest.raises(ValidationError, match="nothing in clear"):
+        ZenohConfig(listen=["tcp/127.0.0.1:0"], tls=tls)
+    with pytest.raises(ValidationError, match="nothing in clear"):
+        ZenohConfig(listen=["tls/127.0.0.1:0"], connect=["tcp/127.0.0.1:7447"], tls=tls)
+    with pytest.raises(ValidationError, match="not extra"):
+        ZenohConfig(tls=tls, extra={"transport/link/tls/enable_mtls": False})
+    with pytest.raises(ValidationError, match="No such file"):
+        TlsFiles(str(tmp_path / "missing.pem"), tls.cert, tls.key)
+    (tmp_path / "junk.pem").write_text("not a certificate")
+    with pytest.raises(ValidationError, match="not PEM"):
+        TlsFiles(tls.ca, str(tmp_path / "junk.pem"), tls.key)
+    assert free_tcp_endpoints(1, scheme="tls")[0].startswith("tls/127.0.0.1:")
+
+
+def test_mutual_tls_refuses_strangers(pki):
+    """Two members (certificates of the run's CA) talk over tls/ endpoints. A stranger with only the
+    CA certificate, or with a certificate of another CA, or speaking plain TCP to the same port,
+    hears nothing (no liveliness token, no message) and its forged message reaches nobody; a
+    third member connecting the same way hears both (the control)."""
+    from tests.helpers.pki import listen_in, strangers
+
+    net = network()
+    ea, eb = free_tcp_endpoints(2, scheme="tls")
+    with ZenohTransport(net, {"a": ["b"]}, ZenohConfig(listen=[ea], tls=pki.member("a"))) as a, \
+            ZenohTransport(net, {"b": ["a"]}, ZenohConfig(listen=[eb], connect=[ea], tls=pki.member("b"))) as b:
+        assert wait_for(lambda: a.alive("b") and b.alive("a")), "the two members never saw each other"
+        stop = False
+
+        def chatter():
+            while not stop:
+                a.send("a", "b", b"secret", 1.0)
+                time.sleep(0.05)
+
+        import threading
+
+        th = threading.Thread(target=chatter, daemon=True)
+        th.start()
+        try:
+            heard = {}
+            for label, cfg in strangers(pki).items():
+                heard[label] = listen_in([ea, eb], net, 1.0, forge=(link_key(net, "b", "a"), b"forged"), **cfg)
+            heard["plain TCP to the TLS ports"] = listen_in([ea.replace("tls/", "tcp/"), eb.replace("tls/", "tcp/")],
+                                                            net, 1.0, forge=(link_key(net, "b", "a"), b"forged"))
+            member = listen_in([ea], net, 1.0, tls=pki.member("member"))
+        finally:
+            stop = True
+            th.join()
+        assert {k: v for k, v in heard.items() if v} == {}
+        assert f"alive dfusion/{net}/alive/a" in member and f"data {link_key(net, 'a', 'b')}" in member
+        got = a.receive("a")
+        assert [d.data for d in got if d.data == b"forged"] == [], "a stranger's message reached a member"

@@ -1,0 +1,37 @@
+"""ROS bags in: ROS 1 and ROS 2 (sqlite3, MCAP) recordings as dfusion measurements.
+
+:func:`read_bag` reads a bag into messages ordered by header stamp
+(:mod:`dfusion.bags.reader`); :mod:`dfusion.bags.convert` turns the standard message
+types into plain measurements (user functions map any other type);
+:mod:`dfusion.bags.datasets` gives a bag the shape of a dataset reader's result, so the
+MRCLAM and CARMEN pipelines run on recordings. Scenario nodes are fed from a bag by
+:func:`dfusion.sim.replay.replay_scenario` (``dfusion replay``). See ``docs/ros.md``.
+"""
+from dfusion.bags.convert import (
+    CONVERTERS,
+    Converter,
+    PoseReading,
+    PositionFix,
+    RangeReading,
+    ScanReading,
+    Velocity,
+    convert,
+    quaternion_of_yaw,
+    yaw_of,
+)
+from dfusion.bags.datasets import (
+    MRCLAM_TOPICS,
+    SIGHTINGS_MSGDEF,
+    SIGHTINGS_TYPE,
+    carmen_from_bag,
+    mrclam_from_bag,
+    sightings,
+)
+from dfusion.bags.reader import Bag, BagMessage, read_bag, stamp_ns
+
+__all__ = [
+    "Bag", "BagMessage", "read_bag", "stamp_ns",
+    "CONVERTERS", "Converter", "PoseReading", "PositionFix", "RangeReading", "ScanReading", "Velocity",
+    "convert", "quaternion_of_yaw", "yaw_of",
+    "MRCLAM_TOPICS", "SIGHTINGS_MSGDEF", "SIGHTINGS_TYPE", "carmen_from_bag", "mrclam_from_bag", "sightings",
+]

@@ -1,0 +1,208 @@
+r"""ROS messages to dfusion's plain measurement types.
+
+One function per supported message type (ROS 1 and ROS 2 share the field names); each
+takes the message and its time ``t`` (seconds, from :class:`~dfusion.bags.Bag`) and
+returns a plain dataclass:
+
+===============================================  =========================================
+message type                                     result
+===============================================  =========================================
+``nav_msgs/Odometry``                            :class:`PoseReading` (pose, yaw, twist,
+                                                 covariance of ``(x, y, yaw)``)
+``geometry_msgs/PoseStamped``, ``Pose``          :class:`PoseReading`
+``geometry_msgs/Twist``, ``TwistStamped``        :class:`Velocity` (``v``: linear x,
+                                                 ``w``: angular z)
+``sensor_msgs/LaserScan``                        :class:`ScanReading`
+``geometry_msgs/PoseWithCovarianceStamped``      :class:`PositionFix` (``x, y`` and their
+                                                 2x2 covariance)
+``geometry_msgs/PointStamped``                   :class:`PositionFix` (no covariance)
+``sensor_msgs/Range``                            :class:`RangeReading`
+===============================================  =========================================
+
+Any other type (a vendor's detection array, ...) is mapped by a **user function**
+``convert(msg, t) -> measurement`` passed where a replay asks for converters
+(``docs/ros.md`` has an example). The yaw of a quaternion is
+``atan2(2 (w z + x y), 1 - 2 (y^2 + z^2))`` (the ZYX Euler angle; REP 103 frames).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from dfusion.errors import ValidationError
+
+__all__ = [
+    "PoseReading",
+    "Velocity",
+    "ScanReading",
+    "PositionFix",
+    "RangeReading",
+    "Converter",
+    "CONVERTERS",
+    "convert",
+    "yaw_of",
+    "quaternion_of_yaw",
+]
+
+#: A user function: the message and its time (s) -> a measurement.
+Converter = Callable[[Any, float], Any]
+
+
+@dataclass(frozen=True)
+class PoseReading:
+    """A planar pose ``(x, y, yaw)``; ``cov`` its 3x3 covariance when the message has one,
+    ``twist`` the body-frame ``(v, w)`` of an odometry message."""
+
+    t: float
+    pose: np.ndarray
+    cov: np.ndarray | None = None
+    twist: np.ndarray | None = None
+    frame: str = ""
+
+
+@dataclass(frozen=True)
+class Velocity:
+    """Body-frame forward speed ``v`` (m/s) and turn rate ``w`` (rad/s)."""
+
+    t: float
+    v: float
+    w: float
+
+
+@dataclass(frozen=True)
+class ScanReading:
+    """A laser scan: ranges (m, float64), beam angles (rad, from ``angle_min`` in steps of
+    ``angle_increment``) and the valid beams (finite, inside ``[range_min, range_max)``)."""
+
+    t: float
+    ranges: np.ndarray
+    angles: np.ndarray
+    range_min: float
+    range_max: float
+    valid: np.ndarray
+    frame: str = ""
+
+
+@dataclass(frozen=True)
+class PositionFix:
+    """A position ``z = (x, y)`` with covariance ``R`` (``None``: the node's own)."""
+
+    t: float
+    z: np.ndarray
+    R: np.ndarray | None = None
+    frame: str = ""
+
+
+@dataclass(frozen=True)
+class RangeReading:
+    """One range (m) of a ``sensor_msgs/Range`` sensor, with its valid interval."""
+
+    t: float
+    r: float
+    min_range: float
+    max_range: float
+    frame: str = ""
+
+    @property
+    def valid(self) -> bool:
+        return math.isfinite(self.r) and self.min_range <= self.r <= self.max_range
+
+
+def yaw_of(q: Any) -> float:
+    """Yaw (rad) of a quaternion with fields ``x, y, z, w``."""
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def quaternion_of_yaw(yaw: float) -> tuple[float, float, float, float]:
+    """``(x, y, z, w)`` of a rotation by ``yaw`` about z."""
+    return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def _frame(msg: Any) -> str:
+    h = getattr(msg, "header", None)
+    return str(getattr(h, "frame_id", "")) if h is not None else ""
+
+
+def _pose(p: Any) -> np.ndarray:
+    return np.array([float(p.position.x), float(p.position.y), yaw_of(p.orientation)])
+
+
+def _cov3(c: Any) -> np.ndarray:
+    """``(x, y, yaw)`` block of a row-major 6x6 covariance (x, y, z, roll, pitch, yaw)."""
+    C = np.asarray(c, dtype=float).reshape(6, 6)
+    k = [0, 1, 5]
+    return C[np.ix_(k, k)]
+
+
+def odometry(msg: Any, t: float) -> PoseReading:
+    """``nav_msgs/Odometry``: pose, ``(x, y, yaw)`` covariance, twist ``(v, w)``."""
+    tw = msg.twist.twist
+    return PoseReading(t, _pose(msg.pose.pose), _cov3(msg.pose.covariance),
+                       np.array([float(tw.linear.x), float(tw.angular.z)]), _frame(msg))
+
+
+def pose_stamped(msg: Any, t: float) -> PoseReading:
+    """``geometry_msgs/PoseStamped`` (or a bare ``Pose``)."""
+    return PoseReading(t, _pose(getattr(msg, "pose", msg)), frame=_frame(msg))
+
+
+def twist(msg: Any, t: float) -> Velocity:
+    """``geometry_msgs/Twist`` or ``TwistStamped``."""
+    tw = getattr(msg, "twist", msg)
+    return Velocity(t, float(tw.linear.x), float(tw.angular.z))
+
+
+def laser_scan(msg: Any, t: float) -> ScanReading:
+    """``sensor_msgs/LaserScan``. ROS stores ranges as float32: they are widened to float64
+    unchanged. Beam ``i`` has the angle ``angle_min + i * angle_increment``."""
+    r = np.asarray(msg.ranges, dtype=np.float64)
+    ang = float(msg.angle_min) + np.arange(r.size) * float(msg.angle_increment)
+    rmin, rmax = float(msg.range_min), float(msg.range_max)
+    valid = np.isfinite(r) & (r > 0) & (r >= rmin) & (r < rmax - 1e-6)
+    return ScanReading(t, r, ang, rmin, rmax, valid, _frame(msg))
+
+
+def pose_with_covariance(msg: Any, t: float) -> PositionFix:
+    """``geometry_msgs/PoseWithCovarianceStamped``: ``(x, y)`` and its 2x2 covariance."""
+    p = msg.pose.pose.position
+    R = _cov3(msg.pose.covariance)[:2, :2]
+    return PositionFix(t, np.array([float(p.x), float(p.y)]), R, _frame(msg))
+
+
+def point_stamped(msg: Any, t: float) -> PositionFix:
+    """``geometry_msgs/PointStamped``: ``(x, y)``, no covariance."""
+    return PositionFix(t, np.array([float(msg.point.x), float(msg.point.y)]), None, _frame(msg))
+
+
+def range_msg(msg: Any, t: float) -> RangeReading:
+    """``sensor_msgs/Range``."""
+    return RangeReading(t, float(msg.range), float(msg.min_range), float(msg.max_range), _frame(msg))
+
+
+#: Message type -> converter, for the standard types (ROS 2 names; ROS 1 bags read by
+#: rosbags use the same names).
+CONVERTERS: dict[str, Converter] = {
+    "nav_msgs/msg/Odometry": odometry,
+    "geometry_msgs/msg/PoseStamped": pose_stamped,
+    "geometry_msgs/msg/Pose": pose_stamped,
+    "geometry_msgs/msg/Twist": twist,
+    "geometry_msgs/msg/TwistStamped": twist,
+    "sensor_msgs/msg/LaserScan": laser_scan,
+    "geometry_msgs/msg/PoseWithCovarianceStamped": pose_with_covariance,
+    "geometry_msgs/msg/PointStamped": point_stamped,
+    "sensor_msgs/msg/Range": range_msg,
+}
+
+
+def convert(msgtype: str, msg: Any, t: float, converters: dict[str, Converter] | None = None) -> Any:
+    """Convert one message by its type: ``converters`` (user functions) first, then
+    :data:`CONVERTERS`."""
+    fn = (converters or {}).get(msgtype) or CONVERTERS.get(msgtype)
+    if fn is None:
+        raise ValidationError(f"no converter for message type {msgtype!r}: pass a function msg, t -> measurement "
+                              f"(standard types: {sorted(CONVERTERS)})")
+    return fn(msg, t)

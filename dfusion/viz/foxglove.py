@@ -1,0 +1,442 @@
+r"""A run as an MCAP recording for Foxglove (``dfusion simulate --mcap``, ``docs/ros.md``).
+
+The file is written with the ``mcap`` library (the format's reference implementation),
+JSON-encoded, with Foxglove's own schemas (``foxglove.PoseInFrame``,
+``foxglove.SceneUpdate``, ``foxglove.Log``) described as JSON Schema, so that opening it
+in Foxglove shows the run in the 3D panel (frame ``map``, metres) without any set-up.
+Numbers to plot (covariances, NEES, gaps) travel in small ``dfusion/*`` JSON messages
+that Foxglove's Plot and Raw Message panels read by field path.
+
+Topics (one message per filter step unless said otherwise; time = scenario time, plus
+``start_ns``):
+
+=================================  ====================  ===================================
+topic                              schema                what
+=================================  ====================  ===================================
+``/truth``                         foxglove.PoseInFrame  the true position (heading: the
+                                                         direction of motion)
+``/nodes/<name>/pose``             foxglove.PoseInFrame  the node's estimate
+``/nodes/<name>/estimate``         dfusion/Estimate      mean, covariance (row-major),
+                                                         standard deviations, NEES, gaps to
+                                                         the centralized EKF (m, m/s)
+``/centralized/pose``,             as above              the centralized EKF
+``/centralized/estimate``
+``/scene/estimates``               foxglove.SceneUpdate  every node's 3-sigma ellipse and
+                                                         label, the truth as a sphere
+``/scene/sensors``                 foxglove.SceneUpdate  at t = 0: camera footprints,
+                                                         receivers, beacons, the true path
+``/scene/tree``                    foxglove.SceneUpdate  the tree's links between the nodes'
+                                                         anchors (green up, red down), at 0
+                                                         and at each change
+``/tree``                          dfusion/Tree          nodes and links with their state,
+                                                         at 0 and at each change
+``/detections``                    foxglove.SceneUpdate  each measurement that gives a point
+                                                         on the ground, for 1 s (green used,
+                                                         red gated or refused, grey clutter)
+``/diagnostics``                   foxglove.Log          gates, refused measurements, link
+                                                         outages beginning and ending
+=================================  ====================  ===================================
+
+A node's *anchor* (where the tree draws it) is its camera's position, its receivers'
+centroid, its beacon; nodes without a place are put in a row above the scene.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from dfusion.viz.topdown import camera_footprint, detection_point, ellipse_points, sensor_points
+
+__all__ = ["SCHEMAS", "FOXGLOVE_SCHEMAS", "record_mcap", "messages_of_result", "LiveView"]
+
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_STR = {"type": "string"}
+_BOOL = {"type": "boolean"}
+_NUM_OR_NULL = {"type": ["number", "null"]}   # null: unknown (no truth, no centralized estimate)
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None (JSON null) when it is not finite: JSON has no NaN."""
+    return float(x) if math.isfinite(x) else None
+
+
+def _obj(props: dict[str, Any], title: str | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": "object", "properties": props}
+    if title:
+        out["title"] = title
+    return out
+
+
+_TIME = _obj({"sec": _INT, "nsec": _INT})
+_VEC3 = _obj({"x": _NUM, "y": _NUM, "z": _NUM})
+_QUAT = _obj({"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM})
+_POSE = _obj({"position": _VEC3, "orientation": _QUAT})
+_COLOR = _obj({"r": _NUM, "g": _NUM, "b": _NUM, "a": _NUM})
+_KV = _obj({"key": _STR, "value": _STR})
+
+
+def _arr(items: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "array", "items": items}
+
+
+_LINE = _obj({"type": _INT, "pose": _POSE, "thickness": _NUM, "scale_invariant": _BOOL, "points": _arr(_VEC3),
+              "color": _COLOR, "colors": _arr(_COLOR), "indices": _arr(_INT)})
+_SPHERE = _obj({"pose": _POSE, "size": _VEC3, "color": _COLOR})
+_TEXT = _obj({"pose": _POSE, "billboard": _BOOL, "font_size": _NUM, "scale_invariant": _BOOL, "color": _COLOR,
+              "text": _STR})
+_TRIANGLES = _obj({"pose": _POSE, "points": _arr(_VEC3), "color": _COLOR, "colors": _arr(_COLOR),
+                   "indices": _arr(_INT)})
+_ENTITY = _obj({"timestamp": _TIME, "frame_id": _STR, "id": _STR, "lifetime": _TIME, "frame_locked": _BOOL,
+                "metadata": _arr(_KV), "arrows": _arr({}), "cubes": _arr(_SPHERE), "spheres": _arr(_SPHERE),
+                "cylinders": _arr({}), "lines": _arr(_LINE), "triangles": _arr(_TRIANGLES), "texts": _arr(_TEXT),
+                "models": _arr({})})
+
+#: JSON Schemas of the Foxglove message types used (field names as in Foxglove's schema
+#: reference, https://docs.foxglove.dev/docs/visualization/message-schemas/introduction;
+#: the tests check every message against Foxglove's published definitions).
+FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
+    "foxglove.PoseInFrame": _obj({"timestamp": _TIME, "frame_id": _STR, "pose": _POSE}, "foxglove.PoseInFrame"),
+    "foxglove.SceneUpdate": _obj({"deletions": _arr(_obj({"timestamp": _TIME, "type": _INT, "id": _STR})),
+                                  "entities": _arr(_ENTITY)}, "foxglove.SceneUpdate"),
+    "foxglove.Log": _obj({"timestamp": _TIME, "level": _INT, "message": _STR, "name": _STR, "file": _STR,
+                          "line": _INT}, "foxglove.Log"),
+}
+
+#: Every schema of the recording: Foxglove's and dfusion's own numeric messages.
+SCHEMAS: dict[str, dict[str, Any]] = {
+    **FOXGLOVE_SCHEMAS,
+    "dfusion/Estimate": _obj({"timestamp": _TIME, "t": _NUM, "node": _STR, "state": _arr(_STR), "mean": _arr(_NUM),
+                              "covariance": _arr(_NUM), "std": _arr(_NUM), "nees": _NUM_OR_NULL,
+                              "gap_position_m": _NUM_OR_NULL, "gap_velocity_mps": _NUM_OR_NULL}, "dfusion/Estimate"),
+    "dfusion/Tree": _obj({"timestamp": _TIME, "nodes": _arr(_STR),
+                          "links": _arr(_obj({"a": _STR, "b": _STR, "up": _BOOL}))}, "dfusion/Tree"),
+}
+
+_LOG_INFO, _LOG_WARNING = 2, 3
+_LINE_STRIP, _LINE_LOOP, _LINE_LIST = 0, 1, 2
+_PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.58, 0.4, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76),
+            (0.09, 0.75, 0.81), (0.74, 0.74, 0.13), (0.84, 0.15, 0.16), (0.5, 0.5, 0.5), (0.0, 0.0, 0.5)]
+
+
+def _stamp(ns: int) -> dict[str, int]:
+    return {"sec": int(ns // 1_000_000_000), "nsec": int(ns % 1_000_000_000)}
+
+
+def _color(rgb: tuple[float, float, float], a: float = 1.0) -> dict[str, float]:
+    return {"r": float(rgb[0]), "g": float(rgb[1]), "b": float(rgb[2]), "a": float(a)}
+
+
+def _pose(x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> dict[str, Any]:
+    return {"position": {"x": float(x), "y": float(y), "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(0.5 * yaw), "w": math.cos(0.5 * yaw)}}
+
+
+def _p3(xy: Iterable[float], z: float = 0.0) -> dict[str, float]:
+    x, y = list(xy)[:2]
+    return {"x": float(x), "y": float(y), "z": float(z)}
+
+
+def _entity(ns: int, eid: str, *, lifetime_ns: int = 0, lines=(), spheres=(), cubes=(), texts=(), triangles=(),
+            metadata: dict[str, str] | None = None) -> dict[str, Any]:
+    return {"timestamp": _stamp(ns), "frame_id": "map", "id": eid, "lifetime": _stamp(lifetime_ns),
+            "frame_locked": False, "metadata": [{"key": k, "value": v} for k, v in (metadata or {}).items()],
+            "arrows": [], "cubes": list(cubes), "spheres": list(spheres), "cylinders": [], "lines": list(lines),
+            "triangles": list(triangles), "texts": list(texts), "models": []}
+
+
+def _line(points, rgb, *, kind: int = _LINE_STRIP, thickness: float = 2.0, a: float = 1.0) -> dict[str, Any]:
+    return {"type": kind, "pose": _pose(), "thickness": thickness, "scale_invariant": True,
+            "points": [_p3(p) for p in points], "color": _color(rgb, a), "colors": [], "indices": []}
+
+
+def _sphere(xy, rgb, size: float = 0.3, a: float = 1.0) -> dict[str, Any]:
+    return {"pose": _pose(*list(xy)[:2]), "size": {"x": size, "y": size, "z": size}, "color": _color(rgb, a)}
+
+
+def _text(xy, text: str, rgb=(0.1, 0.1, 0.1), size: float = 14.0) -> dict[str, Any]:
+    x, y = list(xy)[:2]
+    p = _pose(x, y)
+    p["position"]["z"] = 0.4
+    return {"pose": p, "billboard": True, "font_size": size, "scale_invariant": True, "color": _color(rgb),
+            "text": text}
+
+
+def _anchors(sc, names: list[str], truth: np.ndarray) -> dict[str, np.ndarray]:
+    """Where the tree draws each node (module docstring)."""
+    out: dict[str, np.ndarray] = {}
+    for n in names:
+        sensor = sc.nodes[n].sensor
+        pts = sensor_points(sensor) if sensor is not None else None
+        if pts is not None:
+            out[n] = pts.mean(axis=0)
+    truth = np.asarray(truth, float).reshape(-1, 2) if np.size(truth) else np.zeros((0, 2))
+    finite = truth[np.all(np.isfinite(truth), axis=1)]
+    ref = np.vstack([finite, *out.values()]) if (finite.size or out) else np.zeros((1, 2))
+    lo, hi = ref.min(axis=0), ref.max(axis=0)
+    rest = [n for n in names if n not in out]
+    for i, n in enumerate(rest):
+        out[n] = np.array([lo[0] + (i + 1) / (len(rest) + 1) * (hi[0] - lo[0] or 1.0), hi[1] + 0.1 * (hi[1] - lo[1]) + 2.0])
+    return out
+
+
+Message = tuple[str, str, int, dict[str, Any]]
+
+
+class _Builder:
+    """The messages of one scenario, step by step (shared by the recording and the live view)."""
+
+    def __init__(self, sc, names: list[str], start_ns: int = 0, truth_path: np.ndarray | None = None) -> None:
+        from dfusion.sim.runner import state_parts
+
+        self.sc, self.names, self.start_ns = sc, names, start_ns
+        self.colors = {n: _PALETTE[i % len(_PALETTE)] for i, n in enumerate(names)}
+        motion = sc.target.motion
+        self.pos, self.vel = state_parts(motion.dim, sc.target.axes)
+        self.resid = motion.residual if motion.angle_indices else None
+        letters = "xyz"
+        state = [f"{letters[i]} [m]" for i in self.pos] + [f"v{letters[i - len(self.pos)]} [m/s]" for i in self.vel]
+        self.state = state + [f"x{i}" for i in range(len(state), motion.dim)]
+        self.truth_path = np.zeros((0, 2)) if truth_path is None else np.asarray(truth_path, float)[:, :2]
+        self.anchors = _anchors(sc, names, self.truth_path)
+
+    def ns(self, t: float) -> int:
+        return self.start_ns + int(round(float(t) * 1e9))
+
+    @staticmethod
+    def heading(x: np.ndarray) -> float:
+        return math.atan2(x[3], x[2]) if len(x) >= 4 and np.all(np.isfinite(x[2:4])) else 0.0
+
+    def step(self, t: float, estimates: dict[str, tuple[np.ndarray, np.ndarray]], truth: np.ndarray,
+             central_mean: np.ndarray) -> list[Message]:
+        """Poses, estimates and ellipses at ``t``; ``estimates`` includes ``"centralized"``."""
+        from dfusion.metrics import nees
+
+        ns = self.ns(t)
+        stamp = _stamp(ns)
+        out: list[Message] = []
+        truth = np.asarray(truth, float)
+        known = bool(np.all(np.isfinite(truth[:2])))
+        if known:
+            out.append(("/truth", "foxglove.PoseInFrame", ns,
+                        {"timestamp": stamp, "frame_id": "map", "pose": _pose(truth[0], truth[1], self.heading(truth))}))
+        ents = []
+        for n, (mk, Pk) in estimates.items():
+            mk, Pk = np.asarray(mk, float), np.asarray(Pk, float)
+            if not (np.all(np.isfinite(mk)) and np.all(np.isfinite(Pk))):
+                continue   # a step a node did not report (dfusion run): nothing to draw
+            topic = "/centralized" if n == "centralized" else f"/nodes/{n}"
+            out.append((f"{topic}/pose", "foxglove.PoseInFrame", ns,
+                        {"timestamp": stamp, "frame_id": "map", "pose": _pose(mk[0], mk[1], self.heading(mk))}))
+            d = mk - np.asarray(central_mean, float)
+            e = float(nees(mk[None], Pk[None], truth[None], self.resid)[0]) if np.all(np.isfinite(truth)) else math.nan
+            est = {"timestamp": stamp, "t": float(t), "node": n, "state": self.state, "mean": mk.tolist(),
+                   "covariance": Pk.ravel().tolist(), "std": np.sqrt(np.maximum(np.diag(Pk), 0.0)).tolist(),
+                   "nees": _finite(e), "gap_position_m": _finite(np.linalg.norm(d[self.pos])),
+                   "gap_velocity_mps": _finite(np.linalg.norm(d[self.vel])) if self.vel else None}
+            out.append((f"{topic}/estimate", "dfusion/Estimate", ns, est))
+            rgb = (0.0, 0.0, 0.0) if n == "centralized" else self.colors[n]
+            ell = ellipse_points(mk[:2], Pk[:2, :2], 3.0, 48)
+            ents.append(_entity(ns, f"ellipse/{n}", lines=[_line(ell, rgb, kind=_LINE_STRIP, thickness=2.0)],
+                                spheres=[_sphere(mk[:2], rgb, 0.15)],
+                                texts=[_text(mk[:2] + np.array([0.3, 0.3]), n, rgb, 12.0)],
+                                metadata={"node": n, "meaning": "estimate and its 3-sigma ellipse"}))
+        if known:
+            ents.append(_entity(ns, "truth", spheres=[_sphere(truth[:2], (0.17, 0.63, 0.17), 0.35)],
+                                metadata={"meaning": "true position"}))
+        out.append(("/scene/estimates", "foxglove.SceneUpdate", ns, {"deletions": [], "entities": ents}))
+        return out
+
+    def sensors(self) -> list[Message]:
+        """The static scene at time 0: footprints, receivers, beacons, the true path."""
+        ns = self.start_ns
+        ents = []
+        for n in self.names:
+            sensor = self.sc.nodes[n].sensor
+            if sensor is None:
+                continue
+            fp = camera_footprint(sensor)
+            if fp is not None:
+                ents.append(_entity(ns, f"footprint/{n}", lines=[_line(fp, self.colors[n], kind=_LINE_LOOP,
+                                                                        thickness=1.5)],
+                                    texts=[_text(fp.mean(axis=0), f"{n} view", self.colors[n], 12.0)],
+                                    metadata={"node": n, "meaning": "the ground the camera sees"}))
+            pts = sensor_points(sensor)
+            if pts is not None:
+                ents.append(_entity(ns, f"sensor/{n}", spheres=[_sphere(p, self.colors[n], 0.4) for p in pts],
+                                    metadata={"node": n, "meaning": "sensor positions (camera, receivers, beacon)"}))
+        finite = self.truth_path[np.all(np.isfinite(self.truth_path), axis=1)]
+        if len(finite) > 1:
+            ents.append(_entity(ns, "truth/path", lines=[_line(finite, (0.17, 0.63, 0.17), thickness=1.0, a=0.5)],
+                                metadata={"meaning": "the whole true path"}))
+        return [("/scene/sensors", "foxglove.SceneUpdate", ns, {"deletions": [], "entities": ents})]
+
+    def tree(self, t_end: float) -> list[Message]:
+        """The tree at 0 and at every change of a link's state (outages), with logs."""
+        sc = self.sc
+        edges = sorted(tuple(sorted(e)) for e in sc.graph.edges)
+        outages = list(sc.outages())
+        out: list[Message] = []
+        for tc in sorted({0.0, *(o[2] for o in outages), *(o[3] for o in outages)}):
+            if tc > t_end + 1e-9:
+                continue
+            lns = self.ns(tc)
+            up = {e: not any(set(e) == {a, b} and t0 <= tc + 1e-9 < t1 for a, b, t0, t1 in outages) for e in edges}
+            out.append(("/tree", "dfusion/Tree", lns, {"timestamp": _stamp(lns), "nodes": self.names,
+                                                         "links": [{"a": a, "b": b, "up": up[(a, b)]} for a, b in edges]}))
+            ents = [_entity(lns, f"link/{a}-{b}",
+                            lines=[_line([self.anchors[a], self.anchors[b]],
+                                         (0.2, 0.6, 0.2) if up[(a, b)] else (0.85, 0.1, 0.1),
+                                         kind=_LINE_LIST, thickness=3.0 if up[(a, b)] else 2.0)],
+                            metadata={"link": f"{a} - {b}", "state": "up" if up[(a, b)] else "down"})
+                    for a, b in edges]
+            ents += [_entity(lns, f"node/{n}", spheres=[_sphere(self.anchors[n], self.colors[n], 0.6)],
+                             texts=[_text(self.anchors[n] + np.array([0.0, 0.6]), n, self.colors[n], 14.0)],
+                             metadata={"node": n}) for n in self.names]
+            out.append(("/scene/tree", "foxglove.SceneUpdate", lns, {"deletions": [], "entities": ents}))
+            if tc > 0:
+                for a, b, t0, t1 in outages:
+                    if abs(t0 - tc) < 1e-9 or abs(t1 - tc) < 1e-9:
+                        what = "down" if abs(t0 - tc) < 1e-9 else "up again"
+                        out.append(("/diagnostics", "foxglove.Log", lns,
+                                    {"timestamp": _stamp(lns), "level": _LOG_WARNING if what == "down" else _LOG_INFO,
+                                     "message": f"link {a} - {b} {what} (outage {t0:g}-{t1:g} s)", "name": "link",
+                                     "file": "", "line": 0}))
+        return out
+
+    def event(self, i: int, ev: dict[str, Any]) -> list[Message]:
+        """A processed measurement: its point on the ground, and a log line when not used."""
+        n = ev["node"]
+        lns = self.ns(ev["t"])
+        outcome = list(ev["outcome"])
+        sensor = self.sc.nodes[n].sensor if n in self.sc.nodes else None
+        p = detection_point(sensor, ev["z"]) if sensor is not None else None
+        used = "contributed" in outcome
+        out: list[Message] = []
+        if p is not None:
+            rgb = (0.1, 0.7, 0.1) if used else (0.85, 0.1, 0.1)
+            out.append(("/detections", "foxglove.SceneUpdate", lns,
+                        {"deletions": [], "entities": [_entity(lns, f"det/{n}/{i}", lifetime_ns=1_000_000_000,
+                                                               spheres=[_sphere(p, rgb, 0.25, 0.8)],
+                                                               metadata={"node": n, "outcome": ",".join(outcome)})]}))
+        if not used:
+            why = ", ".join(outcome) or "no information"
+            out.append(("/diagnostics", "foxglove.Log", lns,
+                        {"timestamp": _stamp(lns), "level": _LOG_WARNING,
+                         "message": f"{n}: measurement of t={float(ev['t_meas']):.3f} s not used ({why})",
+                         "name": n, "file": "", "line": 0}))
+        return out
+
+
+def messages_of_result(result, *, start_ns: int = 0) -> list[Message]:
+    """Every message of the recording: ``(topic, schema, log_time_ns, message)``, sorted by time."""
+    names = sorted(result.node_mean)
+    b = _Builder(result.scenario, names, start_ns, result.truth[:, :2])
+    out: list[Message] = []
+    for k, tk in enumerate(result.times):
+        est = {n: (result.node_mean[n][k], result.node_cov[n][k]) for n in names}
+        est["centralized"] = (result.central_mean[k], result.central_cov[k])
+        out += b.step(float(tk), est, result.truth[k], result.central_mean[k])
+    out += b.sensors()
+    out += b.tree(float(result.times[-1]))
+    for i, ev in enumerate(getattr(result, "events", []) or []):
+        out += b.event(i, ev)
+    out.sort(key=lambda e: e[2])
+    return out
+
+
+class LiveView:
+    """A running scenario served to Foxglove over its WebSocket protocol (foxglove-sdk,
+    ``pip install 'dfusion[live]'``): the topics of the recording, step by step, paced so
+    that scenario time runs ``speed`` times as fast as the wall clock.
+
+    ``sink(topic, schema, log_ns, message)`` replaces the server (tests, other outputs).
+    Use as the ``on_step`` of :func:`dfusion.sim.runner.run_scenario`.
+    """
+
+    def __init__(self, sc, *, port: int = 8765, speed: float = 1.0, sink=None, host: str = "127.0.0.1") -> None:
+        import time
+
+        self.sc, self.speed = sc, float(speed)
+        self._builder = _Builder(sc, sorted(sc.nodes), 0)
+        self._server = None
+        self._channels: dict[str, Any] = {}
+        if sink is None:
+            try:
+                import foxglove
+            except ImportError:
+                raise ImportError("the live view needs foxglove-sdk: pip install 'dfusion[live]'") from None
+            self._foxglove = foxglove
+            self._server = foxglove.start_server(host=host, port=port, name="dfusion")
+            sink = self._to_server
+        self._sink = sink
+        self._wall0 = time.monotonic()
+        self._events = 0
+        for m in self._builder.sensors() + self._builder.tree(sc.duration):
+            self._sink(*m)
+
+    def _to_server(self, topic: str, schema: str, log_ns: int, msg: dict[str, Any]) -> None:
+        ch = self._channels.get(topic)
+        if ch is None:
+            ch = self._channels[topic] = self._foxglove.Channel(topic, schema=SCHEMAS[schema])
+        ch.log(msg, log_time=log_ns)
+
+    def __call__(self, t: float, estimates: dict[str, tuple[np.ndarray, np.ndarray]], truth: np.ndarray,
+                 events: list[dict[str, Any]] = ()) -> None:
+        """One step: ``estimates`` with ``"centralized"``; ``events`` the measurements processed since."""
+        import time
+
+        for m in self._builder.step(t, estimates, truth, estimates["centralized"][0]):
+            self._sink(*m)
+        for ev in events:
+            for m in self._builder.event(self._events, ev):
+                self._sink(*m)
+            self._events += 1
+        if self.speed > 0:
+            wait = self._wall0 + t / self.speed - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+
+    def node_estimate(self, name: str, t: float, mean: np.ndarray, cov: np.ndarray) -> None:
+        """One node's estimate at ``t`` as it arrives (``dfusion run``: a
+        :class:`~dfusion.run.monitor.Monitor` listener); no truth, NEES or gaps then."""
+        mean, cov = np.asarray(mean, float), np.asarray(cov, float)
+        nan = np.full_like(mean, np.nan)
+        for m in self._builder.step(t, {name: (mean, cov)}, nan, nan):
+            if m[0] == "/scene/estimates":   # only this node's entity: the others keep theirs
+                m[3]["entities"] = [e for e in m[3]["entities"] if e["id"] == f"ellipse/{name}"]
+            self._sink(*m)
+
+    def close(self) -> None:
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+
+
+def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:
+    """Write the run ``result`` (:class:`~dfusion.sim.runner.SimulationResult`) as an MCAP
+    file (module docstring for the topics)."""
+    from mcap.writer import Writer
+
+    msgs = messages_of_result(result, start_ns=start_ns)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="dfusion")
+        schema_ids = {name: w.register_schema(name, "jsonschema", json.dumps(s).encode()) for name, s in SCHEMAS.items()}
+        channels: dict[str, int] = {}
+        seq: dict[str, int] = {}
+        for topic, schema, log_ns, msg in msgs:
+            if topic not in channels:
+                channels[topic] = w.register_channel(topic, "json", schema_ids[schema])
+                seq[topic] = 0
+            seq[topic] += 1
+            w.add_message(channels[topic], log_ns, json.dumps(msg, separators=(",", ":"), allow_nan=False).encode(), log_ns,
+                          seq[topic])
+        w.finish()
+    return path
