@@ -722,42 +722,49 @@ class FusionNode:
             msg = decode(data, self.frame_key, self.max_message_bytes)
         except MessageError as exc:
             raise self._reject(getattr(exc, "reason", "malformed"), str(exc)) from None
-        ch = self._check(msg)
-        self.stats.duplicates += int(msg.epoch == ch.epoch and msg.seq == ch.last_seq)
-        f = self.filter
-        if msg.naive:
-            plan = None
-            if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
-                return 0
-            inside = msg.times >= f.oldest_time - f.time_tol
-            deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
-            outside, changed = int(np.count_nonzero(~inside)), time_keys(msg.times[inside])
-        else:
-            plan = ch.plan(msg, f.oldest_time, f.time_tol)
-            deltas, outside, changed = plan.deltas, plan.outside, plan.changed
-        deltas, too_far = self._within_reach(deltas)
-        if too_far and plan is not None:
-            plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
-            deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
-        self._apply(msg, ch, plan, deltas, changed, complete=not too_far)
-        if msg.dst_epoch == self.epoch:
-            ch.acknowledged(msg.ack, msg.ack_mask)
-        self.stats.messages_received += 1
-        self.stats.blocks_outside_window += outside
-        self.stats.blocks_too_far_ahead += len(too_far)
-        if outside:
-            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
-        self._prune()
+        except Exception as exc:   # a defect of the decoder: the message is still rejected, nothing changed
+            raise self._reject("internal", f"message could not be decoded: {type(exc).__name__}: {exc}") from exc
+        try:
+            ch = self._check(msg)
+            f = self.filter
+            if msg.naive:
+                plan = None
+                if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
+                    self.stats.duplicates += int(msg.seq == ch.last_seq)
+                    return 0
+                inside = msg.times >= f.oldest_time - f.time_tol
+                deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
+                outside, changed = int(np.count_nonzero(~inside)), time_keys(msg.times[inside])
+            else:
+                plan = ch.plan(msg, f.oldest_time, f.time_tol)
+                deltas, outside, changed = plan.deltas, plan.outside, plan.changed
+            deltas, too_far = self._within_reach(deltas)
+            if too_far and plan is not None:
+                plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
+                deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
+        except MessageError:
+            raise   # counted by _check
+        except Exception as exc:   # nothing changed yet
+            raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
+        self._apply(msg, ch, plan, deltas, changed, too_far, outside)
         return len(deltas)
 
     def _within_reach(self, deltas: list) -> tuple[list, list]:
-        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest."""
+        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest.
+
+        A delta at a time already held back changes that entry and holds no new time: it is
+        always within reach (else a full message would turn it into a zero entry of the
+        channel while the store keeps the old value, which is double counted later).
+        """
         f = self.filter
         horizon = f.latest_time + self.max_ahead + f.time_tol
         room = self.max_held - self._total.count_after(time_key(f.latest_time + f.time_tol))
+        held = self._total.keys
         ok, far = [], []
         for d in deltas:
             if d[0] <= f.latest_time + f.time_tol:
+                ok.append(d)
+            elif find_keys(held, np.array([time_key(d[0])]))[0][0]:
                 ok.append(d)
             elif d[0] <= horizon and room > 0:
                 ok.append(d)
@@ -767,30 +774,37 @@ class FusionNode:
         return ok, far
 
     def _apply(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list, changed: np.ndarray,
-               complete: bool) -> None:
-        """Apply a planned message to the filter, the channel and the stores, all or nothing.
+               too_far: list, outside: int) -> None:
+        """Apply a planned message to the filter, the channels, the stores and the statistics, with
+        the acknowledgement it carries and the pruning it causes: all or nothing.
+
+        ``too_far``: times held back (the message is then not acknowledged); ``outside``:
+        blocks older than the window (ignored).
 
         With a guard (:mod:`dfusion.fusion.guard`) the blocks the message adds are tested as
         they are applied, inside the same transaction; a message that completes a quarantine
         also withdraws everything that came over the link. A message over a quarantined link
         is only stored in the channel, and is a probation test of the neighbour's whole
         contribution (which may end the quarantine). An exception anywhere undoes all of it,
-        the guard's records included.
+        the guard's record of the link included.
         """
         f = self.filter
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
         cp_filter = f.checkpoint()
         cp_total = self._total.checkpoint()
-        cp_channel = ch.state()
-        dirty = {j: set(c.dirty) for j, c in self.channels.items()}
+        cp_own = self._own.checkpoint()
+        cp_held = self._held.checkpoint()
+        cp_channels = {j: c.state() for j, c in self.channels.items()}
+        pruned_at = self._pruned_at
         guard = self.guard
         cp_guard = guard.state(msg.src) if guard is not None else None
         restarted = ch.epoch is not None and msg.epoch > ch.epoch
+        duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
         event = None
         try:
             if guard is not None and guard.is_quarantined(msg.src):
-                ch.commit(msg, plan, complete)
+                ch.commit(msg, plan, complete=not too_far)
                 if restarted:
                     ch.remote_restarted()
                 event = self._probation(msg.src, ch)
@@ -805,7 +819,7 @@ class FusionNode:
                         f.estimate()   # the belief must still be proper
                     except DfusionError as exc:
                         raise _Numerical(str(exc)) from None
-                ch.commit(msg, plan, complete)
+                ch.commit(msg, plan, complete=not too_far)
                 if restarted:
                     ch.remote_restarted()
                 if deltas:
@@ -816,12 +830,17 @@ class FusionNode:
                     if verdict is not None and guard.judge(msg.src, verdict[0], verdict[1]):
                         self._withdraw(msg.src)
                         event = "quarantined"
+            if msg.dst_epoch == self.epoch:
+                ch.acknowledged(msg.ack, msg.ack_mask)
+            self._prune()   # an inserted state may have pushed the oldest one out
         except BaseException as exc:
             f.restore(cp_filter)
             self._total.restore(cp_total)
-            ch.restore(cp_channel)
+            self._own.restore(cp_own)
+            self._held.restore(cp_held)
             for j, c in self.channels.items():
-                c.dirty = dirty[j]
+                c.restore(cp_channels[j])
+            self._pruned_at = pruned_at
             if guard is not None:
                 guard.restore(msg.src, cp_guard)
             if isinstance(exc, _Numerical):
@@ -829,6 +848,12 @@ class FusionNode:
             if isinstance(exc, Exception):
                 raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
             raise
+        self.stats.messages_received += 1
+        self.stats.duplicates += int(duplicate)
+        self.stats.blocks_outside_window += outside
+        self.stats.blocks_too_far_ahead += len(too_far)
+        if outside:
+            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
         if event == "quarantined":
             cfg = guard.config
             log.warning("%s: neighbour %s quarantined (%d of its last %d tested messages failed the consistency "
@@ -941,5 +966,5 @@ def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
     """``msg`` without the blocks at ``times``."""
     drop = np.isin(time_keys(msg.times), time_keys(np.asarray(times)))
     return InfoMessage(msg.src, msg.dst, msg.epoch, msg.seq, msg.start, msg.sent_at, msg.times[~drop],
-                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.base, msg.cleared,
+                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.ack_mask, msg.cleared,
                        msg.full, msg.naive)
