@@ -1,8 +1,8 @@
 """The ``dfusion`` command line.
 
-``dfusion simulate SCENARIO [--seed N] [--fusion channel|naive] [--duration S] [--json OUT] [--plot OUT.png]``
-runs a scenario in one process and prints per-node RMSE, ANEES and the gap to
-the centralized EKF, with message counts.
+``dfusion simulate SCENARIO [--seed N] [--fusion channel|naive] [--duration S] [--json OUT] [--plot OUT.png]
+[--no-protection]`` runs a scenario in one process and prints per-node RMSE, ANEES and the gap to
+the centralized EKF, with message counts and the consistency diagnostics (``docs/clutter.md``).
 
 ``dfusion run SCENARIO [--speed X] [--json OUT] [--plot OUT.png] [--restart NAME@T[+D]] ...``
 runs the same scenario with one OS process per node over Zenoh and prints the
@@ -30,7 +30,8 @@ def _simulate(args: argparse.Namespace) -> int:
     from dfusion.scenario.loader import load_scenario
     from dfusion.sim.runner import run_scenario
 
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin,
+                       protection=False if args.no_protection else None)
     live = None
     if args.foxglove is not None:
         from dfusion.viz.foxglove import LiveView
@@ -163,6 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
     _output_options(s)
     s.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; docs/new-sensor-kind.md)")
+    s.add_argument("--no-protection", action="store_true",
+                   help="no clutter model (cameras: hard gate only) and no consistency test of neighbours "
+                        "(protection.enabled = false; docs/clutter.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("--foxglove", type=int, default=None, metavar="PORT",
                    help="serve the run live to Foxglove on this port (needs pip install 'dfusion[live]'; docs/ros.md)")

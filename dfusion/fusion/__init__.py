@@ -1,4 +1,4 @@
-"""Decentralized fusion: channel filters and fusion nodes."""
+"""Decentralized fusion: channel filters, fusion nodes, and the consistency test of neighbours' information."""
 from __future__ import annotations
 
 import importlib
@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.fusion.channel import ChannelFilter, Entry, Plan, find_keys, nonzero_blocks, time_key, time_keys
+    from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
     from dfusion.fusion.node import FusionNode, NodeStats
 
 __all__ = [
@@ -18,6 +19,11 @@ __all__ = [
     "ChannelFilter",
     "NodeStats",
     "FusionNode",
+    "GuardConfig",
+    "LinkRecord",
+    "NeighbourGuard",
+    "information_statistic",
+    "split_blocks",
 ]
 
 _WHERE = {
@@ -30,6 +36,11 @@ _WHERE = {
     "time_keys": ("dfusion.fusion.channel", 'time_keys'),
     "FusionNode": ("dfusion.fusion.node", 'FusionNode'),
     "NodeStats": ("dfusion.fusion.node", 'NodeStats'),
+    "GuardConfig": ("dfusion.fusion.guard", 'GuardConfig'),
+    "LinkRecord": ("dfusion.fusion.guard", 'LinkRecord'),
+    "NeighbourGuard": ("dfusion.fusion.guard", 'NeighbourGuard'),
+    "information_statistic": ("dfusion.fusion.guard", 'information_statistic'),
+    "split_blocks": ("dfusion.fusion.guard", 'split_blocks'),
 }
 
 

@@ -28,6 +28,19 @@ the node's window cannot be added any more: it is dropped and counted in
 ``stats.blocks_outside_window`` (conservative, never over-confident; choose the window
 with :func:`dfusion.topology.minimum_window` to avoid it).
 
+**Consistency test and quarantine** (``guard=``, off by default; on in scenarios through
+``[protection]``): the blocks a message adds are tested jointly against the node's belief
+inside the receive transaction, and a neighbour that keeps failing is quarantined: what
+came over its link is withdrawn from the filter and from what the node shares, and the
+withdrawn times are marked changed on the other links (:mod:`dfusion.fusion.guard`).
+
+**Own information held back or withdrawn.** ``update(..., share=False)`` and
+``add_local_information(..., share=False)`` fuse information here without sharing it (a
+camera's tentative frame); :meth:`FusionNode.share_local_information` shares it later and
+:meth:`FusionNode.withdraw_local_information` removes own information. Both mark the time
+changed on every link, so the next partial messages carry the new value (or clear the
+time), and the neighbours replace what they stored.
+
 ``fusion="naive"`` is fusion without channel filters, kept for comparison only:
 each message carries everything the sender learned since its previous message
 to that neighbour (including what came from the recipient) and the receiver
@@ -37,6 +50,7 @@ rumour-propagation failure the channel filter prevents.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
@@ -47,6 +61,7 @@ from numpy.typing import ArrayLike
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
+from dfusion.fusion.guard import GuardConfig, NeighbourGuard, information_statistic, split_blocks
 from dfusion.fusion.channel import (
     MAX_SEQ_JUMP,
     ChannelFilter,
@@ -222,6 +237,27 @@ class _Blocks:
             self._set(keys[order], np.concatenate([self.times, times[new]])[order],
                       np.concatenate([self.info, info[new]])[order], np.concatenate([self.vec, vec[new]])[order])
 
+    def subtract(self, entries: Sequence[tuple[float, Array, Array]]) -> np.ndarray:
+        """Subtract ``(info, vec)`` at stored state times (information withdrawn or moved to
+        another store), removing the rounding noise of the difference (:func:`_clean_difference`).
+        Entries at times not stored are ignored. Returns the keys changed."""
+        if not entries:
+            return np.zeros(0, dtype=np.int64)
+        keys = time_keys(np.array([e[0] for e in entries], dtype=float))
+        found, pos = find_keys(self.keys, keys)
+        if not found.any():
+            return np.zeros(0, dtype=np.int64)
+        rows = self._lo + pos[found]
+        info = np.array([e[1] for e in entries], dtype=float)[found]
+        vec = np.array([e[2] for e in entries], dtype=float)[found]
+        scale = np.abs(self._info[rows]).max(axis=(1, 2))
+        vscale = np.abs(self._vec[rows]).max(axis=1)
+        self._info[rows] = _clean_difference(self._info[rows] - info, scale)
+        v = self._vec[rows] - vec
+        v[np.abs(v) <= (ROUNDING_RTOL * vscale)[:, None]] = 0.0
+        self._vec[rows] = v
+        return keys[found]
+
     def prune(self, cutoff: int) -> None:
         """Forget the entries whose key is below ``cutoff``."""
         self._lo += int(self.keys.searchsorted(cutoff))
@@ -331,6 +367,10 @@ class FusionNode:
     messages : {"partial", "full"}
         ``"full"`` sends the whole window in every message (the previous protocol's
         behaviour, kept for comparison); the default sends what changed.
+    guard : GuardConfig or NeighbourGuard, optional
+        Test every neighbour's information for consistency with this node's belief and
+        quarantine a neighbour that keeps failing (:mod:`dfusion.fusion.guard`; channel
+        fusion only). Default: no test (every message is fused).
 
     Attributes
     ----------
@@ -338,6 +378,7 @@ class FusionNode:
         The local trajectory filter (prior, motion, own and received information).
     channels : dict[str, ChannelFilter]
     stats : NodeStats
+    guard : NeighbourGuard or None
     """
 
     def __init__(
@@ -361,6 +402,7 @@ class FusionNode:
         max_held: int | None = None,
         log_interval: float = LOG_INTERVAL,
         messages: str = "partial",
+        guard: GuardConfig | NeighbourGuard | None = None,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValidationError("node name must be a non-empty string")
@@ -397,8 +439,17 @@ class FusionNode:
         self.rejection_log = RejectionLog(name, log_interval)
         self._own = _Blocks(n)
         self._total = _Blocks(n)   # entries newer than the newest state wait for predict
+        self._held = _Blocks(n)    # own information fused here but not shared yet
         self._pruned_at = self.filter.oldest_time
         self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
+        if isinstance(guard, GuardConfig):
+            guard = NeighbourGuard(nbrs, guard)
+        if guard is not None:
+            if fusion != "channel":
+                raise ValidationError("a guard needs channel fusion (it withdraws what came over a link)")
+            if set(guard.links) != set(nbrs):
+                raise ValidationError(f"the guard's links {sorted(guard.links)} are not the neighbours {sorted(nbrs)}")
+        self.guard: NeighbourGuard | None = guard
 
     def __repr__(self) -> str:
         return f"FusionNode({self.name!r}, neighbors={list(self.neighbors)}, {self.filter!r})"
@@ -431,8 +482,13 @@ class FusionNode:
             f.predict(t, u)
         self._prune()
 
-    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
-        """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window)."""
+    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel, *, share: bool = True) -> tuple[Array, Array]:
+        """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window).
+
+        Returns the single-state information ``(Lambda, y)`` it added. With ``share=False``
+        it is fused here but held back from the neighbours until
+        :meth:`share_local_information` (or removed by :meth:`withdraw_local_information`).
+        """
         f = self.filter
         t = as_time(t)
         if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
@@ -440,10 +496,12 @@ class FusionNode:
                 f"measurement time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
             )
         Lam, y = f.update(t, z, sensor)
-        self._add_own(t, Lam, y)
+        self._add_own(t, Lam, y, share)
         self._prune()
+        return Lam, y
 
-    def add_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> None:
+    def add_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike, *,
+                              share: bool = True) -> None:
         """Fuse information produced by a local estimator at time ``t``.
 
         For sensors whose measurements are not fused by the EIF itself, such as a
@@ -451,7 +509,10 @@ class FusionNode:
         minus that of its prediction, in information form). The information counts as
         this node's own, exactly like a measurement: it is shared with the
         neighbours and never double counted. ``info_matrix`` must be symmetric
-        positive semi-definite, of the state's dimension.
+        positive semi-definite, of the state's dimension. With ``share=False`` it is
+        fused here but held back from the neighbours (a tentative data association, for
+        instance) until :meth:`share_local_information`, or removed by
+        :meth:`withdraw_local_information`.
         """
         f = self.filter
         t = as_time(t)
@@ -466,15 +527,68 @@ class FusionNode:
         with f.transaction():
             f.add_information_batch([(t, Lam, y)], validate=False)
             f.estimate()
-        self._add_own(t, Lam, y)
+        self._add_own(t, Lam, y, share)
         self._prune()
 
-    def _add_own(self, t: float, Lam: Array, y: Array) -> None:
-        self._own.add(t, Lam, y)
+    def share_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> bool:
+        """Start sharing own information fused earlier with ``share=False``: it moves from the
+        held-back store to what the node shares, and its time is marked changed on every link,
+        so the next (partial) messages carry it. Returns False (nothing to share) when ``t`` has
+        left the window."""
+        f = self.filter
+        t = as_time(t)
+        if t < f.oldest_time - f.time_tol:
+            return False
+        Lam = np.asarray(info_matrix, dtype=float)
+        y = np.asarray(info_vector, dtype=float)
+        self._held.subtract([(t, Lam, y)])
         self._total.add(t, Lam, y)
-        key = time_key(t)
-        for ch in self.channels.values():
-            ch.dirty.add(key)
+        self._mark_dirty([time_key(t)])
+        return True
+
+    def withdraw_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike, *,
+                                   shared: bool = True) -> bool:
+        """Remove own information added earlier at ``t`` (a front end found it suspect).
+
+        The filter and the node's own information lose ``(info_matrix, info_vector)``. If it
+        was shared (``shared``), the time is marked changed on every link, so the next
+        messages carry the smaller block (or clear the time): the neighbours replace what
+        they stored and lose it too, and forward the change. Removing information is never
+        over-confident. Returns False (and changes nothing) when ``t`` is outside the window:
+        older information is marginalized into the window's base and stays.
+        """
+        f = self.filter
+        t = as_time(t)
+        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
+            return False
+        Lam = np.asarray(info_matrix, dtype=float)
+        y = np.asarray(info_vector, dtype=float)
+        with f.transaction():
+            f.add_information_batch([(t, -Lam, -y)], validate=False)
+            f.estimate()
+        self._own.subtract([(t, Lam, y)])
+        if shared:
+            self._total.subtract([(t, Lam, y)])
+            self._mark_dirty([time_key(t)])
+        else:
+            self._held.subtract([(t, Lam, y)])
+        return True
+
+    def _add_own(self, t: float, Lam: Array, y: Array, share: bool = True) -> None:
+        self._own.add(t, Lam, y)
+        if share:
+            self._total.add(t, Lam, y)
+            self._mark_dirty([time_key(t)])
+        else:
+            self._held.add(t, Lam, y)
+
+    def _mark_dirty(self, keys: Iterable[int], skip: str | None = None) -> None:
+        """The value for every neighbour but ``skip`` changed at ``keys``: the next messages carry them."""
+        keys = list(keys)
+        if keys:
+            for j, ch in self.channels.items():
+                if j != skip:
+                    ch.dirty.update(keys)
 
     def estimate(self, t: float | None = None) -> tuple[Array, Array]:
         """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""
@@ -492,8 +606,11 @@ class FusionNode:
 
     # ------------------------------------------------------------------ messages
     def _values_for(self, ch: ChannelFilter, keys: np.ndarray) -> tuple[Array, Array]:
-        """``V(t) = T(t) - M(t)`` for ``ch``'s neighbour at ``keys`` (rounding noise removed)."""
+        """``V(t) = T(t) - M(t)`` for ``ch``'s neighbour at ``keys`` (rounding noise removed);
+        ``T(t)`` for a quarantined neighbour, whose information ``T`` does not hold."""
         infos, vecs = self._total.values_at(keys)
+        if self.is_quarantined(ch.remote):
+            return infos, vecs
         m_info, m_vec = ch.values_at(keys)
         held = m_info.any(axis=(1, 2)) | m_vec.any(axis=1)
         if held.any():
@@ -686,6 +803,13 @@ class FusionNode:
 
         ``too_far``: times held back (the message is then not acknowledged); ``outside``:
         blocks older than the window (ignored).
+
+        With a guard (:mod:`dfusion.fusion.guard`) the blocks the message adds are tested as
+        they are applied, inside the same transaction; a message that completes a quarantine
+        also withdraws everything that came over the link. A message over a quarantined link
+        is only stored in the channel, and is a probation test of the neighbour's whole
+        contribution (which may end the quarantine). An exception anywhere undoes all of it,
+        the guard's record of the link included.
         """
         f = self.filter
         latest = f.latest_time + f.time_tol
@@ -693,27 +817,42 @@ class FusionNode:
         cp_filter = f.checkpoint()
         cp_total = self._total.checkpoint()
         cp_own = self._own.checkpoint()
+        cp_held = self._held.checkpoint()
         cp_channels = {j: c.state() for j, c in self.channels.items()}
         pruned_at = self._pruned_at
+        guard = self.guard
+        cp_guard = guard.state(msg.src) if guard is not None else None
         restarted = ch.epoch is not None and msg.epoch > ch.epoch
         duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
+        event = None
         try:
-            if now:
-                try:
-                    f.add_information_batch(now, validate=False)
-                    f.estimate()   # the belief must still be proper
-                except DfusionError as exc:
-                    raise _Numerical(str(exc)) from None
-            ch.commit(msg, plan, complete=not too_far)
-            if restarted:
-                ch.remote_restarted()
-            if deltas:
-                self._total.add_many(deltas)
-            if changed.size:
-                keys = changed.tolist()
-                for j, other in self.channels.items():
-                    if j != msg.src:
-                        other.dirty.update(keys)
+            if guard is not None and guard.is_quarantined(msg.src):
+                ch.commit(msg, plan, complete=not too_far)
+                if restarted:
+                    ch.remote_restarted()
+                event = self._probation(msg.src, ch)
+            else:
+                verdict = None
+                if now:
+                    try:
+                        if guard is None:
+                            f.add_information_batch(now, validate=False)
+                        else:
+                            verdict = self._add_tested(now)
+                        f.estimate()   # the belief must still be proper
+                    except DfusionError as exc:
+                        raise _Numerical(str(exc)) from None
+                ch.commit(msg, plan, complete=not too_far)
+                if restarted:
+                    ch.remote_restarted()
+                if deltas:
+                    self._total.add_many(deltas)
+                self._mark_dirty(changed.tolist(), skip=msg.src)
+                if guard is not None:
+                    guard.links[msg.src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
+                    if verdict is not None and guard.judge(msg.src, verdict[0], verdict[1]):
+                        self._withdraw(msg.src)
+                        event = "quarantined"
             if msg.dst_epoch == self.epoch:
                 ch.acknowledged(msg.ack, msg.ack_mask)
             self._prune()   # an inserted state may have pushed the oldest one out
@@ -721,9 +860,12 @@ class FusionNode:
             f.restore(cp_filter)
             self._total.restore(cp_total)
             self._own.restore(cp_own)
+            self._held.restore(cp_held)
             for j, c in self.channels.items():
                 c.restore(cp_channels[j])
             self._pruned_at = pruned_at
+            if guard is not None:
+                guard.restore(msg.src, cp_guard)
             if isinstance(exc, _Numerical):
                 raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
             if isinstance(exc, Exception):
@@ -735,6 +877,88 @@ class FusionNode:
         self.stats.blocks_too_far_ahead += len(too_far)
         if outside:
             log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
+        if event == "quarantined":
+            cfg = guard.config
+            log.warning("%s: neighbour %s quarantined (%d of its last %d tested messages failed the consistency "
+                        "test); what came over the link is withdrawn", self.name, msg.src, cfg.failures, cfg.window)
+        elif event == "released":
+            log.warning("%s: neighbour %s leaves quarantine after %d consistent messages; its information is fused "
+                        "again", self.name, msg.src, guard.config.release)
+
+    # ------------------------------------------------------------------ guard (dfusion.fusion.guard)
+    def is_quarantined(self, neighbor: str) -> bool:
+        """Whether the link to ``neighbor`` is quarantined (its information withdrawn)."""
+        return self.guard is not None and self.guard.is_quarantined(neighbor)
+
+    def health(self) -> str:
+        """``"ok"``, ``"degraded"`` or ``"lost"`` (:meth:`NeighbourGuard.health`; always ok without a guard)."""
+        return "ok" if self.guard is None else self.guard.health()
+
+    def _add_tested(self, entries: list[tuple[float, Array, Array]]) -> tuple[float, int, int]:
+        """Add a message's blocks to the filter, testing the additions jointly (inside the
+        caller's transaction). Returns ``(D^2, dof, blocks tested)``
+        (:func:`dfusion.fusion.guard.information_statistic`)."""
+        f = self.filter
+        add, other = split_blocks(entries)
+        if other:
+            f.add_information_batch(other, validate=False)
+        if not add:
+            return 0.0, 0, 0
+        mu0, P0, mu1 = f.add_information_moments(add)
+        stat, dof = information_statistic(add, mu0, P0, mu1)
+        return stat, dof, len(add)
+
+    def _link_blocks(self, ch: ChannelFilter, sign: float = 1.0) -> tuple[list, list]:
+        """The channel's stored blocks in the window as ``(t, info, vec)`` times ``sign``:
+        ``(those the filter holds, all)``; the others are newer than the newest state and wait
+        in the total store for :meth:`predict`."""
+        if not len(ch):
+            return [], []
+        f = self.filter
+        latest = f.latest_time + f.time_tol
+        live = nonzero_blocks(ch.info, ch.vec) & (ch.times >= f.oldest_time - f.time_tol)
+        every = [(float(ch.times[i]), sign * ch.info[i], sign * ch.vec[i]) for i in np.flatnonzero(live).tolist()]
+        return [e for e in every if e[0] <= latest], every
+
+    def _withdraw(self, neighbor: str) -> None:
+        """Remove everything that came over the link to ``neighbor`` (quarantine): from the filter
+        and from what the node shares; the other links are sent the changed times."""
+        now, every = self._link_blocks(self.channels[neighbor], -1.0)
+        if now:
+            self.filter.add_information_batch(now, validate=False)
+            self.filter.estimate()
+        changed = self._total.subtract([(t, -L, -y) for t, L, y in every])
+        self._mark_dirty(changed.tolist(), skip=neighbor)
+
+    def _reinstate(self, neighbor: str) -> None:
+        """Add the neighbour's current contribution back (the link leaves quarantine)."""
+        now, every = self._link_blocks(self.channels[neighbor])
+        if now:
+            self.filter.add_information_batch(now, validate=False)
+            self.filter.estimate()
+        if every:
+            self._total.add_many(every)
+            self._mark_dirty(time_keys(np.array([e[0] for e in every])).tolist(), skip=neighbor)
+
+    def _probation(self, neighbor: str, ch: ChannelFilter) -> str | None:
+        """A message over a quarantined link: test the neighbour's whole current contribution
+        against this node's belief (a trial: nothing is kept); after ``release`` passes in a
+        row, take it back. Returns ``"released"`` then."""
+        now, _ = self._link_blocks(ch)
+        add, _ = split_blocks(now)
+        if not add:
+            return None
+        f = self.filter
+        try:
+            with f.trial():
+                mu0, P0, mu1 = f.add_information_moments(add)
+                stat, dof = information_statistic(add, mu0, P0, mu1)
+        except DfusionError:
+            stat, dof = math.inf, 1
+        if self.guard.probation(neighbor, stat, dof):
+            self._reinstate(neighbor)
+            return "released"
+        return None
 
     def _prune(self) -> None:
         oldest = self.filter.oldest_time
@@ -744,6 +968,7 @@ class FusionNode:
         cutoff = time_key(oldest) - 1
         self._own.prune(cutoff)
         self._total.prune(cutoff)
+        self._held.prune(cutoff)
         for ch in self.channels.values():
             ch.prune(cutoff)
 

@@ -23,9 +23,10 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
 
     Its neighbours are its tree neighbours, its prior the scenario's common prior at
     time 0, its policy a copy of the node's (a policy keeps state, so every node built
-    gets its own). ``epoch`` identifies the incarnation (random when ``None``: a node
-    process gets a new one each time it starts). ``network`` and ``run`` name the network
-    and the run the message key is derived for (``docs/security.md``).
+    gets its own), its guard the consistency test of ``[protection]`` (channel fusion only,
+    :mod:`dfusion.fusion.guard`). ``epoch`` identifies the incarnation (random when ``None``:
+    a node process gets a new one each time it starts). ``network`` and ``run`` name the
+    network and the run the message key is derived for (``docs/security.md``).
     """
     spec = sc.nodes[name]
     return FusionNode(
@@ -41,6 +42,7 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
         network=network,
         run=run,
         epoch=epoch,
+        guard=sc.protection.node_guard() if sc.fusion == "channel" else None,
     )
 
 

@@ -3,7 +3,9 @@ r"""Scenario kind ``camera``: a calibrated camera detecting the target in its im
 The node table gives the camera's pose and intrinsics (``docs/scenarios.md``); the
 simulated world measures with a :class:`~dfusion.models.camera.SceneCamera` (true
 detections when the target is in view, plus Poisson false detections), and the node
-fuses them with a :class:`~dfusion.frontends.camera.CameraFrontEnd`.
+fuses them with a :class:`~dfusion.frontends.camera.CameraFrontEnd`: the detections of a
+frame gated and associated by PDA (``clutter_model = "pda"``, the default of
+``[protection]``) or each fused on its own inside the gate (``"gate"``).
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from dfusion.errors import ValidationError
-from dfusion.frontends.camera import CameraFrontEnd, gate_threshold
+from dfusion.frontends.camera import CLUTTER_MODELS, CameraFrontEnd, gate_threshold
 from dfusion.models.camera import PinholeCamera, SceneCamera
 from dfusion.scenario.spec import COMMON_NODE_KEYS, NodeSpec, Scenario, SensorKind
 from dfusion.scenario.values import check_keys, number, vector
@@ -23,7 +25,7 @@ __all__ = ["CAMERA", "CAMERA_KEYS", "camera_from_table"]
 
 #: Keys of a ``sensor = "camera"`` node table, besides the common node keys.
 CAMERA_KEYS = frozenset({"position", "look_at", "yaw", "pitch", "fx", "fy", "cx", "cy", "width", "height", "pixel_std",
-               "point_height", "false_detection_rate", "gate", "recognition_error"})
+               "point_height", "false_detection_rate", "gate", "recognition_error", "clutter_model"})
 
 
 def camera_from_table(table: Mapping[str, Any]) -> SceneCamera:
@@ -68,6 +70,8 @@ def camera_from_table(table: Mapping[str, Any]) -> SceneCamera:
 def _camera_sensor(table: Mapping[str, Any], sc: Scenario) -> SceneCamera:
     cam = camera_from_table(table)
     gate_threshold(table.get("gate", 0.99))   # validate at load time
+    if table.get("clutter_model", "pda") not in CLUTTER_MODELS:
+        raise ValidationError(f"clutter_model must be one of {CLUTTER_MODELS}, got {table['clutter_model']!r}")
     if "recognition_error" in table:
         number(table, "recognition_error", nonneg=True)
     if cam.position[2] <= cam.point_height:
@@ -76,10 +80,18 @@ def _camera_sensor(table: Mapping[str, Any], sc: Scenario) -> SceneCamera:
 
 
 def _camera_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> CameraFrontEnd:
+    """The camera's front end: its ``clutter_model`` (default ``protection.clutter_model``; the
+    hard gate alone when ``protection.enabled = false``), PDA with the camera's
+    ``false_detection_rate`` and ``detection``; a fused frame is confirmed by the next one, and
+    a gap of two frame periods without a fused frame starts a new track segment."""
+    confirm = 1
     return CameraFrontEnd(spec.sensor, gate=spec.params.get("gate", 0.99),
-                          recognition_error=spec.params.get("recognition_error"))
+                          recognition_error=spec.params.get("recognition_error"),
+                          clutter_model=sc.protection.camera_model(spec.params.get("clutter_model")),
+                          detection=spec.detection, confirm=confirm,
+                          segment_gap=(confirm + 1) / spec.rate if spec.rate > 0 else None)
 
 
 #: The ``camera`` sensor kind.
 CAMERA = SensorKind("camera", CAMERA_KEYS, _camera_sensor, _camera_front_end,
-                    "a calibrated camera detecting the target (pixels), gated EIF updates")
+                    "a calibrated camera detecting the target (pixels): frames gated and associated by PDA")

@@ -22,10 +22,14 @@ if TYPE_CHECKING:   # type names only: no import at run time
     from dfusion.frontends.base import FrontEnd
     from dfusion.policies.base import Policy
 
-__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "FUSION_MODES", "COMMON_NODE_KEYS"]
+__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "Protection",
+           "FUSION_MODES", "COMMON_NODE_KEYS", "CLUTTER_MODELS"]
 
 #: Values of the top-level key ``fusion``.
 FUSION_MODES = ("channel", "naive")
+
+#: Values of ``protection.clutter_model`` and of a camera node's ``clutter_model``.
+CLUTTER_MODELS = ("pda", "gate")
 
 #: Keys every ``[[nodes]]`` table may have, whatever its sensor kind.
 COMMON_NODE_KEYS = frozenset({"name", "sensor", "rate", "send_period", "delay", "phase", "active", "detection",
@@ -192,6 +196,56 @@ class NodeSpec:
         return not self.active or any(a <= t <= b for a, b in self.active)
 
 
+@dataclass(frozen=True)
+class Protection:
+    """The ``[protection]`` table: the cameras' clutter model and the network's consistency test
+    (``docs/clutter.md``).
+
+    Attributes
+    ----------
+    enabled : bool
+        ``False`` turns every protection off (cameras: the hard gate alone, whatever their
+        ``clutter_model``; no consistency test): the behaviour before the protections existed.
+    clutter_model : {"pda", "gate"}
+        ``clutter_model`` of the camera nodes that do not set their own.
+    network_check : bool
+        Every node tests its neighbours' information and quarantines one that keeps failing
+        (:mod:`dfusion.fusion.guard`).
+    false_alarm, failures, window, release
+        The test's false-alarm probability per message, quarantine after ``failures`` failed
+        messages among the last ``window`` tested, release after ``release`` passes in a row
+        (:class:`dfusion.fusion.guard.GuardConfig`).
+    """
+
+    enabled: bool = True
+    clutter_model: str = "pda"
+    network_check: bool = True
+    false_alarm: float = 1e-3
+    failures: int = 3
+    window: int = 10
+    release: int = 10
+
+    def camera_model(self, own: str | None = None) -> str:
+        """The clutter model of a camera node whose table sets ``own`` (None: not set)."""
+        if not self.enabled:
+            return "gate"
+        return own or self.clutter_model
+
+    def node_guard(self) -> Any:
+        """The :class:`~dfusion.fusion.guard.GuardConfig` of every node (None: no test)."""
+        if not (self.enabled and self.network_check):
+            return None
+        from dfusion.fusion.guard import GuardConfig
+
+        return GuardConfig(self.false_alarm, self.failures, self.window, self.release)
+
+    def describe(self) -> str:
+        """One line for tables and JSON: what is on."""
+        if not self.enabled:
+            return "off"
+        return f"cameras {self.clutter_model}, network check {'on' if self.network_check else 'off'}"
+
+
 @dataclass
 class Scenario:
     """A parsed, validated scenario (see ``docs/scenarios.md``).
@@ -205,6 +259,8 @@ class Scenario:
         Degenerate settings found while loading (also logged).
     security : SecurityOptions
         The ``[security]`` table: the network key file and mutual TLS of ``dfusion run``.
+    protection : Protection
+        The ``[protection]`` table (default: every protection on).
     """
 
     path: str
@@ -222,6 +278,7 @@ class Scenario:
     kinds: Kinds | None = None
     warnings: list[str] = field(default_factory=list)
     security: SecurityOptions = field(default_factory=SecurityOptions)
+    protection: Protection = field(default_factory=Protection)
 
     @property
     def steps(self) -> int:

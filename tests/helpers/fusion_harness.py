@@ -82,6 +82,29 @@ class Schedule:
     restarts: tuple = ()
     # called after every step as on_step(nodes, measurements so far, t)
     on_step: Callable | None = None
+    #: Measurements of a simulated constant-velocity truth (the filters' model) instead of
+    #: arbitrary values: a healthy network, for consistency tests.
+    truth: bool = False
+    #: ``FusionNode(guard=...)`` of every node (None: no consistency test); a callable is called
+    #: with the node's sorted neighbours and returns that node's guard.
+    guard: object = None
+
+
+class CVTruth:
+    """A constant-velocity trajectory drawn from the filters' own model (prior ``N(0, P0 I)``,
+    process noise ``cv_Q``), sampled at increasing times on demand."""
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.t = 0.0
+        self.x = rng.normal(0.0, np.sqrt(P0), size=4)
+
+    def at(self, t: float) -> np.ndarray:
+        if t > self.t:
+            dt = t - self.t
+            self.x = cv_F(dt) @ self.x + np.linalg.cholesky(cv_Q(dt)) @ self.rng.standard_normal(4)
+            self.t = t
+        return self.x
 
 
 @dataclass
@@ -124,10 +147,15 @@ def receive(node, data: bytes, trace: Trace | None) -> None:
         trace.rejections[exc.reason] += 1
 
 
+def node_guard(s: Schedule, neighbors) -> object:
+    """The ``guard`` of a node with these neighbours under schedule ``s`` (:attr:`Schedule.guard`)."""
+    return s.guard(sorted(neighbors)) if callable(s.guard) else s.guard
+
+
 def restart(old: FusionNode, t: float, own: list, sensor, s: Schedule) -> FusionNode:
     """A fresh incarnation of ``old`` (epoch + 1) at time ``t`` that replays ``own`` (t, z)."""
     new = FusionNode(old.name, old.neighbors, old.motion, window=s.window, prior=PRIOR, fusion=s.fusion,
-                     epoch=old.epoch + 1)
+                     epoch=old.epoch + 1, guard=node_guard(s, old.neighbors))
     new.predict(t)
     for tm, z in sorted(own, key=lambda m: m[0]):
         deliver_measurement(new, tm, z, sensor)
@@ -144,9 +172,10 @@ def run_network(graph: nx.Graph, s: Schedule, final_rounds: bool = True, trace: 
     names = sorted(graph.nodes)
     nodes = {
         n: FusionNode(n, sorted(graph.neighbors(n)), motion, window=s.window, prior=PRIOR, fusion=s.fusion,
-                      epoch=1000 * (i + 1))
+                      epoch=1000 * (i + 1), guard=node_guard(s, graph.neighbors(n)))
         for i, n in enumerate(names)
     }
+    truth = CVTruth(np.random.default_rng(s.seed + 7919)) if s.truth else None
     stds = {n: s.stds.get(n, float(rng.uniform(0.3, 1.5))) for n in names}
     sensors = {n: PositionSensor(2, stds[n]) for n in names}
     links = [(a, b) for a, b in graph.edges] + [(b, a) for a, b in graph.edges]
@@ -167,13 +196,18 @@ def run_network(graph: nx.Graph, s: Schedule, final_rounds: bool = True, trace: 
                 nodes[n] = restart(nodes[n], t, own[n], sensors[n], s)
                 if trace is not None:
                     trace.restarted.append((k, n))
+        batch = []
         for n in names:   # new measurements, delivered to their node after a random delay
             if rng.random() < s.meas_prob:
                 tm = t - (rng.uniform(0, s.dt) if s.irregular else 0.0)
                 tm = round(max(tm, 0.0), 9)
                 z = rng.normal(0.0, 3.0, size=2)
-                measurements.append((tm, z, stds[n]))
-                waiting.append((tm + rng.uniform(0, s.max_meas_delay), n, tm, z))
+                batch.append((tm, n, z, rng.uniform(0, s.max_meas_delay)))
+        if truth is not None:   # the truth at the measurement times, in time order
+            batch = [(tm, n, truth.at(tm)[:2] + stds[n] * z / 3.0, d) for tm, n, z, d in sorted(batch, key=lambda e: e[0])]
+        for tm, n, z, d in batch:
+            measurements.append((tm, z, stds[n]))
+            waiting.append((tm + d, n, tm, z))
         for item in sorted([w for w in waiting if w[0] <= t], key=lambda w: w[0]):
             if deliver_measurement(nodes[item[1]], item[2], item[3], sensors[item[1]]):
                 own[item[1]].append((item[2], item[3]))
