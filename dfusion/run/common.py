@@ -112,7 +112,7 @@ def security_from_args(args: argparse.Namespace) -> SecurityOptions:
 
 def final_rounds(sc: Scenario) -> int:
     """Rounds of the final phase: :func:`dfusion.topology.settling_rounds` (as in ``dfusion simulate``)."""
-    return settling_rounds(sc.graph)
+    return settling_rounds(sc.tree)
 
 
 @dataclass

@@ -353,6 +353,11 @@ def run_table(result) -> str:
             lines.append(f"  {name}: " + "; ".join(bits))
     lag = max((v.get("max_lag_wall_s", 0.0) for v in run.get("nodes", {}).values()), default=0.0)
     bits = []
+    if "hosts" in run:
+        n = len(run.get("nodes", {}))
+        per = run.get("nodes_per_process", 1)
+        bits.append(f"{run['hosts']} host process{'es' if run['hosts'] != 1 else ''} for {n} nodes"
+                    + (f" (up to {per} per process)" if per > 1 else " (one per node)"))
     if "speed" in run:
         bits.append(f"speed x{run['speed']:g}, wall {run.get('wall_seconds', math.nan):.1f} s")
     bits.append(f"largest lag behind the clock {lag:.2f} s wall")
