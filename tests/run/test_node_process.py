@@ -75,40 +75,12 @@ def test_a_camera_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp
     assert heavy(modules) == []
 
 
-PAIR = """
-duration = 4.0
-dt = 0.1
-seed = 5
-window = 100
-[target]
-initial_mean = [0.0, 0.0, 1.0, 0.0]
-[[nodes]]
-name = "a"
-sensor = "position"
-rate = 5.0
-[[nodes]]
-name = "b"
-sensor = "position"
-std = 0.7
-rate = 5.0
-delay = 0.2
-[[nodes]]
-name = "c"
-sensor = "position"
-rate = 2.0
-[[links]]
-between = ["a", "b"]
-[[links]]
-between = ["b", "c"]
-"""
-
-
 def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_path):
     """``python -m dfusion.run.node_process --node a --node b --node c``: one process, one Zenoh
     session, three nodes with their own loops and results; their messages go through Zenoh (each
     node's transport counters), and each final estimate is the centralized EKF's (<= 1e-9)."""
-    scenario = tmp_path / "chain.scenario.toml"
-    scenario.write_text(PAIR)
+    scenario = tmp_path / "chain3.scenario.toml"
+    scenario.write_text(CHAIN3.format(duration=4.0, window=100))
     sc = load_scenario(scenario)
     results = tmp_path / "results"
     start = time.time() + 2.0
@@ -136,8 +108,8 @@ def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_pat
 
 
 def test_the_node_program_refuses_twice_the_same_node_and_record_of_several(tmp_path):
-    scenario = tmp_path / "chain.scenario.toml"
-    scenario.write_text(PAIR)
+    scenario = tmp_path / "chain3.scenario.toml"
+    scenario.write_text(CHAIN3.format(duration=4.0, window=100))
     base = [sys.executable, "-m", "dfusion.run.node_process", "--scenario", str(scenario)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     twice = subprocess.run(base + ["--node", "a", "--node", "a"], capture_output=True, text=True, env=env, timeout=60)

@@ -246,18 +246,8 @@ def test_a_node_restarted_by_hand_with_its_command_line_joins_the_run(tmp_path):
           f"{max(v['final_gap'] for v in m['nodes'].values()):.1e}")
 
 
-TREE6 = """
-duration = 24.0
-dt = 0.2
-seed = 4
-window = 150
-
-[target]
-motion = "constant_velocity"
-q = 0.05
-initial_mean = [0.0, 0.0, 1.0, 0.0]
-initial_cov_diag = [1.0, 1.0, 1.0, 1.0]
-""" + "".join(f"""
+#: The 3-node chain's settings (dt 0.2, a window spanning the run) for a tree of six nodes
+TREE6 = CHAIN3.split("[[nodes]]")[0].format(duration=24.0, window=150).replace("dt = 0.1", "dt = 0.2") + "".join(f"""
 [[nodes]]
 name = "{n}"
 sensor = "position"
