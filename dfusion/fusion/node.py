@@ -717,5 +717,5 @@ def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
     """``msg`` without the blocks at ``times``."""
     drop = np.isin(time_keys(msg.times), time_keys(np.asarray(times)))
     return InfoMessage(msg.src, msg.dst, msg.epoch, msg.seq, msg.start, msg.sent_at, msg.times[~drop],
-                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.base, msg.cleared,
+                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.ack_mask, msg.cleared,
                        msg.full, msg.naive)
