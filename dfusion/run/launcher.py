@@ -562,6 +562,7 @@ class Launcher:
     def run(self):
         """Launch, follow and finish the run; returns the result (``None`` if stopped)."""
         t_wall = time.monotonic()
+        t_cpu = time.process_time()
         live = None
         try:
             self._prepare_run_dir()
@@ -607,6 +608,7 @@ class Launcher:
                 "network_key": self.key_source,
                 "tls": self.tls is not None,
                 "supervision": self.supervision_report(),
+                "launcher_cpu_s": time.process_time() - t_cpu,
                 "hosts": len(self.procs),
                 "nodes_per_process": self.opts.nodes_per_process,
                 "host_nodes": {h: list(p.nodes) for h, p in self.procs.items()},

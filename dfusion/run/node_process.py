@@ -89,7 +89,12 @@ log = logging.getLogger("dfusion.node")
 POLL = 0.05
 #: Wall-clock period of the "ready" publication while waiting for the start.
 READY_PERIOD = 0.2
+#: Wall-clock period of the counters in a node's step publications (the estimate goes every step).
+STATS_PERIOD = 1.0
 EPS = 1e-9
+#: Environment variable naming a directory: each node process profiles its loop with cProfile and
+#: writes ``DIR/HOST.pstats`` when it ends (a diagnostic; ``docs/processes.md``).
+ENV_PROFILE = "DFUSION_PROFILE"
 
 
 @dataclass(frozen=True)
@@ -223,6 +228,13 @@ class NodeProcess:
         self.tr: ZenohTransport | None = None
         self._mlog: MeasurementLog | None = None
         self._pub = None
+        #: CPU seconds of this node's own work in its process's main thread (its steps and receives),
+        #: counted by whoever drives it (:class:`Host`)
+        self.cpu = 0.0
+        #: this node's share of its process's CPU (every thread, Zenoh's included) since its start
+        self.host_share = 1.0
+        self._cpu_at_start: float | None = None
+        self._stats_due = 0.0
 
     # ------------------------------------------------------------------ clocks and stopping
     def request_stop(self, reason: str) -> None:
@@ -277,6 +289,7 @@ class NodeProcess:
         node its messages meanwhile (:meth:`receive`).
         """
         yield from self._wait_for_start()
+        self._cpu_at_start = time.process_time()
         if self.state_dir is not None:
             self._mlog = MeasurementLog(self.state_dir, self.name, self.run_id or repr(self.start), fsync=self.fsync)
         k = self._catch_up()
@@ -428,6 +441,7 @@ class NodeProcess:
         yield Wait(time.time() + 0.05)   # let the last publications leave before the session closes
 
     def stats(self) -> dict[str, int]:
+        """The node's counters (messages, measurements, CPU, link emulation) as the monitor records them."""
         s = self.node.stats
         tot = self.tr.node_totals(self.name) if self.tr is not None else None
         out = {
@@ -437,6 +451,9 @@ class NodeProcess:
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
         out.update(self.counters)
+        out["cpu_ms"] = int(self.cpu * 1000)
+        if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
+            out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)
         if self.links is not None:
             em = self.links.totals()
             out.update(dropped_emulated=em["dropped"], delayed_emulated=em["delayed"],
@@ -454,8 +471,12 @@ class NodeProcess:
         if mean is not None and self._records_output:
             chosen = self.node.output()
             output = (chosen.name, chosen.mean, chosen.cov)
+        stats = {}
+        now = time.monotonic()
+        if phase != "run" or now >= self._stats_due:   # the counters once a second, the estimate every step
+            stats, self._stats_due = self.stats(), now + STATS_PERIOD
         st = Status(self.name, self.node.epoch, phase, k, t if math.isfinite(t) else 0.0, mean, cov,
-                    self.t_started, self.stats(), list(self.lost) if phase == "final" else [], output)
+                    self.t_started, stats, list(self.lost) if phase == "final" else [], output)
         try:
             if phase == "final":
                 import zenoh
@@ -536,6 +557,7 @@ class Host:
                 self.tr = tr
                 for p in self.procs:
                     p.attach(tr)
+                    p.host_share = 1.0 / len(self.procs)
                 self._loop(tr)
                 if self.stop_reason is not None:
                     for p in self.procs:
@@ -553,6 +575,7 @@ class Host:
         programs = {p.name: p.program() for p in self.procs}
         waits = {p.name: Wait(0.0) for p in self.procs}
         procs = {p.name: p for p in self.procs}
+        cpu = time.thread_time   # this thread's CPU: what each node's own work costs
         while programs:
             if self._should_stop():
                 return
@@ -563,10 +586,12 @@ class Host:
             for name in list(programs):
                 w = waits[name]
                 if now >= w.deadline or (w.until is not None and w.until()):
+                    c0 = cpu()
                     try:
                         waits[name] = next(programs[name])
                     except StopIteration:
                         del programs[name], waits[name]
+                    procs[name].cpu += cpu() - c0
                     now = time.time()
             if not programs:
                 return
@@ -576,7 +601,9 @@ class Host:
                 for name, p in procs.items():
                     if tr.pending(name):
                         if name in programs:
+                            c0 = cpu()
                             p.receive()
+                            p.cpu += cpu() - c0
                         else:
                             tr.receive(name)   # after its final estimate a node fuses nothing more
                 tr.poll()
@@ -752,7 +779,17 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if several:
             log.info("host %s: nodes %s (pid %d)", label, ", ".join(args.node), os.getpid())
-        return host.run()
+        profile_dir = os.environ.get(ENV_PROFILE)
+        if not profile_dir:
+            return host.run()
+        import cProfile
+
+        profiler = cProfile.Profile(time.thread_time)   # CPU of the loop's thread, not time spent waiting
+        try:
+            return profiler.runcall(host.run)
+        finally:
+            Path(profile_dir).mkdir(parents=True, exist_ok=True)
+            profiler.dump_stats(Path(profile_dir) / f"{label}.pstats")
     except (DfusionError, OSError) as exc:
         log.error("%s", exc)
         return 2
