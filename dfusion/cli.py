@@ -4,9 +4,9 @@
 [--no-protection]`` runs a scenario in one process and prints per-node RMSE, ANEES and the gap to
 the centralized EKF, with message counts and the consistency diagnostics (``docs/clutter.md``).
 
-``dfusion run SCENARIO [--speed X] [--json OUT] [--plot OUT.png] [--restart NAME@T[+D]] ...``
-runs the same scenario with one OS process per node over Zenoh and prints the
-same table (``docs/processes.md``).
+``dfusion run SCENARIO [--speed X] [--nodes-per-process N] [--json OUT] [--plot OUT.png] [--restart NAME@T[+D]] ...``
+runs the same scenario with one OS process per node (or N nodes per process) over Zenoh
+and prints the same table (``docs/processes.md``).
 
 ``dfusion replay SCENARIO BAG --topic TOPIC=NODE ... [--truth TOPIC] [--arrival stamp|record]``
 runs the scenario's nodes on the measurements of a ROS 1 or ROS 2 bag instead of the
@@ -118,6 +118,7 @@ def _run(args: argparse.Namespace) -> int:
             round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
+            nodes_per_process=args.nodes_per_process,
         )
         launcher = Launcher(opts)
         if stop:
@@ -181,8 +182,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     r.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     _output_options(r)
+    r.add_argument("--nodes-per-process", type=int, default=1, metavar="N",
+                   help="run up to N nodes in each OS process, over one Zenoh session (default 1: a process per "
+                        "node; docs/processes.md)")
     r.add_argument("--restart", action="append", default=[], metavar="NAME@T[+D]",
-                   help="SIGKILL node NAME at scenario time T and start it again D seconds later (repeatable)")
+                   help="SIGKILL node NAME (its process: with --nodes-per-process, its host and every node in it) at "
+                        "scenario time T and start it again D seconds later (repeatable)")
     r.add_argument("--network-key-file", default=None,
                    help="authenticate every message with this key (or set $DFUSION_NETWORK_KEY_FILE / "
                         "$DFUSION_NETWORK_KEY; default: a random key for this run)")

@@ -31,7 +31,7 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
     spec = sc.nodes[name]
     return FusionNode(
         name,
-        sorted(sc.graph.neighbors(name)),
+        sc.neighbors(name),
         sc.target.motion,
         window=sc.window,
         horizon=sc.horizon,

@@ -41,7 +41,7 @@ from dfusion.scenario.spec import (
     TargetSpec,
 )
 from dfusion.scenario.values import intervals, suggest
-from dfusion.topology import load_topology, minimum_window
+from dfusion.topology import load_tree, minimum_window
 from dfusion.transport.simulated import LinkSpec
 
 __all__ = ["load_scenario", "build_policy", "node_policies", "TOP_LEVEL_KEYS", "TARGET_KEYS", "LINK_KEYS",
@@ -313,7 +313,7 @@ def load_scenario(
         _check_table_keys(src, f"links[{i}]", tbl, LINK_KEYS, "[[links]]")
     undeclared = _undeclared_link_end(src, raw)
     try:
-        graph = load_topology(raw, source=src, spanning_tree=spanning)
+        graph = load_tree(raw, source=src, spanning_tree=spanning)
     except TopologyError as exc:
         # a misspelt node name in a link usually shows as a disconnected graph: name the cause
         if undeclared is not None and "cycle" not in str(exc):
@@ -373,7 +373,7 @@ def _warn_degenerate(sc: Scenario) -> None:
         latency = max((spec.latency + spec.jitter + spec.reorder_delay for spec in sc.links.values()), default=0.0)
         period = max(spec.send_period for spec in sc.nodes.values())
         delay = max(spec.delay for spec in sc.nodes.values())
-        seconds = minimum_window(sc.graph, max_latency=latency, send_period=period, max_measurement_delay=delay)
+        seconds = minimum_window(sc.tree, max_latency=latency, send_period=period, max_measurement_delay=delay)
         need = math.ceil(seconds / sc.dt - 1e-9) + 1
         if sc.window < need:
             sc.warnings.append(f"window = {sc.window} states is shorter than the {need} this tree needs "

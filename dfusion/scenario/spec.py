@@ -10,15 +10,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
 
-import networkx as nx
 import numpy as np
 
 from dfusion.errors import ScenarioError
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.scenario.security import SecurityOptions
+from dfusion.topology import Tree
 from dfusion.transport.simulated import LinkSpec
 
 if TYPE_CHECKING:   # type names only: no import at run time
+    import networkx as nx
+
     from dfusion.frontends.base import FrontEnd
     from dfusion.policies.base import Policy
 
@@ -261,6 +263,9 @@ class Scenario:
         The ``[security]`` table: the network key file and mutual TLS of ``dfusion run``.
     protection : Protection
         The ``[protection]`` table (default: every protection on).
+    tree : Tree
+        The communication tree (:class:`dfusion.topology.Tree`, plain data);
+        :attr:`graph` is the same tree as a networkx graph, built on first use.
     """
 
     path: str
@@ -273,12 +278,24 @@ class Scenario:
     target: TargetSpec
     nodes: dict[str, NodeSpec]
     links: dict[tuple[str, str], LinkSpec]
-    graph: nx.Graph
+    tree: Tree
     raw: dict[str, Any]
     kinds: Kinds | None = None
     warnings: list[str] = field(default_factory=list)
     security: SecurityOptions = field(default_factory=SecurityOptions)
     protection: Protection = field(default_factory=Protection)
+
+    @property
+    def graph(self) -> nx.Graph:
+        """The tree as a networkx graph (as :func:`dfusion.topology.load_topology` returns it)."""
+        graph = self.__dict__.get("_graph")
+        if graph is None:
+            graph = self.__dict__["_graph"] = self.tree.to_networkx()
+        return graph
+
+    def neighbors(self, name: str) -> tuple[str, ...]:
+        """The tree neighbours of node ``name``, sorted."""
+        return tuple(sorted(self.tree.neighbors(name)))
 
     @property
     def steps(self) -> int:

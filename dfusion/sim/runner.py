@@ -50,9 +50,8 @@ import json
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-import networkx as nx
 import numpy as np
 
 from dfusion.errors import MessageError, OutsideWindowError
@@ -60,12 +59,15 @@ from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
 from dfusion.metrics import chi2_interval, nees, rmse
-from dfusion.policies.base import InformationFusionPolicy
+from dfusion.policies.base import records_output as policy_records_output
 from dfusion.scenario.build import build_front_ends, build_nodes
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.world import World, simulate_world
 from dfusion.transport.simulated import SimulatedNetwork
-from dfusion.topology import settling_rounds
+from dfusion.topology import Tree, settling_rounds
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +94,7 @@ class NodeOutput:
 
 def records_output(node: FusionNode) -> bool:
     """Whether a node's output is recorded: its policy is not plain information fusion."""
-    return type(node.policy) is not InformationFusionPolicy
+    return policy_records_output(node.policy)
 
 
 @dataclass
@@ -375,7 +377,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         ic += 1
     for nm, fe in front.items():
         fe.finish(nodes[nm])
-    counts["final_rounds"] = final_rounds(nodes, sc.graph)
+    counts["final_rounds"] = final_rounds(nodes, sc.tree)
     (c_final, _), (o_final, _) = refs.estimate(T)
 
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
@@ -441,7 +443,7 @@ class References:
         return self.fair.estimate(t), self.oracle.estimate(t)
 
 
-def final_rounds(nodes: dict[str, FusionNode], graph: nx.Graph) -> int:
+def final_rounds(nodes: dict[str, FusionNode], graph: Tree | nx.Graph) -> int:
     """:func:`dfusion.topology.settling_rounds` rounds in which every node sends to every
     neighbour, losslessly; returns the number of messages."""
     n = 0
