@@ -85,7 +85,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from dfusion.errors import ValidationError
-from dfusion.linalg import Array
+from dfusion.linalg import Array, chi2_isf
 
 log = logging.getLogger(__name__)
 
@@ -229,12 +229,11 @@ class NeighbourGuard:
         self.links[j] = record
 
     def threshold(self, dof: int) -> float:
-        """``chi2^-1_dof(1 - alpha)``."""
+        """``chi2^-1_dof(1 - alpha)`` (:func:`dfusion.linalg.chi2_isf`: no scipy, whose import would stall a
+        real-time node for seconds at the first message it tests)."""
         c = self._thresholds.get(dof)
         if c is None:
-            from scipy.stats import chi2  # here, not at the top: a node without a guard needs no scipy
-
-            c = self._thresholds[dof] = float(chi2.isf(self.config.false_alarm, dof))
+            c = self._thresholds[dof] = chi2_isf(self.config.false_alarm, dof)
         return c
 
     @property

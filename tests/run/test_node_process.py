@@ -34,21 +34,34 @@ PROBE = textwrap.dedent("""
     from dfusion.scenario import load_scenario
     sc = load_scenario(sys.argv[1])
     name = sys.argv[2]
-    proc = NodeProcess(sc, name, start=0.0, measurements=load_recording(sys.argv[3], name))
-    for t in proc.times[1:101]:          # the loop's predict and fuse, and a message to every neighbour
-        proc.node.predict(float(t))
-        proc._fuse_until(float(t))
-        for nb in proc.neighbors:
-            proc.node.message_to(nb)
+    names = [name, *sc.neighbors(name)]   # the node and its neighbours, each with its own measurements
+    procs = {n: NodeProcess(sc, n, start=0.0, measurements=load_recording(f"{sys.argv[3]}/{n}.jsonl", n))
+             for n in names}
+    proc = procs[name]
+    for k, t in enumerate(proc.times[1:101]):   # the loop's predict and fuse, and messages both ways
+        for p in procs.values():
+            p.node.predict(float(t))
+            p._fuse_until(float(t))
+        if k % 5 == 4:
+            for nb in proc.neighbors:
+                procs[nb].node.receive(proc.node.message_to(nb))
+                proc.node.receive(procs[nb].node.message_to(name))   # tested by the node's guard, if any
     proc.node.estimate()
     assert proc.counters["measurements_fused"] > 0
-    print(json.dumps(sorted(sys.modules)))
+    guard = proc.node.guard
+    tested = sum(guard.links[nb].tests for nb in proc.neighbors) if guard is not None else None
+    print(json.dumps({"modules": sorted(sys.modules), "guard_tests": tested}))
 """)
 
 
-def loaded_by_node_program(scenario: Path, node: str, tmp_path: Path) -> list[str]:
+def run_node_program(scenario: Path, node: str, tmp_path: Path) -> dict:
+    """``sys.modules`` after the node program ran (``modules``), and the messages its guard tested."""
     sc = load_scenario(scenario)
-    rec = save_recording(tmp_path / f"{node}.jsonl", node, nodes_measurements(sc, None, [node])[node])
+    names = [node, *sc.neighbors(node)]
+    rec = tmp_path / "recordings"
+    rec.mkdir()
+    for n, meas in nodes_measurements(sc, None, names).items():
+        save_recording(rec / f"{n}.jsonl", n, meas)
     out = subprocess.run([sys.executable, "-c", PROBE, str(scenario), node, str(rec)], capture_output=True, text=True,
                          timeout=300, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.returncode == 0, out.stderr
@@ -60,19 +73,26 @@ def heavy(modules: list[str]) -> list[str]:
 
 
 def test_a_position_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp_path):
+    """Also once its guard has tested neighbours' messages: the test's chi-square thresholds come from
+    dfusion.linalg, not scipy.stats (whose import, 1-4 s on a loaded machine, once stalled every node's
+    loop at its first message, and a node SIGKILLed then had logged no measurement to replay)."""
     scenario = tmp_path / "chain3.scenario.toml"
     scenario.write_text(CHAIN3.format(duration=20.0, window=100))
-    modules = loaded_by_node_program(scenario, "a", tmp_path)
+    out = run_node_program(scenario, "b", tmp_path)
+    modules = out["modules"]
     assert "dfusion.run.node_process" in modules and "zenoh" in modules and "numpy" in modules
+    assert out["guard_tests"] is not None and out["guard_tests"] >= 10, out["guard_tests"]
     assert heavy(modules) == []
-    print(f"position node program: {len(modules)} modules, none of {', '.join(HEAVY)}")
+    print(f"position node program: {len(modules)} modules, none of {', '.join(HEAVY)}; "
+          f"{out['guard_tests']} messages tested by its guard")
 
 
 def test_a_camera_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp_path):
     scenario = ROOT / "topologies" / "urus.scenario.toml"
-    modules = loaded_by_node_program(scenario, "cam_left", tmp_path)
-    assert "dfusion.models.camera" in modules
-    assert heavy(modules) == []
+    out = run_node_program(scenario, "cam_left", tmp_path)
+    assert "dfusion.models.camera" in out["modules"]
+    assert heavy(out["modules"]) == []
+    print(f"camera node program: guard tests {out['guard_tests']}")
 
 
 def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_path):
