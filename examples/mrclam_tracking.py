@@ -366,6 +366,10 @@ def run(args: argparse.Namespace, ds=None) -> dict:
     target = args.target
     observers = list(args.observers)
     perturb = getattr(args, "perturb", "none")
+    if isinstance(perturb, (list, tuple)):   # as parsed: one kind runs here, several in evaluate()
+        if len(perturb) != 1 or perturb[0] == "all":
+            raise DfusionError(f"run() takes one perturbation, got {perturb}; evaluate() runs several")
+        perturb = perturb[0]
     if perturb != "none":
         ds = perturb_mrclam(ds, perturb, target=target, observers=tuple(observers), seed=args.seed,
                             **perturb_options(args))
