@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.datasets.ble_rssi import BLERSSIDataset, Receiver, Track, find_dataset_root, read_devices, read_track
     from dfusion.datasets.carmen import CarmenLog, LaserScan, beam_angles, read_carmen
-    from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog, integrate_odometry, interpolate_poses, mean_velocities, read_landmarks, read_mrclam
+    from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog, integrate_odometry, interpolate_poses, mean_velocities, perturb_mrclam, PERTURBATIONS, read_landmarks, read_mrclam
 
 __all__ = [
     "BLERSSIDataset",
@@ -23,6 +23,8 @@ __all__ = [
     "RobotLog",
     "MRCLAMDataset",
     "read_mrclam",
+    "perturb_mrclam",
+    "PERTURBATIONS",
     "read_landmarks",
     "integrate_odometry",
     "interpolate_poses",
@@ -49,6 +51,8 @@ _WHERE = {
     "interpolate_poses": ("dfusion.datasets.mrclam", 'interpolate_poses'),
     "mean_velocities": ("dfusion.datasets.mrclam", 'mean_velocities'),
     "read_mrclam": ("dfusion.datasets.mrclam", 'read_mrclam'),
+    "perturb_mrclam": ("dfusion.datasets.mrclam", 'perturb_mrclam'),
+    "PERTURBATIONS": ("dfusion.datasets.mrclam", 'PERTURBATIONS'),
 }
 
 

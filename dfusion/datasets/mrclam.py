@@ -35,6 +35,7 @@ dataset are in ``tests/data/mrclam/README.md``):
 """
 from __future__ import annotations
 
+import copy
 import gzip
 import io
 import logging
@@ -57,6 +58,8 @@ __all__ = [
     "integrate_odometry",
     "interpolate_poses",
     "mean_velocities",
+    "perturb_mrclam",
+    "PERTURBATIONS",
     "ROBOTS",
 ]
 
@@ -303,4 +306,87 @@ def mean_velocities(odom_t: np.ndarray, odom: np.ndarray, edges: np.ndarray) -> 
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.diff(at, axis=0) / span[:, None]
     out[span <= 0] = 0.0
+    return out
+
+
+#: Kinds of :func:`perturb_mrclam` (``"combined"`` applies the three others).
+PERTURBATIONS = ("none", "outliers", "gap", "odometry-scale", "combined")
+
+
+def perturb_mrclam(
+    ds: MRCLAMDataset,
+    kind: str,
+    *,
+    target: int = 1,
+    observers: tuple[int, ...] = (2, 3, 4, 5),
+    seed: int = 0,
+    outlier_fraction: float = 0.1,
+    gap_seconds: float = 60.0,
+    gap_start: float | None = None,
+    odometry_robot: int | None = None,
+    odometry_scale: float = 1.05,
+) -> MRCLAMDataset:
+    """A perturbed copy of ``ds`` (``ds`` itself is not changed) for robustness tests.
+
+    Kinds (:data:`PERTURBATIONS`):
+
+    ``"outliers"``
+        ``round(outlier_fraction * K)`` of the ``K`` sightings of ``target`` by the
+        ``observers``, drawn without replacement (``numpy.random.default_rng(seed)``),
+        get a range uniform in ``[r_min, r_max]`` and a bearing uniform in
+        ``[b_min, b_max]``: the span of *all* range and bearing measurements of the
+        dataset (the camera's field of view; Dataset 6: 0.94-8.63 m, -0.592-0.572 rad).
+    ``"gap"``
+        every sighting of ``target`` by the ``observers`` in ``[gap_start, gap_start +
+        gap_seconds)`` is removed; by default ``gap_start`` is the start of the window
+        of that length holding the most such sightings (Dataset 6: 108.5 s, 270
+        sightings), so the gap removes as much as a gap of that length can.
+    ``"odometry-scale"``
+        ``odometry_robot``'s odometry velocities ``(v, omega)`` are multiplied by
+        ``odometry_scale`` (a wheel-radius error); by default the observer with the most
+        sightings of ``target`` (Dataset 6: robot 3).
+    ``"combined"``
+        the three above, in that order, each with the default it would have alone
+        (the gap window and the odometry robot are chosen on the unperturbed data);
+        ``"none"`` returns an unchanged copy.
+    """
+    if kind not in PERTURBATIONS:
+        raise ValidationError(f"perturbation must be one of {PERTURBATIONS}, got {kind!r}")
+    out = copy.deepcopy(ds)
+    kinds = ("outliers", "gap", "odometry-scale") if kind == "combined" else (kind,)
+    sightings = [(o, i) for o in observers for i in out.robots[o].observations_of(target).tolist()]
+    if odometry_robot is None:  # chosen on the unperturbed data, so "combined" = the three kinds
+        odometry_robot = max(observers, key=lambda o: (out.robots[o].observations_of(target).size, -o))
+    if "outliers" in kinds and sightings:
+        rng = np.random.default_rng(seed)
+        ranges = np.concatenate([r.meas_range for r in out.robots.values()])
+        bearings = np.concatenate([r.meas_bearing for r in out.robots.values()])
+        k = int(round(outlier_fraction * len(sightings)))
+        chosen = rng.choice(len(sightings), size=k, replace=False)
+        for c in np.sort(chosen).tolist():
+            o, i = sightings[c]
+            out.robots[o].meas_range[i] = rng.uniform(ranges.min(), ranges.max())
+            out.robots[o].meas_bearing[i] = rng.uniform(bearings.min(), bearings.max())
+        logger.info("perturb: %d of %d sightings of robot %d replaced by outliers", k, len(sightings), target)
+    if "gap" in kinds:
+        if gap_start is None:
+            t = np.sort([float(out.robots[o].meas_t[i]) for o, i in sightings])
+            if t.size:
+                n_in = np.searchsorted(t, t + gap_seconds, side="left") - np.arange(t.size)
+                gap_start = float(t[int(np.argmax(n_in))])
+            else:
+                gap_start = 0.0
+        removed = 0
+        for o in observers:
+            r = out.robots[o]
+            drop = (r.meas_subject == target) & (r.meas_t >= gap_start) & (r.meas_t < gap_start + gap_seconds)
+            keep = ~drop
+            removed += int(np.count_nonzero(drop))
+            r.meas_t, r.meas_subject = r.meas_t[keep], r.meas_subject[keep]
+            r.meas_range, r.meas_bearing = r.meas_range[keep], r.meas_bearing[keep]
+        logger.info("perturb: %d sightings of robot %d removed in [%.1f, %.1f) s", removed, target,
+                    gap_start, gap_start + gap_seconds)
+    if "odometry-scale" in kinds:
+        out.robots[odometry_robot].odom = out.robots[odometry_robot].odom * float(odometry_scale)
+        logger.info("perturb: robot %d odometry scaled by %g", odometry_robot, odometry_scale)
     return out

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 from bisect import bisect_left
+from dataclasses import replace
 from typing import Iterator
 
 import numpy as np
@@ -374,9 +375,35 @@ class DelayedStateEIF:
             first = self._motion_factor(xa, tf - ta, u)
             xs = self.motion.f(xa, tf - ta, u)
             second = self._motion_factor(xs, tb - tf, u)
+        if old.extra is not None:  # added process noise stays on the interval ending at tb
+            second = replace(second, Q=symmetrize(second.Q + old.extra), extra=old.extra)
         self._traj.split(a, first, second)
         self._times.insert(a + 1, tf)
         return a + 1
+
+    def add_process_noise(self, t: float, Q_extra: ArrayLike) -> None:
+        """Add ``Q_extra`` to the process noise of the motion step that ends at the window
+        state ``t`` (not the oldest): ``x(t) = F x(t_prev) + c + w``,
+        ``w ~ N(0, Q + Q_extra)``. The marginal covariance of ``x(t)`` (before the
+        information on ``x(t)`` itself) grows by ``Q_extra``; the states before are
+        unchanged. Used to re-initialize a diverged belief (a recovery,
+        :mod:`dfusion.estimation.innovation`): process noise is part of the motion model,
+        not measurement information, so nothing that a fusion node exchanges changes.
+        ``Q_extra`` must be symmetric positive semi-definite.
+        """
+        self._require_init()
+        tf = as_time(t)
+        Qx = as_matrix(Q_extra, (self.n, self.n), "extra process noise")
+        check_psd(Qx, "extra process noise")
+        Qx = symmetrize(Qx)
+        k = self.index_of(tf)
+        if k is None or k == 0:
+            raise OutsideWindowError(f"time {tf} is not a window state after the oldest ({self._times[0]})")
+        with self._transaction():
+            old = self._traj.factors[k - 1]
+            extra = Qx if old.extra is None else symmetrize(old.extra + Qx)
+            self._traj.replace_factor(k - 1, replace(old, Q=symmetrize(old.Q + Qx), extra=extra))
+            self._traj.latest()  # the belief must stay proper; otherwise roll back
 
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> tuple[Array, Array]:
         """Fuse measurement ``z`` of ``sensor`` taken at time ``t`` (any time in the window).

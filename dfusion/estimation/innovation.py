@@ -106,6 +106,30 @@ Run of rejections
 
 After an alarm the detector is :meth:`LockoutDetector.reset` by the caller once it has recovered (its
 window must not carry the NIS of the diverged filter into the new one).
+
+Why two classes
+---------------
+
+Both watch a windowed NIS and a run of rejections, but they answer different questions
+and :class:`InnovationMonitor` cannot delegate to :class:`LockoutDetector` without
+changing its decisions (and so the MRCLAM results):
+
+* the run: :class:`LockoutDetector` counts rejections and alarms after
+  ``r = ceil(log(alpha) / log(1 - P_G))`` of them (every rejection is evidence, no
+  outliers are expected); :class:`InnovationMonitor` allows for outliers, so its run is
+  longer (``k`` from ``max_outlier_rate + 1 - P_G``), and it needs the *innovation
+  vectors* of the run (a lock-out must be explained by one jump of the state block, not
+  by one source, and be judged only up to a horizon), from which it also computes the
+  recovery noise. A counter cannot give either;
+* the window: :class:`LockoutDetector` *tests* the sum of capped NIS values against
+  ``chi2(n d)``; :class:`InnovationMonitor` only *reports* the uncapped windowed mean
+  (:meth:`InnovationMonitor.nis_window`), and its divergence test over the window is the
+  GLR drift test on the whitened innovations (a persistent bias), because the NIS sum is
+  set off by heavy-tailed but unbiased sensors (the MRCLAM landmarks above).
+
+:class:`LockoutDetector` is the one for estimators with a scalar NIS only (MCL, scan
+matching); :class:`InnovationMonitor` for EKF-type estimators with an innovation vector
+and a state block to inflate.
 """
 from __future__ import annotations
 

@@ -75,7 +75,10 @@ class MotionFactor:
     """A linearized motion factor ``x_b = F x_a + c + w``, ``w ~ N(0, Q)``.
 
     ``dt`` and ``u`` are kept so that the factor can be split when a state is
-    inserted inside the interval.
+    inserted inside the interval. ``extra`` is process noise added to the motion
+    model's on this interval after the fact (``Q`` includes it;
+    :meth:`dfusion.estimation.DelayedStateEIF.add_process_noise`), kept so that a split
+    keeps it too.
     """
 
     F: Array
@@ -83,6 +86,7 @@ class MotionFactor:
     c: Array
     dt: float
     u: Array | None = None
+    extra: Array | None = None
 
     def information_blocks(self) -> tuple[Array, Array, Array, Array, Array]:
         """``(Omega_aa, Omega_ab, Omega_bb, eta_a, eta_b)`` contributed by the factor."""
@@ -203,6 +207,12 @@ class TrajectoryInformation:
         self.y.insert(a + 1, np.zeros(self.n))
         self.factors[a:a + 1] = [first, second]
         self._invalidate(a + 1)
+
+    def replace_factor(self, k: int, factor: MotionFactor) -> None:
+        """Replace the motion factor ``x_k -> x_{k+1}``; the filtered terms of the states
+        after it become invalid."""
+        self.factors[k] = factor
+        self._invalidate(k + 1)
 
     def drop_oldest(self) -> None:
         """Marginalize ``x_0`` out: the new base is the prediction ``N(mu^-_1, P^-_1)``."""

@@ -1,4 +1,4 @@
-"""Front ends: one base class and one module per sensor kind (camera, WSN, MCL, ICP, environmental camera)."""
+"""Front ends: one base class and one module per sensor kind (camera, WSN, MCL, ICP, environmental camera, target tracking)."""
 from __future__ import annotations
 
 import importlib
@@ -10,6 +10,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.frontends.env_camera import EnvCameraFrontEnd
     from dfusion.frontends.icp import ICPFrontEnd
     from dfusion.frontends.mcl import MCLFrontEnd
+    from dfusion.frontends.target import TargetTrackingFrontEnd, network_support
     from dfusion.frontends.wsn import WSNFrontEnd, WSNStats
 
 __all__ = [
@@ -26,6 +27,8 @@ __all__ = [
     "EnvCameraFrontEnd",
     "ICPFrontEnd",
     "MCLFrontEnd",
+    "TargetTrackingFrontEnd",
+    "network_support",
     "WSNFrontEnd",
     "WSNStats",
 ]
@@ -44,6 +47,8 @@ _WHERE = {
     "EnvCameraFrontEnd": ("dfusion.frontends.env_camera", 'EnvCameraFrontEnd'),
     "ICPFrontEnd": ("dfusion.frontends.icp", 'ICPFrontEnd'),
     "MCLFrontEnd": ("dfusion.frontends.mcl", 'MCLFrontEnd'),
+    "TargetTrackingFrontEnd": ("dfusion.frontends.target", 'TargetTrackingFrontEnd'),
+    "network_support": ("dfusion.frontends.target", 'network_support'),
     "WSNFrontEnd": ("dfusion.frontends.wsn", 'WSNFrontEnd'),
     "WSNStats": ("dfusion.frontends.wsn", 'WSNStats'),
 }

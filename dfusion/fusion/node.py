@@ -442,6 +442,7 @@ class FusionNode:
         self._held = _Blocks(n)    # own information fused here but not shared yet
         self._pruned_at = self.filter.oldest_time
         self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
+        self._heard: dict[str, float] = {}   # per neighbour: newest sent_at of a message applied completely
         if isinstance(guard, GuardConfig):
             guard = NeighbourGuard(nbrs, guard)
         if guard is not None:
@@ -573,6 +574,58 @@ class FusionNode:
         else:
             self._held.subtract([(t, Lam, y)])
         return True
+
+    def add_process_noise(self, t: float, Q_extra: ArrayLike) -> None:
+        """Add process noise ``Q_extra`` to this node's motion step ending at the window
+        state ``t`` (:meth:`DelayedStateEIF.add_process_noise`): a local re-initialization
+        of a diverged belief (a recovery, :mod:`dfusion.estimation.innovation`).
+
+        Nothing exchanged changes: messages and channel filters carry single-state
+        (measurement) information per state time, and this changes a motion factor, which
+        is never sent; the own, held-back and received stores and the channels are
+        untouched, so no information is counted twice or lost, whether messages are full or
+        partial. The node's belief becomes the posterior of all the measurement
+        information it holds under its motion model with the extra noise, wider than
+        before; its neighbours keep the nominal model until they recover too. With a
+        guard (:mod:`dfusion.fusion.guard`) the wider belief only makes the neighbours'
+        information pass its test more easily (``docs/robots.md``).
+        """
+        self.filter.add_process_noise(t, Q_extra)
+        log.info("%s: process noise added at t=%.3f (trace %.3g)", self.name, float(t),
+                 float(np.trace(np.asarray(Q_extra, dtype=float))))
+
+    def reported_until(self) -> float:
+        """The time up to which every neighbour whose information this node fuses has
+        reported: the oldest of the newest ``sent_at`` of a message applied completely from
+        each neighbour that is not quarantined (``-inf`` while one has not been heard from;
+        ``inf`` without such neighbours). Over a link without losses the information a
+        neighbour holds for states up to that ``sent_at`` has then reached this node; a
+        message lost on the way is resent with the next messages once an acknowledgement
+        shows the loss (:mod:`dfusion.fusion.channel`), so over a lossy link it may still be
+        under way."""
+        live = [j for j in self.neighbors if not self.is_quarantined(j)]
+        if not live:
+            return float("inf")
+        return min(self._heard.get(j, -np.inf) for j in live)
+
+    def received_information(self, t0: float, t1: float) -> list[tuple[float, Array, Array]]:
+        """The measurement information this node fuses from its neighbours at the window
+        states with ``t0 <= t <= t1``, oldest first: the total (own shared plus received;
+        what a quarantine withdrew is not in it) minus the own shared part
+        (``own - held``)."""
+        tol = self.filter.time_tol
+        own = {time_key(t): (L, y) for t, L, y in self._own.between(t0 - tol, t1 + tol)}
+        held = {time_key(t): (L, y) for t, L, y in self._held.between(t0 - tol, t1 + tol)}
+        out = []
+        for t, L, y in self._total.between(t0 - tol, t1 + tol):
+            k = time_key(t)
+            L, y = np.array(L, dtype=float), np.array(y, dtype=float)
+            if k in own:
+                L, y = L - own[k][0], y - own[k][1]
+            if k in held:
+                L, y = L + held[k][0], y + held[k][1]
+            out.append((t, L, y))
+        return out
 
     def _add_own(self, t: float, Lam: Array, y: Array, share: bool = True) -> None:
         self._own.add(t, Lam, y)
@@ -872,6 +925,8 @@ class FusionNode:
                 raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
             raise
         self.stats.messages_received += 1
+        if not too_far and not duplicate:
+            self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.duplicates += int(duplicate)
         self.stats.blocks_outside_window += outside
         self.stats.blocks_too_far_ahead += len(too_far)

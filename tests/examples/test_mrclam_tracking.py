@@ -108,24 +108,30 @@ def test_dead_reckoning_and_mean_velocities_against_fine_steps(ds):
 
 @pytest.fixture(scope="module")
 def example_runs(tmp_path_factory):
-    """Both target models, run concurrently (two processes)."""
+    """Both target models, run concurrently (two processes); the odometry run (the default)
+    also writes the figures."""
     out = tmp_path_factory.mktemp("mrclam")
-    procs = {}
-    for model in ("cv", "odometry"):
-        js = out / f"{model}.json"
-        # odometry: the default; it also writes the figures
-        flag = ["--plot", str(out / "fig")] if model == "odometry" else ["--target-model", model]
-        procs[model] = (subprocess.Popen([sys.executable, str(EXAMPLE), str(SLICE), *flag,
-                                          "--json", str(js)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                         text=True, cwd=ROOT), js)
-    res = {}
-    for model, (p, js) in procs.items():
-        stdout, stderr = p.communicate(timeout=300)
-        assert p.returncode == 0, stderr
-        assert "node robot2" in stdout and "dead reckoning" in stdout
-        res[model] = json.loads(js.read_text())
+    flags = {"cv": ["--target-model", "cv"], "odometry": ["--plot", str(out / "fig")]}
+    res = run_example_processes(out, flags, ("node robot2", "dead reckoning"))
     for f in ("mrclam_topdown.png", "mrclam_errors.png"):
         assert (out / "fig" / f).stat().st_size > 20_000
+    return res
+
+
+def run_example_processes(out: Path, commands: dict[str, list[str]], expect: tuple[str, ...]) -> dict:
+    """Run the example on the slice once per entry of ``commands`` (extra arguments),
+    concurrently; check the exit code and that ``expect`` is printed; return the JSONs."""
+    procs = {}
+    for name, extra in commands.items():
+        js = out / f"{name}.json"
+        procs[name] = (subprocess.Popen([sys.executable, str(EXAMPLE), str(SLICE), *extra, "--json", str(js)],
+                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT), js)
+    res = {}
+    for name, (p, js) in procs.items():
+        stdout, stderr = p.communicate(timeout=600)
+        assert p.returncode == 0, stderr
+        assert all(e in stdout for e in expect), stdout
+        res[name] = json.loads(js.read_text())
     return res
 
 
@@ -166,3 +172,62 @@ def test_example_odometry_target(example_runs):
         assert v["gap_to_centralized_tracking"] < 0.1
     assert r["centralized"]["rmse"] < 0.23
     assert r["centralized_tracking"]["rmse"] < 0.25
+
+
+# --------------------------------------------------------------------------- perturbed copies
+@pytest.fixture(scope="module")
+def perturbed_runs(tmp_path_factory):
+    """The three perturbed copies of the slice, and a stress copy (robot 1's own odometry
+    x 1.2, which locks plain gating out) with and without the protection."""
+    stress = ["--perturb", "odometry-scale", "--odometry-robot", "1", "--odometry-scale", "1.2"]
+    cmds = {
+        "perturbed": ["--perturb", "outliers", "gap", "odometry-scale", "--jobs", "2"],
+        "stress": stress,
+        "stress_plain": [*stress, "--no-robust"],
+    }
+    return run_example_processes(tmp_path_factory.mktemp("mrclam_perturbed"), cmds, ("x joint", "recov."))
+
+
+def test_robust_tracking_on_perturbed_slices(example_runs, perturbed_runs):
+    """On the slice the nodes are already 1.17-1.23x the joint EKF without perturbation
+    (the joint EKF is unusually good in the first 180 s: docs/robots.md); what the slice
+    can check honestly is that no perturbation makes the nodes fall further behind the
+    joint EKF given the same perturbed data (measured: largest node / joint 1.233
+    unperturbed, 1.226 outliers, 1.050 gap, 1.262 odometry scale) nor far off (at most
+    0.28 m)."""
+    none = example_runs["odometry"]
+    assert none["robust"] is not None and none["perturbation"] == "none"   # robust by default
+    base_ratio = max(v["rmse"] for v in none["nodes"].values()) / none["centralized"]["rmse"]
+    runs = perturbed_runs["perturbed"]["runs"]
+    assert set(runs) == {"outliers", "gap", "odometry-scale"}
+    assert len(perturbed_runs["perturbed"]["summary"]) == 3 * 6   # 4 nodes and 2 references per run
+    for kind, r in runs.items():
+        assert r["perturbation"] == kind and r["robust"] is not None
+        joint = r["centralized"]["rmse"]
+        for o, v in r["nodes"].items():
+            assert v["rmse"] / joint < base_ratio + 0.1, (kind, o, v["rmse"], joint)
+            assert v["rmse"] < 0.32, (kind, o)
+            assert 0.5 < v["anees"] < 50
+    # the outliers are gated: at least half of the 10 % replaced sightings
+    out = runs["outliers"]
+    gated = sum(v["gated"] for v in out["nodes"].values())
+    seen = sum(v["target"] for v in out["nodes"].values())
+    assert gated >= 0.05 * seen
+    assert out["centralized"]["gated"] >= 0.05 * out["centralized"]["target"]
+
+
+def test_lockout_recovery_is_what_keeps_the_stressed_track(perturbed_runs):
+    """Robot 1's odometry scaled by 1.2: with plain gating the nodes' fixes are gated out
+    and the track drifts (measured 0.61-0.63 m, robot 3's node rejects 53 of 71 fixes);
+    with the protection the nodes recover (measured 0.35-0.37 m, joint EKF 0.37 m). This
+    test fails when the recovery is disabled."""
+    good, plain = perturbed_runs["stress"], perturbed_runs["stress_plain"]
+    assert plain["robust"] is None
+    assert sum(v["lockouts"] for v in plain["nodes"].values()) >= 1          # detected, not recovered
+    assert sum(v["recoveries"] for v in plain["nodes"].values()) == 0
+    assert sum(v["recoveries"] for v in good["nodes"].values()) >= 1
+    for o, v in good["nodes"].items():
+        assert v["rmse"] < 0.45, (o, v["rmse"])
+        assert v["rmse"] < 0.7 * plain["nodes"][o]["rmse"]
+        assert v["rmse"] < 1.2 * good["centralized"]["rmse"]
+    assert min(v["rmse"] for v in plain["nodes"].values()) > 0.5
