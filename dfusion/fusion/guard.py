@@ -89,7 +89,8 @@ from dfusion.linalg import Array
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "information_statistic", "split_blocks", "HEALTH_STATES"]
+__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "information_statistic", "split_blocks", "HEALTH_STATES",
+           "chi2_isf"]
 
 HEALTH_STATES = ("ok", "degraded", "lost")
 
@@ -100,6 +101,64 @@ NEGLIGIBLE = 1e-9
 #: The part of ``y`` outside the range of ``Lambda`` may shift the receiver's mean by this many
 #: standard deviations (squared) at most: more is information no measurement can produce.
 RANGE_TOL = 1e-6
+
+
+def chi2_sf(x: float, dof: int) -> float:
+    r"""Survival function of the chi-square distribution with an integer ``dof``, in closed form.
+
+    With ``h = x / 2`` (Abramowitz & Stegun, *Handbook of Mathematical Functions*, 1964,
+    26.4.4 and 26.4.5; the regularized upper incomplete gamma ``Q(dof/2, h)``, DLMF 8.4.10)::
+
+        even dof:  Q = e^-h  sum_{i=0}^{dof/2 - 1} h^i / i!
+        odd dof:   Q = erfc(sqrt(h)) + e^-h  sum_{i=0}^{(dof-3)/2} h^(i+1/2) / Gamma(i + 3/2)
+
+    The terms are summed from their logarithms (no overflow for thousands of degrees of
+    freedom). Plain numpy and :mod:`math`: a node program needs no scipy for its thresholds.
+    """
+    if dof < 1:
+        raise ValidationError(f"dof must be a positive integer, got {dof!r}")
+    if not x > 0:
+        return 1.0
+    if math.isinf(x):
+        return 0.0
+    h = 0.5 * x
+    if dof % 2 == 0:
+        i = np.arange(dof // 2, dtype=float)
+        log_fact = np.concatenate(([0.0], np.cumsum(np.log(i[1:]))))              # log i!
+        logs = i * math.log(h) - log_fact - h
+        head = 0.0
+    else:
+        i = np.arange((dof - 1) // 2, dtype=float)
+        log_gamma = math.lgamma(1.5) + np.concatenate(([0.0], np.cumsum(np.log(i[1:] + 0.5))))   # log Gamma(i + 3/2)
+        logs = (i + 0.5) * math.log(h) - log_gamma - h
+        head = math.erfc(math.sqrt(h))
+    if logs.size == 0:
+        return head
+    top = float(np.max(logs))
+    return head + math.exp(top) * float(np.sum(np.exp(logs - top)))
+
+
+def chi2_isf(alpha: float, dof: int) -> float:
+    """``chi2^-1_dof(1 - alpha)``: the ``x`` with :func:`chi2_sf` ``(x, dof) = alpha``, by bisection.
+
+    The survival function decreases strictly in ``x``; the bracket is doubled from ``dof``
+    until it holds the root, then halved until it is a few ulps wide (about 60 steps, cached
+    by the caller). Checked against :func:`scipy.stats.chi2.isf` in the tests.
+    """
+    if not (0.0 < alpha < 1.0):
+        raise ValidationError(f"alpha must be in (0, 1), got {alpha!r}")
+    lo, hi = 0.0, float(max(dof, 1))
+    while chi2_sf(hi, dof) > alpha:
+        lo, hi = hi, 2.0 * hi
+    while hi - lo > 4.0 * math.ulp(hi):
+        mid = 0.5 * (lo + hi)
+        if mid <= lo or mid >= hi:
+            break
+        if chi2_sf(mid, dof) > alpha:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 @dataclass(frozen=True)
@@ -232,9 +291,7 @@ class NeighbourGuard:
         """``chi2^-1_dof(1 - alpha)``."""
         c = self._thresholds.get(dof)
         if c is None:
-            from scipy.stats import chi2  # here, not at the top: a node without a guard needs no scipy
-
-            c = self._thresholds[dof] = float(chi2.isf(self.config.false_alarm, dof))
+            c = self._thresholds[dof] = chi2_isf(self.config.false_alarm, dof)
         return c
 
     @property

@@ -6,6 +6,8 @@ withdrawn, and forwarded as changed times) and released, own information held ba
 withdrawn through partial messages, and a failure during a message undoing the guard's records."""
 from __future__ import annotations
 
+import math
+
 import networkx as nx
 import numpy as np
 import pytest
@@ -423,3 +425,24 @@ def test_guard_config_and_health_rules():
     assert g.judge("y", 100.0, 2) and g.health() == "lost"
     assert [g.probation("x", 1.0, 2) for _ in range(10)] == [False] * 9 + [True]
     assert g.health() == "degraded"
+
+
+def test_chi_square_quantiles_without_scipy_match_scipy():
+    """The guard's thresholds come from closed forms (A&S 26.4.4-26.4.5) and bisection, so that a
+    node program needs no scipy: checked against scipy's chi2.sf and chi2.isf, odd and even
+    degrees of freedom from 1 to 3001, false-alarm probabilities from 0.5 to 1e-12."""
+    from dfusion.fusion.guard import chi2_isf, chi2_sf
+
+    for dof in (*range(1, 41), 99, 100, 101, 255, 400, 799, 800, 1600, 3001):
+        for alpha in (0.5, 0.1, 1e-3, 1e-6, 1e-9, 1e-12):
+            x = chi2_isf(alpha, dof)
+            assert x == pytest.approx(chi2.isf(alpha, dof), rel=1e-12), (dof, alpha)
+            ref = chi2.isf(alpha, dof)
+            assert chi2_sf(ref, dof) == pytest.approx(chi2.sf(ref, dof), rel=1e-10), (dof, alpha)
+    assert chi2_sf(0.0, 3) == 1.0 and chi2_sf(math.inf, 3) == 0.0
+    with pytest.raises(ValidationError):
+        chi2_isf(0.0, 2)
+    with pytest.raises(ValidationError):
+        chi2_sf(1.0, 0)
+    cfg = GuardConfig()
+    assert NeighbourGuard(["a"], cfg).threshold(7) == pytest.approx(chi2.isf(cfg.false_alarm, 7), rel=1e-12)

@@ -34,25 +34,38 @@ PROBE = textwrap.dedent("""
     from dfusion.scenario import load_scenario
     sc = load_scenario(sys.argv[1])
     name = sys.argv[2]
-    proc = NodeProcess(sc, name, start=0.0, measurements=load_recording(sys.argv[3], name))
-    for t in proc.times[1:101]:          # the loop's predict and fuse, and a message to every neighbour
-        proc.node.predict(float(t))
-        proc._fuse_until(float(t))
-        for nb in proc.neighbors:
-            proc.node.message_to(nb)
+    rec = lambda n: load_recording(f"{sys.argv[3]}/{n}.jsonl", n)
+    proc = NodeProcess(sc, name, start=0.0, measurements=rec(name))
+    # its neighbours, with their own measurements: their messages go through the node's receive, with
+    # the scenario's protection (the consistency test of each message and its chi-square thresholds)
+    others = [NodeProcess(sc, nb, start=0.0, measurements=rec(nb)) for nb in proc.neighbors]
+    for t in proc.times[1:101]:          # the loop's predict and fuse, and messages both ways
+        for p in [proc, *others]:
+            p.node.predict(float(t))
+            p._fuse_until(float(t))
+        for other in others:
+            other.node.receive(proc.node.message_to(other.name))
+            proc.node.receive(other.node.message_to(name))
     proc.node.estimate()
     assert proc.counters["measurements_fused"] > 0
-    print(json.dumps(sorted(sys.modules)))
+    assert proc.node.stats.messages_received > 0 and proc.node.stats.messages_rejected == 0
+    guard = proc.node.guard
+    tested = sum(r.tests for r in guard.links.values()) if guard is not None else None
+    print(json.dumps({"modules": sorted(sys.modules), "tested": tested}))
 """)
 
 
-def loaded_by_node_program(scenario: Path, node: str, tmp_path: Path) -> list[str]:
+def loaded_by_node_program(scenario: Path, node: str, tmp_path: Path) -> tuple[list[str], int | None]:
+    """The modules the node program of ``node`` loaded, and the messages its consistency test judged."""
     sc = load_scenario(scenario)
-    rec = save_recording(tmp_path / f"{node}.jsonl", node, nodes_measurements(sc, None, [node])[node])
-    out = subprocess.run([sys.executable, "-c", PROBE, str(scenario), node, str(rec)], capture_output=True, text=True,
-                         timeout=300, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    names = [node, *sc.neighbors(node)]
+    for name, meas in nodes_measurements(sc, None, names).items():
+        save_recording(tmp_path / f"{name}.jsonl", name, meas)
+    out = subprocess.run([sys.executable, "-c", PROBE, str(scenario), node, str(tmp_path)], capture_output=True,
+                         text=True, timeout=300, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.returncode == 0, out.stderr
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    return r["modules"], r["tested"]
 
 
 def heavy(modules: list[str]) -> list[str]:
@@ -62,15 +75,16 @@ def heavy(modules: list[str]) -> list[str]:
 def test_a_position_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp_path):
     scenario = tmp_path / "chain3.scenario.toml"
     scenario.write_text(CHAIN3.format(duration=20.0, window=100))
-    modules = loaded_by_node_program(scenario, "a", tmp_path)
+    modules, tested = loaded_by_node_program(scenario, "a", tmp_path)
     assert "dfusion.run.node_process" in modules and "zenoh" in modules and "numpy" in modules
+    assert tested > 0   # the consistency test ran (its chi-square thresholds need no scipy)
     assert heavy(modules) == []
     print(f"position node program: {len(modules)} modules, none of {', '.join(HEAVY)}")
 
 
 def test_a_camera_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp_path):
     scenario = ROOT / "topologies" / "urus.scenario.toml"
-    modules = loaded_by_node_program(scenario, "cam_left", tmp_path)
+    modules, _ = loaded_by_node_program(scenario, "cam_left", tmp_path)
     assert "dfusion.models.camera" in modules
     assert heavy(modules) == []
 
