@@ -103,6 +103,10 @@ NEGLIGIBLE = 1e-9
 RANGE_TOL = 1e-6
 
 
+#: ``chi2_isf`` values by ``(alpha, dof)``, shared by the guards of a process (the nodes of a host).
+_THRESHOLDS: dict[tuple[float, int], float] = {}
+
+
 def chi2_sf(x: float, dof: int) -> float:
     r"""Survival function of the chi-square distribution with an integer ``dof``, in closed form.
 
@@ -288,10 +292,14 @@ class NeighbourGuard:
         self.links[j] = record
 
     def threshold(self, dof: int) -> float:
-        """``chi2^-1_dof(1 - alpha)``."""
+        """``chi2^-1_dof(1 - alpha)`` (:func:`chi2_isf`, cached for every guard of the process)."""
         c = self._thresholds.get(dof)
         if c is None:
-            c = self._thresholds[dof] = chi2_isf(self.config.false_alarm, dof)
+            key = (self.config.false_alarm, dof)
+            c = _THRESHOLDS.get(key)
+            if c is None:
+                c = _THRESHOLDS[key] = chi2_isf(self.config.false_alarm, dof)
+            self._thresholds[dof] = c
         return c
 
     @property
