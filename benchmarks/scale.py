@@ -375,8 +375,8 @@ def run_table(quick: bool, sizes: tuple[int, ...], per_process: str, network_che
     print("RSS: peak resident memory (VmHWM) of every host process (total), the launcher (monitor, world, result) and "
           "the warm standby;\nCPU: every host process's CPU (all threads, Zenoh's included) from the start, per node "
           "per wall second; loop: the\nnodes' own work in their hosts' loops; lag: how far the slowest node fell behind "
-          "the clock; late: blocks that\narrived for times older than the receiver's window (ignored: less information, "
-          "never over-confident);\nquar: quarantines by the consistency test; final gap: largest distance of a node's "
+          "the clock; late: blocks for\ntimes older than the receiver's window, ignored (resends of blocks it already "
+          "held count too);\nquar: quarantines by the consistency test; final gap: largest distance of a node's "
           "final estimate to the\ncentralized EKF's; load: load "
           "average before and after (other jobs)")
     return failed
