@@ -26,11 +26,14 @@ All in one run, every figure beside its reference measured in the same run:
    resident memory of each running process, against the same goals; (b) ``dfusion run``
    of random trees of 8, 32 and 128 nodes (:func:`dfusion.scenario.generate.random_tree_scenario`:
    linear scenario, 10 Hz, real time, 60 s), with the host processes used, total resident
-   memory, CPU per node per second, the largest lag behind the clock and final gaps.
+   memory, CPU per node per second, the largest lag behind the clock, blocks that arrived too late for the
+   receiver's window, quarantines by the consistency test, and final gaps (``--no-network-check``: without that test).
    Goals: final gaps <= 1e-9, total memory under 8 GB.
 
-Usage: python benchmarks/scale.py [--quick] [--run | --only-run] [--sizes 8,32,128] [--nodes-per-process N] [--strict]
-Run time: sections 1-3 about 4 min (``--quick`` 1 min); 4 (``--run``) about 6 min (``--quick`` 3 min).
+Usage: python benchmarks/scale.py [--quick] [--run | --only-run [--no-kinds]] [--sizes 8,32,128] [--nodes-per-process N]
+       [--no-network-check] [--strict]
+Run time: on a quiet 2-core machine sections 1-3 about 10 min (``--quick`` 1-2 min), 4 (``--run``) about 6 min
+(``--quick`` 3 min); under a load average of 3-28 the full ``--run`` took 42.5 min (2026-11-25).
 The machine is noisy (runs vary by up to 1.6x on a 2-core VM): compare within one run.
 """
 from __future__ import annotations
@@ -328,21 +331,26 @@ def running_kinds_table(tmp: Path, quick: bool) -> list[str]:
     return failed
 
 
-def run_table(quick: bool, sizes: tuple[int, ...], per_process: str) -> list[str]:
+def run_table(quick: bool, sizes: tuple[int, ...], per_process: str, network_check: bool = True,
+              kinds: bool = True) -> list[str]:
     """4b. ``dfusion run`` of random trees: hosts, memory, CPU, lag and final gaps."""
     from dfusion.scenario.generate import random_tree_scenario, scenario_toml
 
     failed = []
     with tempfile.TemporaryDirectory() as tmp:
-        failed += running_kinds_table(Path(tmp), quick)
+        if kinds:
+            failed += running_kinds_table(Path(tmp), quick)
         duration = 20.0 if quick else 60.0
         print(f"\n4b. dfusion run of random trees (linear scenario: position sensors at 10 Hz, steps of 0.1 s, sends every "
-              f"0.5 s, {duration:.0f} s in real time)")
+              f"0.5 s, {duration:.0f} s in real time; consistency test of neighbours' messages "
+              f"{'on' if network_check else 'off'})")
         print(f"{'nodes':>5} {'diam':>4} {'window':>6} {'hosts':>5} {'per host':>8} | {'RSS hosts MB':>12} {'launcher MB':>11} "
-              f"{'total MB':>8} | {'CPU ms/node/s':>13} {'loop ms':>7} {'launcher s':>10} | {'lag s':>5} {'final gap':>9} "
+              f"{'total MB':>8} | {'CPU ms/node/s':>13} {'loop ms':>7} {'launcher s':>10} | {'lag s':>5} {'late':>5} {'quar':>4} {'final gap':>9} "
               f"{'wall s':>6} {'load':>9}")
         for n in sizes:
             raw = random_tree_scenario(n, seed=1, duration=duration)
+            if not network_check:
+                raw["protection"] = {"network_check": False}
             path = Path(tmp) / f"tree{n}.scenario.toml"
             path.write_text(scenario_toml(raw))
             per = max(1, -(-n // 8)) if per_process == "auto" else int(per_process)
@@ -354,18 +362,22 @@ def run_table(quick: bool, sizes: tuple[int, ...], per_process: str) -> list[str
             total = hosts_mb + launcher_mb + standby_mb
             gap = max(v["final_gap"] for v in m["nodes"].values())
             lag = max(v["max_lag_wall_s"] for v in run["nodes"].values())
+            late = sum(v.get("blocks_outside_window", 0) for v in run["nodes"].values())
+            quarantines = sum(v.get("quarantines", 0) or 0 for v in m["nodes"].values())
             diam = load_scenario(raw).tree.diameter()
             ok = gap <= 1e-9 and total <= 8192
             if not ok:
                 failed.append(f"run of {n}: gap {gap:.1e}, {total:.0f} MB")
             print(f"{n:>5} {diam:>4} {raw['window']:>6} {run['hosts']:>5} {per:>8} | {hosts_mb:>12.0f} {launcher_mb:>11.0f} "
                   f"{total:>8.0f} | {run['cpu_ms_per_node_per_s']:>13.1f} {run['node_cpu_ms_per_node_per_s']:>7.1f} "
-                  f"{run['launcher_cpu_s']:>10.1f} | {lag:>5.2f} {gap:>9.1e} {m['bench_wall_s']:>6.0f} "
+                  f"{run['launcher_cpu_s']:>10.1f} | {lag:>5.2f} {late:>5} {quarantines:>4} {gap:>9.1e} {m['bench_wall_s']:>6.0f} "
                   f"{m['load'][0]:>4.1f}-{m['load'][1]:<4.1f}")
     print("RSS: peak resident memory (VmHWM) of every host process (total), the launcher (monitor, world, result) and "
           "the warm standby;\nCPU: every host process's CPU (all threads, Zenoh's included) from the start, per node "
           "per wall second; loop: the\nnodes' own work in their hosts' loops; lag: how far the slowest node fell behind "
-          "the clock; final gap: largest\ndistance of a node's final estimate to the centralized EKF's; load: load "
+          "the clock; late: blocks for\ntimes older than the receiver's window, ignored (resends of blocks it already "
+          "held count too);\nquar: quarantines by the consistency test; final gap: largest distance of a node's "
+          "final estimate to the\ncentralized EKF's; load: load "
           "average before and after (other jobs)")
     return failed
 
@@ -379,12 +391,16 @@ def main() -> int:
     ap.add_argument("--sizes", default="8,32,128", help="network sizes of 4b. (default 8,32,128)")
     ap.add_argument("--nodes-per-process", default="auto",
                     help="dfusion run --nodes-per-process of 4b. (default auto: ceil(n / 8), i.e. 8 host processes)")
+    ap.add_argument("--no-network-check", action="store_true",
+                    help="4b. without the consistency test of neighbours' messages ([protection] network_check = false)")
+    ap.add_argument("--no-kinds", action="store_true", help="--only-run without 4a.")
     ap.add_argument("--strict", action="store_true", help="exit status 1 when a goal is not met")
     args = ap.parse_args()
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
     failed = [] if args.only_run else bytes_table(args.quick) + hop_table(args.quick) + kinds_table()
     if args.run or args.only_run:
-        failed += run_table(args.quick, tuple(int(x) for x in args.sizes.split(",")), args.nodes_per_process)
+        failed += run_table(args.quick, tuple(int(x) for x in args.sizes.split(",")), args.nodes_per_process,
+                            network_check=not args.no_network_check, kinds=not args.no_kinds)
     if failed:
         print("\ngoals not met: " + "; ".join(failed))
     return 1 if (args.strict and failed) else 0

@@ -102,6 +102,10 @@ NEGLIGIBLE = 1e-9
 RANGE_TOL = 1e-6
 
 
+#: ``chi2_isf`` values by ``(alpha, dof)``, shared by the guards of a process (the nodes of a host).
+_THRESHOLDS: dict[tuple[float, int], float] = {}
+
+
 @dataclass(frozen=True)
 class GuardConfig:
     """Parameters of the consistency test and the quarantine (module docstring).
@@ -230,10 +234,14 @@ class NeighbourGuard:
 
     def threshold(self, dof: int) -> float:
         """``chi2^-1_dof(1 - alpha)`` (:func:`dfusion.linalg.chi2_isf`: no scipy, whose import would stall a
-        real-time node for seconds at the first message it tests)."""
+        real-time node for seconds at the first message it tests; cached for every guard of the process)."""
         c = self._thresholds.get(dof)
         if c is None:
-            c = self._thresholds[dof] = chi2_isf(self.config.false_alarm, dof)
+            key = (self.config.false_alarm, dof)
+            c = _THRESHOLDS.get(key)
+            if c is None:
+                c = _THRESHOLDS[key] = chi2_isf(self.config.false_alarm, dof)
+            self._thresholds[dof] = c
         return c
 
     @property

@@ -303,6 +303,7 @@ def build_result(
             "steps_missing": gaps,
             "messages_received": total.get("messages_received", 0),
             "messages_rejected": total.get("messages_rejected", 0),
+            "blocks_outside_window": total.get("blocks_outside_window", 0),
             "sends_skipped_not_alive": total.get("skipped_not_alive", 0),
             "dropped_emulated": total.get("dropped_emulated", 0),
             "measurements_fused": total.get("measurements_fused", 0),

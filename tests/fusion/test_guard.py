@@ -6,6 +6,7 @@ withdrawn, and forwarded as changed times) and released, own information held ba
 withdrawn through partial messages, and a failure during a message undoing the guard's records."""
 from __future__ import annotations
 
+
 import networkx as nx
 import numpy as np
 import pytest
@@ -423,3 +424,15 @@ def test_guard_config_and_health_rules():
     assert g.judge("y", 100.0, 2) and g.health() == "lost"
     assert [g.probation("x", 1.0, 2) for _ in range(10)] == [False] * 9 + [True]
     assert g.health() == "degraded"
+
+
+def test_guard_thresholds_match_scipy_and_are_shared_by_the_guards_of_a_process():
+    """The guard's thresholds (dfusion.linalg.chi2_isf, no scipy in a node program) equal scipy's
+    chi2.isf, and a second guard of the same process reuses the first one's values."""
+    from dfusion.fusion import guard as guard_module
+
+    cfg = GuardConfig()
+    for dof in (1, 2, 7, 40, 801):
+        assert NeighbourGuard(["a"], cfg).threshold(dof) == pytest.approx(chi2.isf(cfg.false_alarm, dof), rel=1e-11)
+    assert (cfg.false_alarm, 801) in guard_module._THRESHOLDS
+    assert NeighbourGuard(["b"], cfg).threshold(801) == guard_module._THRESHOLDS[(cfg.false_alarm, 801)]
