@@ -28,6 +28,14 @@ the node's window cannot be added any more: it is dropped and counted in
 ``stats.blocks_outside_window`` (conservative, never over-confident; choose the window
 with :func:`dfusion.topology.minimum_window` to avoid it).
 
+**Links that change** (``tree=SpanningTree(...)``, :mod:`dfusion.fusion.tree`). The node
+is told which links exist (:meth:`FusionNode.link_up`, :meth:`FusionNode.link_down`) and
+keeps the fusion links a tree with its neighbours by the tree rule: every message carries
+the node's tree epoch and parent, fusion messages go over tree links and beacons over the
+others (:meth:`FusionNode.outgoing`). When the rule changes the tree the node withdraws
+what came over the links that left it (everything, when it enters a new epoch) and starts
+fresh channels on the links that joined it (``docs/dynamic-topology.md``).
+
 ``fusion="naive"`` is fusion without channel filters, kept for comparison only:
 each message carries everything the sender learned since its previous message
 to that neighbour (including what came from the recipient) and the receiver
@@ -36,6 +44,7 @@ rumour-propagation failure the channel filter prevents.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -55,6 +64,7 @@ from dfusion.fusion.channel import (
     time_key,
     time_keys,
 )
+from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.policies.base import InformationFusionPolicy, Policy
@@ -79,6 +89,13 @@ class NodeStats:
     ``unauthenticated``, ``version``, ``oversized`` (the frame), ``misaddressed``,
     ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``sequence-jump``,
     ``numerical`` (the filter would not stay proper), ``internal``.
+
+    With links that change (``FusionNode(tree=...)``): ``not_fused`` counts messages used
+    by the tree rule only (beacons, messages of another tree epoch or over a link that is
+    not a tree link at this end), ``not_linked`` messages that arrived over a link that no
+    longer exists (ignored), ``tree_changes`` the events that changed this node's tree
+    links, ``new_epochs`` how often it entered a new tree epoch, ``withdrawn_blocks`` the
+    blocks it withdrew.
     """
 
     messages_sent: int = 0
@@ -90,6 +107,11 @@ class NodeStats:
     blocks_outside_window: int = 0
     blocks_too_far_ahead: int = 0
     rejections: dict[str, int] = field(default_factory=dict)
+    not_fused: int = 0
+    not_linked: int = 0
+    tree_changes: int = 0
+    new_epochs: int = 0
+    withdrawn_blocks: int = 0
 
 
 class RejectionLog:
@@ -331,6 +353,15 @@ class FusionNode:
     messages : {"partial", "full"}
         ``"full"`` sends the whole window in every message (the previous protocol's
         behaviour, kept for comparison); the default sends what changed.
+    tree : SpanningTree, optional
+        Links that change at run time: the node's state of the tree rule
+        (:mod:`dfusion.fusion.tree`; ``SpanningTree(name)`` for a node that joins a running
+        network). ``neighbors`` are then the links that exist at the start (they must be
+        ``tree.links``); the node keeps its fusion links a tree by the rule.
+        ``None`` (default): a fixed tree, ``neighbors`` are the tree neighbours.
+    peers : iterable of str, optional
+        With ``tree``: the nodes that may link to this one (messages of others are rejected
+        as ``not-a-neighbour``); ``None``: any node of the network.
 
     Attributes
     ----------
@@ -361,6 +392,8 @@ class FusionNode:
         max_held: int | None = None,
         log_interval: float = LOG_INTERVAL,
         messages: str = "partial",
+        tree: SpanningTree | None = None,
+        peers: Iterable[str] | None = None,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValidationError("node name must be a non-empty string")
@@ -375,6 +408,9 @@ class FusionNode:
             raise ValidationError(f"messages must be one of {MESSAGE_MODES}, got {messages!r}")
         if network_key is not None and (not isinstance(network_key, (bytes, bytearray)) or len(network_key) < 16):
             raise ValidationError("network_key must be at least 16 bytes (or None to turn authentication off)")
+        if tree is not None and (tree.name != name or set(nbrs) != tree.links or fusion == "naive"):
+            raise ValidationError(f"tree of {name!r}: its name and links must be the node's and its neighbours, "
+                                  "and naive fusion has no tree rule")
         self.name = name
         self.neighbors = nbrs
         self.fusion = fusion
@@ -388,13 +424,20 @@ class FusionNode:
         t0, mean, cov = prior
         self.filter.initialize(t0, mean, cov)
         n = self.filter.n
-        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j, n) for j in nbrs}
+        #: The tree rule's state (``None``: a fixed tree).
+        self.tree = tree
+        self.peers = None if peers is None else frozenset(peers)
+        #: The newest incarnation heard from each node (links that change).
+        self.incarnations: dict[str, int] = {}
+        fusing = nbrs if tree is None else sorted(tree.tree_links())
+        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j, n) for j in fusing}
         self.stats = NodeStats()
         self.sources: dict[str, Estimate] = {}
         self.max_message_bytes = int(max_message_bytes)
         self.max_ahead = float(max_ahead)
         self.max_held = int(max_held if max_held is not None else (window or 100))
         self.rejection_log = RejectionLog(name, log_interval)
+        self._tree_undo: tuple | None = None
         self._own = _Blocks(n)
         self._total = _Blocks(n)   # entries newer than the newest state wait for predict
         self._pruned_at = self.filter.oldest_time
@@ -511,6 +554,8 @@ class FusionNode:
         """
         ch = self.channels.get(neighbor)
         if ch is None:
+            if self.tree is not None and neighbor in self.tree.links:
+                return self._beacon(neighbor, sent_at)
             raise ValidationError(f"{neighbor!r} is not a neighbour of {self.name!r}")
         f = self.filter
         oldest_key = time_key(f.oldest_time) - 1
@@ -540,12 +585,13 @@ class FusionNode:
             times=times,
             info=infos,
             vec=vecs,
-            dst_epoch=ch.epoch or 0,
+            dst_epoch=ch.epoch or self.incarnations.get(neighbor, 0),
             ack=ch.applied_seq,
             ack_mask=ch.received_mask(),
             cleared=cleared,
             full=full and self.fusion != "naive",
             naive=self.fusion == "naive",
+            **self._tree_fields(),
         )
         data = encode(msg, self.frame_key)
         ch.record_sent(msg.seq, keys, msg.full)
@@ -567,6 +613,9 @@ class FusionNode:
         return infos, vecs
 
     def _reject(self, reason: str, detail: str) -> MessageError:
+        if self._tree_undo is not None:   # the tree rule took the message in before it was refused: undo that
+            undo, self._tree_undo = self._tree_undo, None
+            self._tree_restore(undo)
         self.stats.messages_rejected += 1
         self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + 1
         self.rejection_log.add(reason, detail)
@@ -585,6 +634,8 @@ class FusionNode:
             raise self._reject("dimension", f"state dimension {msg.n} from {msg.src!r}, expected {self.filter.n}")
         if msg.naive != (self.fusion == "naive"):
             raise self._reject("malformed", f"{msg.src!r} uses another fusion mode")
+        if bool(msg.tree_root) != (self.tree is not None):
+            raise self._reject("malformed", f"{msg.src!r} uses another tree mode (a fixed tree or the tree rule)")
         if ch.epoch is not None and msg.epoch < ch.epoch:
             raise self._reject("previous-incarnation",
                                f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
@@ -601,10 +652,13 @@ class FusionNode:
         non-neighbour, addressed to another node, of another state dimension, of an earlier
         incarnation, too far ahead in its sequence numbers, or not fusable.
         """
+        self._tree_undo = None
         try:
             msg = decode(data, self.frame_key, self.max_message_bytes)
         except MessageError as exc:
             raise self._reject(getattr(exc, "reason", "malformed"), str(exc)) from None
+        if self.tree is not None and not self._tree_heard(msg):
+            return 0     # used by the tree rule only (a beacon, another epoch, not a tree link)
         ch = self._check(msg)
         self.stats.duplicates += int(msg.epoch == ch.epoch and msg.seq == ch.last_seq)
         f = self.filter
@@ -700,6 +754,158 @@ class FusionNode:
         for ch in self.channels.values():
             ch.prune(cutoff)
 
+    # ------------------------------------------------------------------ links that change
+    def _tree_fields(self) -> dict:
+        """The tree fields of this node's messages (empty on a fixed tree)."""
+        if self.tree is None:
+            return {}
+        t = self.tree
+        return {"tree_term": t.epoch.term, "tree_root": t.epoch.root, "parent": t.parent or ""}
+
+    def _beacon(self, neighbor: str, sent_at: float | None) -> bytes:
+        """A beacon for ``neighbor``: the tree fields, no blocks."""
+        f = self.filter
+        msg = InfoMessage(src=self.name, dst=neighbor, epoch=self.epoch, seq=0, start=f.oldest_time,
+                          sent_at=f.latest_time if sent_at is None else float(sent_at), times=np.zeros(0),
+                          info=np.zeros((0, f.n, f.n)), vec=np.zeros((0, f.n)),
+                          dst_epoch=self.incarnations.get(neighbor, 0), full=False, beacon=True,
+                          **self._tree_fields())
+        data = encode(msg, self.frame_key)
+        self.stats.messages_sent += 1
+        self.stats.bytes_sent += len(data)
+        return data
+
+    def outgoing(self, sent_at: float | None = None) -> list[tuple[str, bytes]]:
+        """``(neighbour, message)`` for every link: a fusion message on a tree link, a beacon on
+        the others (links that change); every neighbour's message on a fixed tree."""
+        return [(j, self.message_to(j, sent_at)) for j in self.neighbors]
+
+    @property
+    def tree_links(self) -> tuple[str, ...]:
+        """The links that carry fusion (on a fixed tree: every neighbour)."""
+        return tuple(sorted(self.channels))
+
+    def link_up(self, neighbor: str) -> None:
+        """A link to ``neighbor`` now exists (links that change; the transport saw it appear)."""
+        self._tree_required()
+        if neighbor == self.name or (self.peers is not None and neighbor not in self.peers):
+            raise ValidationError(f"{self.name!r} cannot link to {neighbor!r}")
+        self._follow(self.tree.link_up(neighbor))
+
+    def link_down(self, neighbor: str) -> None:
+        """The link to ``neighbor`` is gone (it broke, or ``neighbor`` left): see the tree rule."""
+        self._tree_required()
+        self._follow(self.tree.link_down(neighbor))
+
+    def _tree_required(self) -> None:
+        if self.tree is None:
+            raise ValidationError(f"{self.name!r} runs on a fixed tree (FusionNode(tree=...) for links that change)")
+
+    def _follow(self, change: TreeChange) -> None:
+        """Make the channels follow a change of the tree: withdraw what came over the links that
+        left it (everything in a new epoch), fresh channels for the links that joined it."""
+        self.neighbors = tuple(sorted(self.tree.links))
+        if not change:
+            return
+        self.stats.tree_changes += 1
+        n = self.filter.n
+        if change.new_epoch:
+            self.stats.new_epochs += 1
+            self._withdraw(list(self.channels.values()), everything=True)
+            self.channels = {j: ChannelFilter(self.name, j, n) for j in sorted(self.tree.tree_links())}
+            return
+        lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
+        if lost:
+            self._withdraw(lost)
+        for j in sorted(change.gained):
+            self.channels[j] = ChannelFilter(self.name, j, n)
+
+    def _withdraw(self, channels: list[ChannelFilter], everything: bool = False) -> None:
+        """Subtract what ``channels`` delivered from the filter and the stores; the other channels
+        send the times again (per-time replacement carries the withdrawal on). ``everything``:
+        these are all the channels, what the node holds becomes its own information alone."""
+        entries: dict[int, list] = {}
+        for ch in channels:
+            for i in np.flatnonzero(nonzero_blocks(ch.info, ch.vec)).tolist():
+                key = int(ch.keys[i])
+                e = entries.get(key)
+                if e is None:
+                    entries[key] = [float(ch.times[i]), -ch.info[i], -ch.vec[i]]
+                else:
+                    e[1] = e[1] - ch.info[i]
+                    e[2] = e[2] - ch.vec[i]
+        self.stats.withdrawn_blocks += len(entries)
+        deltas = [tuple(entries[k]) for k in sorted(entries)]
+        f = self.filter
+        latest = f.latest_time + f.time_tol
+        now = [d for d in deltas if d[0] <= latest]
+        if now:
+            with f.transaction():
+                f.add_information_batch(now, validate=False)
+                f.estimate()   # prior, motion and own information stay: the belief stays proper
+        if everything:
+            self._total.restore(self._own.checkpoint())
+        elif deltas:
+            self._total.add_many(deltas)
+            keys = list(entries)
+            for ch in self.channels.values():
+                ch.dirty.update(keys)
+
+    def _tree_heard(self, msg: InfoMessage) -> bool:
+        """The tree rule's part of :meth:`receive` (links that change): whether to fuse ``msg``.
+
+        Checks what the rule needs (recipient, sender, tree mode, dimension, incarnation),
+        gives the tree fields to the rule and makes the channels follow its changes. A
+        message is fused only when it is a fusion message of this node's tree epoch over a
+        tree link; the others are counted in ``stats.not_fused`` (``stats.not_linked`` when
+        the link no longer exists). If the message is then refused, :meth:`_reject` undoes
+        what this did (``self._tree_undo``): a rejection changes nothing.
+        """
+        src = msg.src
+        if msg.dst != self.name:
+            raise self._reject("misaddressed", f"message for {msg.dst!r} delivered to {self.name!r}")
+        if src == self.name or (self.peers is not None and src not in self.peers):
+            raise self._reject("not-a-neighbour", f"{src!r} may not link to {self.name!r}")
+        if not msg.tree_root:
+            raise self._reject("malformed", f"{src!r} uses another tree mode (a fixed tree)")
+        if msg.n != self.filter.n:
+            raise self._reject("dimension", f"state dimension {msg.n} from {src!r}, expected {self.filter.n}")
+        known = self.incarnations.get(src)
+        if known is not None and msg.epoch < known:
+            raise self._reject("previous-incarnation",
+                               f"message of an earlier incarnation of {src!r} ({msg.epoch} < {known})")
+        if src not in self.tree.links:
+            self.stats.not_linked += 1
+            return False
+        undo = None if msg.beacon else self._tree_checkpoint()
+        if known is not None and msg.epoch > known:   # src restarted: what it said before no longer holds
+            self._follow(self.tree.forget(src))
+        self.incarnations[src] = msg.epoch
+        parent = msg.parent or None
+        if parent == self.name and msg.dst_epoch not in (0, self.epoch):
+            parent = None     # it names an earlier incarnation of this node
+        self._follow(self.tree.heard_from(src, TreeEpoch(msg.tree_term, msg.tree_root), parent))
+        if msg.beacon or src not in self.channels or TreeEpoch(msg.tree_term, msg.tree_root) != self.tree.epoch:
+            self.stats.not_fused += 1
+            return False
+        self._tree_undo = undo
+        return True
+
+    def _tree_checkpoint(self) -> tuple:
+        return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
+                {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
+                self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats))
+
+    def _tree_restore(self, cp: tuple) -> None:
+        tree, inc, channels, states, filt, total, nbrs, stats = cp
+        self.tree.restore(tree)
+        self.incarnations, self.channels, self.neighbors = inc, channels, nbrs
+        for j, st in states.items():
+            channels[j].restore(st)
+        self.filter.restore(filt)
+        self._total.restore(total)
+        self.stats = stats
+
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""
         return [(e.t, e.info, e.vec) for _, e in self._own.items()]
@@ -716,6 +922,4 @@ class _Numerical(Exception):
 def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
     """``msg`` without the blocks at ``times``."""
     drop = np.isin(time_keys(msg.times), time_keys(np.asarray(times)))
-    return InfoMessage(msg.src, msg.dst, msg.epoch, msg.seq, msg.start, msg.sent_at, msg.times[~drop],
-                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.base, msg.cleared,
-                       msg.full, msg.naive)
+    return dataclasses.replace(msg, times=msg.times[~drop], info=msg.info[~drop], vec=msg.vec[~drop])
