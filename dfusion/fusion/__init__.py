@@ -1,4 +1,4 @@
-"""Decentralized fusion: channel filters and fusion nodes."""
+"""Decentralized fusion: channel filters, fusion nodes and the tree rule for links that change."""
 from __future__ import annotations
 
 import importlib
@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.fusion.channel import ChannelFilter, Entry, Plan, find_keys, nonzero_blocks, time_key, time_keys
     from dfusion.fusion.node import FusionNode, NodeStats
+    from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 
 __all__ = [
     "time_key",
@@ -18,6 +19,9 @@ __all__ = [
     "ChannelFilter",
     "NodeStats",
     "FusionNode",
+    "SpanningTree",
+    "TreeEpoch",
+    "TreeChange",
 ]
 
 _WHERE = {
@@ -30,6 +34,9 @@ _WHERE = {
     "time_keys": ("dfusion.fusion.channel", 'time_keys'),
     "FusionNode": ("dfusion.fusion.node", 'FusionNode'),
     "NodeStats": ("dfusion.fusion.node", 'NodeStats'),
+    "SpanningTree": ("dfusion.fusion.tree", 'SpanningTree'),
+    "TreeEpoch": ("dfusion.fusion.tree", 'TreeEpoch'),
+    "TreeChange": ("dfusion.fusion.tree", 'TreeChange'),
 }
 
 
