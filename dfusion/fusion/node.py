@@ -79,6 +79,10 @@ MESSAGE_MODES = ("partial", "full")
 #: Default bounds of a node (see the module docstring).
 MAX_AHEAD = 10.0
 LOG_INTERVAL = 10.0
+#: Default ``hold`` (seconds): how long information a change of the tree took stays in a node's estimate.
+HOLD = 10.0
+#: Relative tolerance of "R(t) holds at least as much as L(t)" (rounding of sums of blocks).
+HELD_RTOL = 1e-9
 
 
 @dataclass
@@ -362,6 +366,11 @@ class FusionNode:
     peers : iterable of str, optional
         With ``tree``: the nodes that may link to this one (messages of others are rejected
         as ``not-a-neighbour``); ``None``: any node of the network.
+    hold : float
+        With ``tree``: seconds (of the node's clock) for which information that a change of
+        the tree took from the channels stays in the node's own estimate, per state time,
+        unless the new tree delivers as much earlier (never sent; ``docs/dynamic-topology.md``).
+        0: it goes at once.
 
     Attributes
     ----------
@@ -394,6 +403,7 @@ class FusionNode:
         messages: str = "partial",
         tree: SpanningTree | None = None,
         peers: Iterable[str] | None = None,
+        hold: float = HOLD,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValidationError("node name must be a non-empty string")
@@ -438,6 +448,11 @@ class FusionNode:
         self.max_held = int(max_held if max_held is not None else (window or 100))
         self.rejection_log = RejectionLog(name, log_interval)
         self._tree_undo: tuple | None = None
+        self._sent_tree_changes = 0
+        #: Held information ``{time key: (t, L, y, until)}``: what a change of the tree took from
+        #: the channels, kept for this node's own estimate (``_hold``).
+        self._held: dict[int, tuple[float, Array, Array, float]] = {}
+        self.hold = float(hold)
         self._own = _Blocks(n)
         self._total = _Blocks(n)   # entries newer than the newest state wait for predict
         self._pruned_at = self.filter.oldest_time
@@ -473,6 +488,8 @@ class FusionNode:
         else:
             f.predict(t, u)
         self._prune()
+        if self._held:
+            self._release_held(t)
 
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
         """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window)."""
@@ -677,6 +694,7 @@ class FusionNode:
             plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
             deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
         self._apply(msg, ch, plan, deltas, changed, complete=not too_far)
+        self._follow_held(deltas)
         if msg.dst_epoch == self.epoch:
             ch.acknowledged(msg.ack, msg.ack_mask)
         self.stats.messages_received += 1
@@ -751,6 +769,8 @@ class FusionNode:
         cutoff = time_key(oldest) - 1
         self._own.prune(cutoff)
         self._total.prune(cutoff)
+        for k in [k for k in self._held if k < cutoff]:
+            del self._held[k]
         for ch in self.channels.values():
             ch.prune(cutoff)
 
@@ -778,6 +798,7 @@ class FusionNode:
     def outgoing(self, sent_at: float | None = None) -> list[tuple[str, bytes]]:
         """``(neighbour, message)`` for every link: a fusion message on a tree link, a beacon on
         the others (links that change); every neighbour's message on a fixed tree."""
+        self._sent_tree_changes = self.stats.tree_changes
         return [(j, self.message_to(j, sent_at)) for j in self.neighbors]
 
     @property
@@ -821,9 +842,11 @@ class FusionNode:
             self.channels[j] = ChannelFilter(self.name, j, n)
 
     def _withdraw(self, channels: list[ChannelFilter], everything: bool = False) -> None:
-        """Subtract what ``channels`` delivered from the filter and the stores; the other channels
-        send the times again (per-time replacement carries the withdrawal on). ``everything``:
-        these are all the channels, what the node holds becomes its own information alone."""
+        """Take what ``channels`` delivered out of the stores messages are made from (the other
+        channels send those times again: per-time replacement carries the withdrawal on); the
+        node's own estimate keeps it per state time until the tree delivers as much
+        (:meth:`_hold`). ``everything``: these are all the channels, what the node sends from
+        becomes its own information alone."""
         entries: dict[int, list] = {}
         for ch in channels:
             for i in np.flatnonzero(nonzero_blocks(ch.info, ch.vec)).tolist():
@@ -835,21 +858,85 @@ class FusionNode:
                     e[1] = e[1] - ch.info[i]
                     e[2] = e[2] - ch.vec[i]
         self.stats.withdrawn_blocks += len(entries)
-        deltas = [tuple(entries[k]) for k in sorted(entries)]
-        f = self.filter
-        latest = f.latest_time + f.time_tol
-        now = [d for d in deltas if d[0] <= latest]
-        if now:
-            with f.transaction():
-                f.add_information_batch(now, validate=False)
-                f.estimate()   # prior, motion and own information stay: the belief stays proper
+        self._hold(sorted(entries))
         if everything:
             self._total.restore(self._own.checkpoint())
-        elif deltas:
-            self._total.add_many(deltas)
+        elif entries:
+            self._total.add_many([tuple(entries[k]) for k in sorted(entries)])
             keys = list(entries)
             for ch in self.channels.values():
                 ch.dirty.update(keys)
+        if self.hold <= 0:
+            self._release_held(self.filter.latest_time + 1.0)
+
+    def _hold(self, keys: list[int]) -> None:
+        """Before the received information at ``keys`` changes with the tree: keep, per state time
+        in the filter, what the filter holds of it (``L(t)``), so the estimate does not lose it
+        until the new tree delivers as much (``docs/dynamic-topology.md``).
+
+        The filter holds, per state time, the node's own information plus either ``L(t)``
+        (a held time) or what its current channels delivered ``R(t) = T(t) - own(t)``; each is
+        information of other nodes counted once, so either choice never double counts.
+        Messages are made from ``T(t)`` alone: held information is never sent.
+        """
+        f = self.filter
+        lo, hi = time_key(f.oldest_time) - 1, time_key(f.latest_time + f.time_tol)
+        new = np.array([k for k in keys if lo <= k <= hi and k not in self._held], dtype=np.int64)
+        if not new.size:
+            return
+        total = self._total.values_at(new)
+        own = self._own.values_at(new)
+        until = f.latest_time + self.hold
+        for i, k in enumerate(new.tolist()):
+            L, y = total[0][i] - own[0][i], total[1][i] - own[1][i]
+            if L.any() or y.any():
+                self._held[k] = (k / 1e9, L, y, until)
+
+    def _follow_held(self, deltas: list) -> None:
+        """After a message was fused: at held times the filter keeps ``L(t)`` (the message's change
+        of ``R(t)`` is taken out again), unless ``R(t)`` now holds at least as much information
+        (``R(t) - L(t)`` positive semi-definite): then the time is no longer held."""
+        if not self._held or not deltas:
+            return
+        keys = [time_key(d[0]) for d in deltas]
+        undo = [(d[0], -d[1], -d[2]) for d, k in zip(deltas, keys) if k in self._held
+                and d[0] <= self.filter.latest_time + self.filter.time_tol]
+        if not undo:
+            return
+        self._add_to_filter(undo)
+        self._release_held(None, [time_key(d[0]) for d in undo])
+
+    def _release_held(self, now: float | None, keys: list[int] | None = None) -> None:
+        """Let held times go: those that expired by ``now`` (``hold`` seconds after they were held)
+        and, among ``keys``, those whose ``R(t)`` dominates ``L(t)``: the filter takes
+        ``R(t) - L(t)`` at them."""
+        if not self._held:
+            return
+        go = [k for k, e in self._held.items() if now is not None and e[3] <= now]
+        if keys:
+            cand = np.array([k for k in keys if k in self._held and k not in go], dtype=np.int64)
+            if cand.size:
+                tot, own = self._total.values_at(cand), self._own.values_at(cand)
+                R = tot[0] - own[0]
+                L = np.array([self._held[k][1] for k in cand.tolist()])
+                scale = np.maximum(np.abs(R).max(axis=(1, 2)), np.abs(L).max(axis=(1, 2)))
+                ok = np.linalg.eigvalsh(R - L)[:, 0] >= -HELD_RTOL * scale
+                go += cand[ok].tolist()
+        if not go:
+            return
+        keys_go = np.array(sorted(set(go)), dtype=np.int64)
+        tot, own = self._total.values_at(keys_go), self._own.values_at(keys_go)
+        change = []
+        for i, k in enumerate(keys_go.tolist()):
+            t, L, y, _ = self._held.pop(k)
+            change.append((t, tot[0][i] - own[0][i] - L, tot[1][i] - own[1][i] - y))
+        self._add_to_filter(change)
+
+    def _add_to_filter(self, entries: list) -> None:
+        f = self.filter
+        with f.transaction():
+            f.add_information_batch(entries, validate=False)
+            f.estimate()   # prior, motion and own information stay: the belief stays proper
 
     def _tree_heard(self, msg: InfoMessage) -> bool:
         """The tree rule's part of :meth:`receive` (links that change): whether to fuse ``msg``.
@@ -894,10 +981,11 @@ class FusionNode:
     def _tree_checkpoint(self) -> tuple:
         return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
                 {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
-                self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats))
+                self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._held))
 
     def _tree_restore(self, cp: tuple) -> None:
-        tree, inc, channels, states, filt, total, nbrs, stats = cp
+        tree, inc, channels, states, filt, total, nbrs, stats, held = cp
+        self._held = held
         self.tree.restore(tree)
         self.incarnations, self.channels, self.neighbors = inc, channels, nbrs
         for j, st in states.items():
@@ -905,6 +993,20 @@ class FusionNode:
         self.filter.restore(filt)
         self._total.restore(total)
         self.stats = stats
+
+    def information_blocks(self, own: bool = False) -> tuple[np.ndarray, Array, Array]:
+        """The single-state information this node holds per state time: ``(time keys, info, vec)``
+        (copies), its own and what it received (also blocks held back for times ahead of its
+        newest state), or with ``own`` its own only."""
+        store = self._own if own else self._total
+        return store.keys.copy(), store.info.copy(), store.vec.copy()
+
+    @property
+    def urgent(self) -> bool:
+        """The tree links changed since :meth:`outgoing` was last called: send now rather than at
+        the next send period (the new tree links start with full messages, beacons carry a new
+        epoch on)."""
+        return self.tree is not None and self.stats.tree_changes != self._sent_tree_changes
 
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""

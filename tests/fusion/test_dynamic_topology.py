@@ -54,6 +54,8 @@ def test_property_never_over_confident_and_exact_after_the_last_change(seed, n, 
     run = run_dynamic(s)
     # every node at every step: P_node - P_central >= 0, checked with eigenvalues, tolerance relative
     assert run.worst_overconfidence >= -1e-9, run.worst_overconfidence
+    # and per state time: the node's single-state information <= that of every measurement taken then
+    assert run.worst_block >= -1e-10, run.worst_block
     assert_exact(run)
 
 
@@ -65,7 +67,7 @@ def test_many_changes_over_a_radio_graph_with_cycles(seed):
                         drop=0.3, duplicate=0.2)
     run = run_dynamic(s)
     assert run.link_changes >= 30 and run.epochs >= 10
-    assert run.worst_overconfidence >= -1e-9
+    assert run.worst_overconfidence >= -1e-9 and run.worst_block >= -1e-10
     assert_exact(run)
 
 
@@ -90,6 +92,23 @@ def measure(nodes, t, rng, sensor, record):
 
 def sensor_std(sensor) -> float:
     return float(np.sqrt(sensor.R[0, 0]))
+
+
+def assert_equal_to_kalman(nodes, record, t, keep=None):
+    """Every node equals the Kalman filter on the measurements of ``keep`` (default: all) at ``t``."""
+    mean, cov = central_kalman([(tt, z, s) for tt, z, s, n in record if keep is None or n in keep], t)
+    for node in nodes.values():
+        m, P = node.estimate()
+        assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9, (node.name, rel(m, mean), rel(P, cov))
+
+
+def after_hold(nodes, links, t):
+    """Past the time a node holds information a change took (FusionNode.hold), settled again."""
+    t = round(t + max(x.hold for x in nodes.values()) + 0.1, 9)
+    for x in nodes.values():
+        x.predict(t)
+    settle(nodes, links)
+    return t
 
 
 def run_steps(nodes, ks, seed, std=0.6, record=None, every=1):
@@ -149,10 +168,7 @@ def test_a_joining_node_gets_what_the_windows_hold_without_making_the_network_re
     assert all(nodes[n].tree.epoch == epochs[n] for n in "abc")     # the network kept its epoch
     assert all(nodes[n].stats.new_epochs == 0 for n in "abc")
     assert new.tree.parent == "c" and new.stats.new_epochs == 1
-    mean, cov = central_kalman([(t, z, s) for t, z, s, _ in record], 2.0)
-    for node in nodes.values():
-        m, P = node.estimate()
-        assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9, node.name
+    assert_equal_to_kalman(nodes, record, 2.0)     # nothing was taken from anyone: nothing is held
 
 
 def test_a_leaving_node_is_withdrawn_and_a_restarted_one_starts_again():
@@ -162,21 +178,24 @@ def test_a_leaving_node_is_withdrawn_and_a_restarted_one_starts_again():
     # d leaves for good: a link break at c, its only neighbour
     nodes["c"].link_down("d")
     links.discard(("c", "d"))
+    cov_c = nodes["c"].estimate()[1]
     left = nodes.pop("d")
     assert left.tree.parent == "c"          # d was a leaf: c withdraws what it sent, no new epoch
     assert nodes["c"].stats.new_epochs == 0 and nodes["c"].stats.withdrawn_blocks > 0
     settle(nodes, links)
+    # c's own estimate still holds what d measured (for FusionNode.hold seconds); a and b no longer
+    np.testing.assert_allclose(nodes["c"].estimate()[1], cov_c, rtol=1e-12)
+    assert_equal_to_kalman({"a": nodes["a"], "b": nodes["b"]}, record, 1.0, keep="abc")
+    t = after_hold(nodes, links, 1.0)
+    assert_equal_to_kalman(nodes, record, t, keep="abc")
     # b restarts: a new incarnation with nothing of the old one; its neighbours forget the old one
     restarted = build_node("b", {("a", "b"), ("b", "c")}, None, 1000, 5000)
-    restarted.predict(1.0)
+    restarted.predict(t)
     nodes["b"] = restarted
     settle(nodes, links)
     assert nodes["a"].incarnations["b"] == 1000
-    keep = [(t, z, s) for t, z, s, n in record if n in ("a", "c")]    # what d and the old b measured is gone
-    mean, cov = central_kalman(keep, 1.0)
-    for node in nodes.values():
-        m, P = node.estimate()
-        assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9, node.name
+    t = after_hold(nodes, links, t)
+    assert_equal_to_kalman(nodes, record, t, keep="ac")     # what d and the old b measured is gone
 
 
 def test_a_partition_heals_and_both_halves_keep_their_information():
@@ -200,10 +219,50 @@ def test_a_partition_heals_and_both_halves_keep_their_information():
         nodes[x].link_up(y)
     links.add(("a", "e"))
     settle(nodes, links)
-    mean, cov = central_kalman([(t, z, s) for t, z, s, _ in record], 3.0)
-    for node in nodes.values():
-        m, P = node.estimate()
-        assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9, node.name
+    assert_equal_to_kalman(nodes, record, 3.0)     # the healed tree delivers what each node held: nothing held
+    assert all(not x._held for x in nodes.values())
+
+
+@pytest.mark.parametrize("hold", [10.0, 0.0])
+def test_a_node_in_a_new_epoch_keeps_what_it_had_until_the_new_tree_delivers(hold):
+    """a - b - c - a, b without a sensor: when a - b breaks, b starts a new epoch and its
+    channels start afresh. With ``hold`` its estimate keeps what it had (per state time, until the
+    new tree delivers as much); with ``hold = 0`` it drops to the prior at once. Either way it is
+    never more certain than the Kalman filter on every measurement, and both end exact."""
+    links = {("a", "b"), ("b", "c"), ("a", "c")}
+    nodes = chain(list("abc"), links)
+    for x in nodes.values():
+        x.hold = hold
+    record = []
+    rng = np.random.default_rng(1)
+    sensor = PositionSensor(2, 0.5)
+    for k in range(1, 21):
+        t = round(0.1 * k, 9)
+        for x in nodes.values():
+            x.predict(t)
+        for name in "ac":
+            z = rng.normal(size=2)
+            nodes[name].update(t, z, sensor)
+            record.append((t, z, 0.5, name))
+        rounds(nodes)
+    assert nodes["b"].tree.parent == "a"
+    before = np.trace(nodes["b"].estimate()[1])
+    for x, y in (("a", "b"), ("b", "a")):
+        nodes[x].link_down(y)
+    links.discard(("a", "b"))
+    assert nodes["b"].stats.new_epochs == 1
+    after = np.trace(nodes["b"].estimate()[1])
+    if hold:
+        assert after == pytest.approx(before, rel=1e-9)
+    else:
+        assert after > 100 * before
+    _, cov = central_kalman([(t, z, s) for t, z, s, _ in record], 2.0)
+    for k in range(4):     # the new epoch floods, full messages replace what b held
+        rounds(nodes)
+        _, P = nodes["b"].estimate()
+        assert np.linalg.eigvalsh(P - cov)[0] >= -1e-9 * np.abs(cov).max()
+    assert not nodes["b"]._held
+    assert_equal_to_kalman(nodes, record, 2.0)
 
 
 def test_a_refused_message_changes_nothing_even_after_the_rule_took_it_in():
