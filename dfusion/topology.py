@@ -23,7 +23,8 @@ scenario file) are ignored here, so every scenario file is a topology file.
 
 Public API: :func:`load_topology`, :func:`check_tree`, :func:`find_cycle`,
 :func:`spanning_tree`, :func:`tree_diameter`, :func:`path`,
-:func:`minimum_window`. Every input this module rejects raises
+:func:`minimum_window`, :func:`radio_links` (the links a radio range allows, for
+topologies that change at run time: ``docs/dynamic-topology.md``). Every input this module rejects raises
 :class:`~dfusion.errors.TopologyError` (a :class:`ValueError`), except bad
 numbers given to :func:`minimum_window`, which raise
 :class:`~dfusion.errors.ValidationError` (also a :class:`ValueError`).
@@ -53,6 +54,7 @@ __all__ = [
     "path",
     "minimum_window",
     "settling_rounds",
+    "radio_links",
 ]
 
 logger = logging.getLogger(__name__)
@@ -72,6 +74,7 @@ def load_topology(
     *,
     spanning_tree: bool = False,
     source: str | None = None,
+    require_tree: bool = True,
 ) -> nx.Graph:
     """Read, validate and return a communication tree.
 
@@ -87,6 +90,10 @@ def load_topology(
         graph is refused either way.
     source
         Name used in error messages; defaults to the path, or ``"<dict>"``.
+    require_tree
+        If False, any graph of valid entries is returned (cycles, several components):
+        the links of a topology that changes at run time, where the tree rule of
+        :mod:`dfusion.fusion.tree` keeps the fusion links a tree.
 
     Returns
     -------
@@ -104,6 +111,8 @@ def load_topology(
     """
     data, source = _read(path_or_dict, source)
     graph = _build_graph(data, source)
+    if not require_tree:
+        return graph
     if spanning_tree:
         graph = _maximum_spanning_tree(graph)
     check_tree(graph)
@@ -427,3 +436,21 @@ def minimum_window(
     delay = _non_negative("max_measurement_delay", max_measurement_delay)
     return tree_diameter(graph) * (latency + period) + delay
 
+
+
+def radio_links(positions: Mapping[str, Sequence[float]], ranges: Mapping[str, float]) -> set[tuple[str, str]]:
+    """The links a radio range allows: pairs ``(a, b)`` (``a < b``) of nodes of ``ranges`` whose
+    positions are at most ``min(range_a, range_b)`` apart (each end must hear the other).
+
+    ``positions`` maps names to ``(x, y)`` (or ``(x, y, z)``: the distance is taken in the
+    plane); a node without a position or a range takes no part. A simulator passes the true
+    positions; a node process may pass its own estimates of where the nodes are.
+    """
+    names = sorted(n for n in ranges if n in positions)
+    xy = {n: (float(positions[n][0]), float(positions[n][1])) for n in names}
+    out = set()
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            if math.hypot(xy[a][0] - xy[b][0], xy[a][1] - xy[b][1]) <= min(ranges[a], ranges[b]):
+                out.add((a, b))
+    return out

@@ -30,7 +30,9 @@ switching policies; :meth:`CameraFrontEnd.reliability` gives it for the
 current estimate at any time.
 
 The scenario kind ``camera`` (:mod:`dfusion.scenario.camera_kind`) builds this front
-end from a node table.
+end from a node table; ``robot_camera`` builds :class:`MountedCameraFrontEnd`, the same for
+a camera on a robot that moves (:class:`~dfusion.models.camera.MountedCamera`: the camera
+at the detection's time).
 """
 from __future__ import annotations
 
@@ -44,10 +46,10 @@ from dfusion.estimation.estimate import Estimate
 from dfusion.frontends.base import FrontEnd, FrontEndStats
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
-from dfusion.models.camera import PinholeCamera
+from dfusion.models.camera import MountedCamera, PinholeCamera
 from dfusion.reliability import camera_reliability_at
 
-__all__ = ["CameraFrontEnd", "CameraStats", "gate_threshold"]
+__all__ = ["CameraFrontEnd", "MountedCameraFrontEnd", "CameraStats", "gate_threshold"]
 
 
 def gate_threshold(gate: float, dof: int = 2) -> float:
@@ -176,3 +178,17 @@ class CameraFrontEnd(FrontEnd):
         """Camera reliability (switching paper eq. 1-9) at the node's newest estimate; 0 out of view."""
         mean, _ = node.estimate()
         return self._reliability(mean)
+
+
+class MountedCameraFrontEnd(CameraFrontEnd):
+    """:class:`CameraFrontEnd` for a camera on a moving robot: each detection is gated and fused
+    with the camera where it was at the detection's time (``mounted.at(t)``)."""
+
+    def __init__(self, mounted: MountedCamera, gate: float = 0.99, recognition_error: float | None = None,
+                 source_name: str = "camera") -> None:
+        super().__init__(mounted.at(0.0), gate, recognition_error, source_name)
+        self.mounted = mounted
+
+    def process(self, node: FusionNode, t: float, z: Array) -> bool:
+        self.camera = self.mounted.at(t)
+        return super().process(node, t, z)

@@ -4,6 +4,11 @@ The node table gives the camera's pose and intrinsics (``docs/scenarios.md``); t
 simulated world measures with a :class:`~dfusion.models.camera.SceneCamera` (true
 detections when the target is in view, plus Poisson false detections), and the node
 fuses them with a :class:`~dfusion.frontends.camera.CameraFrontEnd`.
+
+Scenario kind ``robot_camera``: the same camera carried by a robot that drives the node's
+``path`` (:class:`~dfusion.models.camera.MountedCamera`, mounted ``mount_height`` metres up,
+looking along the robot's heading turned by ``yaw_offset`` and tilted down by ``pitch``
+degrees), fused with a :class:`~dfusion.frontends.camera.MountedCameraFrontEnd`.
 """
 from __future__ import annotations
 
@@ -13,12 +18,12 @@ from typing import Any, Mapping
 import numpy as np
 
 from dfusion.errors import ValidationError
-from dfusion.frontends.camera import CameraFrontEnd, gate_threshold
-from dfusion.models.camera import PinholeCamera, SceneCamera
+from dfusion.frontends.camera import CameraFrontEnd, MountedCameraFrontEnd, gate_threshold
+from dfusion.models.camera import MountedCamera, PinholeCamera, SceneCamera
 from dfusion.scenario.spec import COMMON_NODE_KEYS, NodeSpec, Scenario, SensorKind
-from dfusion.scenario.values import check_keys, number, vector
+from dfusion.scenario.values import check_keys, number, vector, waypoint_path
 
-__all__ = ["CAMERA", "CAMERA_KEYS", "camera_from_table"]
+__all__ = ["CAMERA", "CAMERA_KEYS", "camera_from_table", "ROBOT_CAMERA", "ROBOT_CAMERA_KEYS"]
 
 
 #: Keys of a ``sensor = "camera"`` node table, besides the common node keys.
@@ -26,15 +31,21 @@ CAMERA_KEYS = frozenset({"position", "look_at", "yaw", "pitch", "fx", "fy", "cx"
                "point_height", "false_detection_rate", "gate", "recognition_error"})
 
 
-def camera_from_table(table: Mapping[str, Any]) -> SceneCamera:
-    """Build the camera of a ``sensor = "camera"`` node table (keys: see ``docs/scenarios.md``)."""
-    check_keys(table, COMMON_NODE_KEYS | CAMERA_KEYS, "a camera node")
-    position = vector(table, "position", (3,))
+def _image_size(table: Mapping[str, Any]) -> tuple[int, int]:
+    """``width`` and ``height`` of a camera table (pixels, default 640 x 480)."""
     width = table.get("width", 640)
     height = table.get("height", 480)
     for key, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise ValidationError(f"{key} must be a positive integer (pixels), got {v!r}")
+    return width, height
+
+
+def camera_from_table(table: Mapping[str, Any]) -> SceneCamera:
+    """Build the camera of a ``sensor = "camera"`` node table (keys: see ``docs/scenarios.md``)."""
+    check_keys(table, COMMON_NODE_KEYS | CAMERA_KEYS, "a camera node")
+    position = vector(table, "position", (3,))
+    width, height = _image_size(table)
     fx = number(table, "fx", 500.0, positive=True)
     fy = number(table, "fy", fx, positive=True)
     cx = number(table, "cx", width / 2.0)
@@ -83,3 +94,39 @@ def _camera_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> CameraFrontEnd
 #: The ``camera`` sensor kind.
 CAMERA = SensorKind("camera", CAMERA_KEYS, _camera_sensor, _camera_front_end,
                     "a calibrated camera detecting the target (pixels), gated EIF updates")
+
+
+#: Keys of a ``sensor = "robot_camera"`` node table, besides the common node keys (``path`` is required).
+ROBOT_CAMERA_KEYS = frozenset({"fx", "fy", "cx", "cy", "width", "height", "pixel_std", "point_height",
+                               "false_detection_rate", "gate", "recognition_error", "mount_height", "pitch",
+                               "yaw_offset"})
+
+
+def _robot_camera_sensor(table: Mapping[str, Any], sc: Scenario) -> MountedCamera:
+    check_keys(table, COMMON_NODE_KEYS | ROBOT_CAMERA_KEYS, "a robot_camera node")
+    path = waypoint_path(table)
+    if path is None:
+        raise ValidationError("a robot_camera node needs a path = [[x, y], ...] and a speed (m/s)")
+    width, height = _image_size(table)
+    fx = number(table, "fx", 500.0, positive=True)
+    gate_threshold(table.get("gate", 0.99))
+    if "recognition_error" in table:
+        number(table, "recognition_error", nonneg=True)
+    return MountedCamera(path.pose, mount_height=number(table, "mount_height", 1.5, positive=True),
+                         pitch=math.radians(number(table, "pitch", 20.0)),
+                         yaw_offset=math.radians(number(table, "yaw_offset", 0.0)),
+                         fx=fx, fy=number(table, "fy", fx, positive=True), cx=number(table, "cx", width / 2.0),
+                         cy=number(table, "cy", height / 2.0), width=width, height=height,
+                         pixel_std=number(table, "pixel_std", 2.0, positive=True),
+                         point_height=number(table, "point_height", 0.0),
+                         clutter_rate=number(table, "false_detection_rate", 0.0, nonneg=True))
+
+
+def _robot_camera_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> MountedCameraFrontEnd:
+    return MountedCameraFrontEnd(spec.sensor, gate=spec.params.get("gate", 0.99),
+                                 recognition_error=spec.params.get("recognition_error"))
+
+
+#: The ``robot_camera`` sensor kind: a camera on a robot driving the node's path.
+ROBOT_CAMERA = SensorKind("robot_camera", ROBOT_CAMERA_KEYS, _robot_camera_sensor, _robot_camera_front_end,
+                          "a camera on a robot driving the node's path (pixels), gated EIF updates")
