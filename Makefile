@@ -41,6 +41,7 @@ bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/localizers.py --quick
 	$(VENV)/bin/python benchmarks/transport.py
 	$(VENV)/bin/python benchmarks/switching.py --quick
+	$(VENV)/bin/python benchmarks/clutter.py --quick
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .hypothesis

@@ -48,7 +48,7 @@ from dfusion.maps.buildings import rooms
 from dfusion.models import BeamErfcModel, LaserConfig, LikelihoodFieldModel  # noqa: E402
 from dfusion.localization import MonteCarloLocalization  # noqa: E402
 from dfusion.localization import scan_to_points, ScanMatcher  # noqa: E402
-from dfusion.models.laser import _laser_poses_grid  # noqa: E402
+from dfusion.models.laser import laser_grid_poses  # noqa: E402
 from dfusion.maps import cast_rays, RayCastTable  # noqa: E402
 
 
@@ -209,7 +209,7 @@ def timing(R: int) -> list[str]:
             o0, o1 = np.zeros(3), np.array([0.05, 0.0, 0.02])
             t_mot = timed(lambda: m.motion.sample(parts, o0, o1, m.rng), reps, 1)
             b = m._beams  # noqa: SLF001
-            lp = _laser_poses_grid(grid, parts, laser.offset)
+            lp = laser_grid_poses(grid, parts, laser.offset)
             t_lik = timed(lambda: m.sensor.log_likelihood(lp, scan[b], laser.angles[b]), reps, 1)
 
             def resample():

@@ -16,14 +16,21 @@ All in one run, every figure beside its reference measured in the same run:
    minimal hop with the same payload (msgpack of the same bytes and one 4 x 4 solve per
    side), at windows 10 and 100.
 3. **Import time and memory of a node process** per sensor kind: a fresh interpreter
-   imports the node program, loads a scenario, builds its node and front end, opens a
-   Zenoh session, runs 200 steps; its peak RSS (``ru_maxrss``) and the modules loaded.
-   Goals: position kind under 60 MB, camera kind under 80 MB.
-4. **A real network** (``--run``): ``dfusion run`` of random trees of 8, 32 and 128 nodes
-   (linear scenario, 10 Hz, real time), with the host processes used, total RSS, CPU per
-   node per second and final gaps.
+   imports the node program, loads a scenario, builds its node and front end from a
+   recording of its measurements (as ``dfusion run`` gives them), opens a Zenoh session,
+   runs 200 steps (predict, fuse, messages, publication); its resident memory (VmRSS,
+   VmHWM), the modules loaded and whether scipy, matplotlib, networkx, filterpy or the
+   simulator are among them. Goals: position kind under 60 MB, camera kind under 80 MB.
+4. **A real network** (``--run``): (a) the node processes of ``dfusion run`` of the shipped
+   chain (position) and URUS scenario (camera, WSN, relay), one process per node: the peak
+   resident memory of each running process, against the same goals; (b) ``dfusion run``
+   of random trees of 8, 32 and 128 nodes (:func:`dfusion.scenario.generate.random_tree_scenario`:
+   linear scenario, 10 Hz, real time, 60 s), with the host processes used, total resident
+   memory, CPU per node per second, the largest lag behind the clock and final gaps.
+   Goals: final gaps <= 1e-9, total memory under 8 GB.
 
-Usage: python benchmarks/scale.py [--quick] [--run] [--strict]
+Usage: python benchmarks/scale.py [--quick] [--run | --only-run] [--sizes 8,32,128] [--nodes-per-process N] [--strict]
+Run time: sections 1-3 about 4 min (``--quick`` 1 min); 4 (``--run``) about 6 min (``--quick`` 3 min).
 The machine is noisy (runs vary by up to 1.6x on a 2-core VM): compare within one run.
 """
 from __future__ import annotations
@@ -33,6 +40,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 from pathlib import Path
@@ -45,17 +53,13 @@ from dfusion.fusion.channel import nonzero_blocks, time_key
 from dfusion.models import ConstantVelocity, PositionSensor
 from dfusion.scenario import load_scenario
 from dfusion.sim import run_scenario
+from dfusion.topology import random_tree
 from dfusion.wire import InfoMessage, encode
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 # ------------------------------------------------------------------------------ bytes
-def random_tree(n: int, seed: int) -> list[tuple[str, str]]:
-    rng = np.random.default_rng(seed)
-    return [(f"n{int(rng.integers(k))}", f"n{k}") for k in range(1, n)]
-
-
 def tree_scenario(n: int, window: int, period: float, drop: float, duration: float, seed: int = 1,
                   rate: float = 5.0, latency: float = 0.02) -> dict:
     rng = np.random.default_rng(seed + 100)
@@ -203,34 +207,32 @@ def hop_table(quick: bool) -> list[str]:
 
 
 # ------------------------------------------------------------------------------ memory per kind
-KIND_PROBE = textwrap.dedent('''
-    import json, resource, sys, time
+KIND_PROBE = textwrap.dedent("""
+    import json, sys, time
     t0 = time.perf_counter()
     from dfusion.run.node_process import NodeProcess  # the node program
-    from dfusion.scenario import load_scenario, build_front_end, build_node
-    from dfusion.transport.zenoh import ZenohConfig, open_session
     t_import = time.perf_counter() - t0
+    from dfusion.run.measurements import load_recording
+    from dfusion.scenario import load_scenario
+    from dfusion.transport.zenoh import ZenohTransport
     sc = load_scenario(sys.argv[1])
     name = sys.argv[2]
-    node, front = build_node(sc, name), build_front_end(sc, name)
-    from dfusion.sim.world import simulate_world
-    meas = [m for m in simulate_world(sc).measurements if m.node == name]
-    with open_session(ZenohConfig()) as session:
-        k = 0
-        for step in range(1, 201):
-            t = round(step * sc.dt, 9)
-            node.predict(t)
-            while k < len(meas) and meas[k].t <= t:
-                if front is not None:
-                    front.process(node, meas[k].t, meas[k].z)
-                k += 1
-            for nb in node.neighbors:
-                node.message_to(nb)
-    print(json.dumps({"import_s": t_import, "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    proc = NodeProcess(sc, name, start=0.0, measurements=load_recording(sys.argv[3], name))
+    with ZenohTransport("probe", {name: proc.neighbors}) as tr:
+        proc.attach(tr)
+        for t in proc.times[1:201]:          # the loop's steps: predict, fuse, messages, estimate, publication
+            proc.node.predict(float(t))
+            proc._fuse_until(float(t))
+            for nb in proc.neighbors:
+                proc.node.message_to(nb)
+            proc._publish("run", int(round(float(t) / sc.dt)))
+        status = {k: int(v.split()[0]) / 1024 for k, v in (line.split(":", 1) for line in open("/proc/self/status"))
+                  if k in ("VmRSS", "VmHWM")}
+    heavy = ("scipy", "matplotlib", "networkx", "filterpy", "dfusion.sim")
+    print(json.dumps({"import_s": t_import, "rss_mb": status["VmRSS"], "hwm_mb": status["VmHWM"],
                       "modules": len(sys.modules),
-                      "scipy": any(m.split(".")[0] == "scipy" for m in sys.modules),
-                      "matplotlib": any(m.split(".")[0] == "matplotlib" for m in sys.modules)}))
-''')
+                      "heavy": sorted({h for h in heavy for m in sys.modules if m == h or m.startswith(h + ".")})}))
+""")
 
 KINDS = (("position", "topologies/chain3.scenario.toml", "a", 60.0),
          ("camera", "topologies/urus.scenario.toml", "cam_left", 80.0),
@@ -239,33 +241,150 @@ KINDS = (("position", "topologies/chain3.scenario.toml", "a", 60.0),
 
 
 def kinds_table() -> list[str]:
-    print("\n3. A node process per sensor kind: import time, peak RSS, modules loaded")
-    print(f"{'kind':<14} {'import s':>8} {'RSS MB':>7} {'modules':>7} {'scipy':>5} {'mpl':>4} {'goal MB':>7}")
+    """3. A fresh interpreter per kind: the node program's imports, its node built from a recording (as
+    ``dfusion run`` gives it), a Zenoh session, 200 steps; then the resident memory of that process."""
+    from dfusion.run.measurements import nodes_measurements, save_recording
+
+    print("\n3. A node program per sensor kind (fresh interpreter: imports, node from a recording, Zenoh session, "
+          "200 steps)")
+    print(f"{'kind':<14} {'import s':>8} {'RSS MB':>7} {'peak MB':>7} {'modules':>7}  {'heavy modules loaded':<22} "
+          f"{'goal MB':>9}")
     failed = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for kind, scenario, node, goal in KINDS:
+            sc = load_scenario(ROOT / scenario)
+            rec = save_recording(Path(tmp) / f"{node}.jsonl", node, nodes_measurements(sc, None, [node])[node])
+            out = subprocess.run([sys.executable, "-c", KIND_PROBE, str(ROOT / scenario), node, str(rec)],
+                                 capture_output=True, text=True, timeout=600, cwd=ROOT)
+            if out.returncode != 0:
+                print(f"{kind:<14} failed: {out.stderr.strip().splitlines()[-1:]}")
+                failed.append(f"{kind}: probe failed")
+                continue
+            r = json.loads(out.stdout.strip().splitlines()[-1])
+            ok = goal is None or r["hwm_mb"] <= goal
+            if not ok:
+                failed.append(f"{kind}: {r['hwm_mb']:.0f} MB > {goal} MB")
+            if r["heavy"]:
+                failed.append(f"{kind}: loads {r['heavy']}")
+            print(f"{kind:<14} {r['import_s']:>8.2f} {r['rss_mb']:>7.0f} {r['hwm_mb']:>7.0f} {r['modules']:>7}  "
+                  f"{', '.join(r['heavy']) or 'none':<22} {'' if goal is None else (f'{goal:.0f} ' + ('PASS' if ok else 'FAIL')):>9}")
+    return failed
+
+
+# ------------------------------------------------------------------------------ dfusion run
+def run_sampled(scenario: Path, args: list[str], run_dir: Path) -> dict:
+    """``dfusion run SCENARIO ARGS`` as a process; every second the peak resident memory (VmHWM) of each of
+    its processes (``RUN_DIR/pids.json``: hosts, the warm standby, the launcher). Returns the run's JSON with
+    ``peak_mb`` (process -> MB) and the load averages before and after."""
+    out_json = run_dir.with_suffix(".json")
+    load0 = os.getloadavg()[0]
+    t0 = time.monotonic()
+    proc = subprocess.Popen([sys.executable, "-m", "dfusion.cli", "run", str(scenario), "--run-dir", str(run_dir),
+                             "--json", str(out_json), "--quiet", *args], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    peak: dict[tuple[str, int], float] = {}
+    try:
+        while proc.poll() is None:
+            try:
+                pids = json.loads((run_dir / "pids.json").read_text())
+            except (OSError, ValueError):
+                pids = {}
+            for name, pid in pids.items():
+                try:
+                    text = Path(f"/proc/{pid}/status").read_text()
+                    hwm = int(text.split("VmHWM:")[1].split()[0]) / 1024
+                except (OSError, IndexError, ValueError):
+                    continue
+                peak[(name, pid)] = max(peak.get((name, pid), 0.0), hwm)
+            time.sleep(0.5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        err = proc.communicate()[1]
+    if proc.returncode != 0 or not out_json.exists():
+        raise RuntimeError(f"dfusion run failed ({proc.returncode}): {err[-2000:]}")
+    m = json.loads(out_json.read_text())
+    m["peak_mb"] = {f"{n}:{pid}": v for (n, pid), v in peak.items()}
+    m["load"] = (load0, os.getloadavg()[0])
+    m["bench_wall_s"] = time.monotonic() - t0
+    return m
+
+
+def running_kinds_table(tmp: Path, quick: bool) -> list[str]:
+    """4a. The same kinds in a real ``dfusion run`` (one process per node): their peak resident memory."""
+    print("\n4a. Node processes of a dfusion run, one per node (peak resident memory of the running process, VmHWM)")
+    print(f"{'kind':<14} {'node':<9} {'peak MB':>7} {'goal MB':>9}")
+    failed = []
+    runs = {}
+    for scenario, args in (("topologies/chain3.scenario.toml", ["--speed", "4", "--duration", "20" if quick else "40"]),
+                           ("topologies/urus.scenario.toml", ["--speed", "2", "--duration", "10" if quick else "20"])):
+        runs[scenario] = run_sampled(ROOT / scenario, args, tmp / Path(scenario).stem)
     for kind, scenario, node, goal in KINDS:
-        out = subprocess.run([sys.executable, "-c", KIND_PROBE, str(ROOT / scenario), node], capture_output=True,
-                             text=True, timeout=600, cwd=ROOT)
-        if out.returncode != 0:
-            print(f"{kind:<14} failed: {out.stderr.strip().splitlines()[-1:]}")
-            failed.append(f"{kind}: probe failed")
-            continue
-        r = json.loads(out.stdout.strip().splitlines()[-1])
-        ok = goal is None or r["rss_mb"] <= goal
+        peak = max(v for k, v in runs[scenario]["peak_mb"].items() if k.split(":")[0] == node)
+        ok = goal is None or peak <= goal
         if not ok:
-            failed.append(f"{kind}: {r['rss_mb']:.0f} MB > {goal} MB")
-        print(f"{kind:<14} {r['import_s']:>8.2f} {r['rss_mb']:>7.0f} {r['modules']:>7} {str(r['scipy'])[0]:>5} "
-              f"{str(r['matplotlib'])[0]:>4} {'' if goal is None else (f'{goal:.0f} ' + ('PASS' if ok else 'FAIL')):>7}")
+            failed.append(f"running {kind}: {peak:.0f} MB > {goal} MB")
+        print(f"{kind:<14} {node:<9} {peak:>7.0f} {'' if goal is None else (f'{goal:.0f} ' + ('PASS' if ok else 'FAIL')):>9}")
+    return failed
+
+
+def run_table(quick: bool, sizes: tuple[int, ...], per_process: str) -> list[str]:
+    """4b. ``dfusion run`` of random trees: hosts, memory, CPU, lag and final gaps."""
+    from dfusion.scenario.generate import random_tree_scenario, scenario_toml
+
+    failed = []
+    with tempfile.TemporaryDirectory() as tmp:
+        failed += running_kinds_table(Path(tmp), quick)
+        duration = 20.0 if quick else 60.0
+        print(f"\n4b. dfusion run of random trees (linear scenario: position sensors at 10 Hz, steps of 0.1 s, sends every "
+              f"0.5 s, {duration:.0f} s in real time)")
+        print(f"{'nodes':>5} {'diam':>4} {'window':>6} {'hosts':>5} {'per host':>8} | {'RSS hosts MB':>12} {'launcher MB':>11} "
+              f"{'total MB':>8} | {'CPU ms/node/s':>13} {'loop ms':>7} {'launcher s':>10} | {'lag s':>5} {'final gap':>9} "
+              f"{'wall s':>6} {'load':>9}")
+        for n in sizes:
+            raw = random_tree_scenario(n, seed=1, duration=duration)
+            path = Path(tmp) / f"tree{n}.scenario.toml"
+            path.write_text(scenario_toml(raw))
+            per = max(1, -(-n // 8)) if per_process == "auto" else int(per_process)
+            m = run_sampled(path, ["--nodes-per-process", str(per)], Path(tmp) / f"run{n}")
+            run = m["run"]
+            hosts_mb = sum(v for k, v in m["peak_mb"].items() if k.split(":")[0] not in ("launcher", "standby"))
+            launcher_mb = max((v for k, v in m["peak_mb"].items() if k.split(":")[0] == "launcher"), default=0.0)
+            standby_mb = sum(v for k, v in m["peak_mb"].items() if k.split(":")[0] == "standby")
+            total = hosts_mb + launcher_mb + standby_mb
+            gap = max(v["final_gap"] for v in m["nodes"].values())
+            lag = max(v["max_lag_wall_s"] for v in run["nodes"].values())
+            diam = load_scenario(raw).tree.diameter()
+            ok = gap <= 1e-9 and total <= 8192
+            if not ok:
+                failed.append(f"run of {n}: gap {gap:.1e}, {total:.0f} MB")
+            print(f"{n:>5} {diam:>4} {raw['window']:>6} {run['hosts']:>5} {per:>8} | {hosts_mb:>12.0f} {launcher_mb:>11.0f} "
+                  f"{total:>8.0f} | {run['cpu_ms_per_node_per_s']:>13.1f} {run['node_cpu_ms_per_node_per_s']:>7.1f} "
+                  f"{run['launcher_cpu_s']:>10.1f} | {lag:>5.2f} {gap:>9.1e} {m['bench_wall_s']:>6.0f} "
+                  f"{m['load'][0]:>4.1f}-{m['load'][1]:<4.1f}")
+    print("RSS: peak resident memory (VmHWM) of every host process (total), the launcher (monitor, world, result) and "
+          "the warm standby;\nCPU: every host process's CPU (all threads, Zenoh's included) from the start, per node "
+          "per wall second; loop: the\nnodes' own work in their hosts' loops; lag: how far the slowest node fell behind "
+          "the clock; final gap: largest\ndistance of a node's final estimate to the centralized EKF's; load: load "
+          "average before and after (other jobs)")
     return failed
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="fewer configurations and repetitions")
-    ap.add_argument("--run", action="store_true", help="also run dfusion run networks of 8, 32 and 128 nodes")
+    ap.add_argument("--quick", action="store_true", help="fewer configurations and repetitions, shorter runs")
+    ap.add_argument("--run", action="store_true", help="also dfusion run networks of 8, 32 and 128 nodes (4b.) and the "
+                                                       "node processes of a run per kind (4a.)")
+    ap.add_argument("--only-run", action="store_true", help="only 4a. and 4b.")
+    ap.add_argument("--sizes", default="8,32,128", help="network sizes of 4b. (default 8,32,128)")
+    ap.add_argument("--nodes-per-process", default="auto",
+                    help="dfusion run --nodes-per-process of 4b. (default auto: ceil(n / 8), i.e. 8 host processes)")
     ap.add_argument("--strict", action="store_true", help="exit status 1 when a goal is not met")
     args = ap.parse_args()
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
-    failed = bytes_table(args.quick) + hop_table(args.quick) + kinds_table()
+    failed = [] if args.only_run else bytes_table(args.quick) + hop_table(args.quick) + kinds_table()
+    if args.run or args.only_run:
+        failed += run_table(args.quick, tuple(int(x) for x in args.sizes.split(",")), args.nodes_per_process)
     if failed:
         print("\ngoals not met: " + "; ".join(failed))
     return 1 if (args.strict and failed) else 0

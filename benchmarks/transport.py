@@ -4,9 +4,11 @@ All in one run (every figure from separate OS processes; latencies across
 processes use ``time.monotonic``, i.e. Linux's system-wide CLOCK_MONOTONIC):
 
 1. **Message bytes against the window length** (4-state target, one
-   measurement per state): what a dfusion message weighs.
+   measurement per state): what a dfusion message weighs, the whole window (a
+   node's first message to a neighbour) and in the steady state (the neighbour
+   acknowledges what it received: the new block only).
 2. **Raw Zenoh ping-pong** (the floor): this process puts a payload of the
-   same size as a dfusion message, a second process echoes it from its
+   same size as a steady-state dfusion message, a second process echoes it from its
    subscriber callback; one-way = round trip / 2. Same session settings as
    dfusion (peer, loopback, express, DROP), and the same pause between
    messages as the per-hop measurement below: on a VM, a CPU idle for 10 ms
@@ -20,14 +22,18 @@ processes use ``time.monotonic``, i.e. Linux's system-wide CLOCK_MONOTONIC):
    predicts to the sender's time if needed, fuses the message and reads its
    estimate. Latency = measurement at ``a`` to the changed estimate at ``b``,
    split into sender work, transit (put to the subscriber callback) and receiver
-   work (callback to estimate). Goal: within 3 times the raw one-way time at
+   work (callback to estimate). Then, as the protocol does, ``b`` answers with its
+   own message (its acknowledgement of what it fused; outside the timed hop) and
+   ``a`` fuses it before its next measurement, so ``a`` sends only what ``b`` has
+   not acknowledged: the new block. Goal: within 3 times the raw one-way time at
    the same payload.
 4. **End to end along a 5-node chain** (5 processes): a measurement at ``n1``
    until ``n5``'s estimate has it; each node forwards at once when a message
-   changed its belief (event-driven relay).
+   changed its belief (event-driven relay), then acknowledges to the sender.
 5. **Messages per second per link**: ``a`` predicts, fuses a measurement, builds
-   and sends as fast as it can; ``b`` receives and fuses as fast as it can. The
-   link carries what the slower of the two sustains. (A node of ``dfusion run``
+   and sends as fast as it can (fusing ``b``'s acknowledgements as they come);
+   ``b`` receives, fuses and acknowledges as fast as it can. The link carries what
+   the slower of the two sustains. (A node of ``dfusion run``
    sends one message per send period, 2 per second by default.)
 
 Usage: python benchmarks/transport.py [--quick]
@@ -119,6 +125,8 @@ def child(cfg: dict) -> None:
                             tr.send(name, nb, node.message_to(nb), d.t_sent)
                     if cfg.get("last"):
                         out["arrivals"][repr(d.t_sent)] = (d.t_arrival, t1)
+                if node is not None and changed:   # the protocol's acknowledgement: a message back (after the timing)
+                    tr.send(name, d.src, node.message_to(d.src), d.t_sent)
         out.update(count=count, first=first, last=last, dropped=tr.stats.total.dropped)
         print(json.dumps(out), flush=True)
 
@@ -135,9 +143,10 @@ def _pong(cfg: dict) -> None:
 
 
 class MinimalHop:
-    """Both ends of the minimal hop (3b. in the module docstring), window ``W``."""
+    """Both ends of the minimal hop (3b. in the module docstring), window ``W``: the sender's
+    message carries the newest ``blocks`` blocks (a steady-state dfusion message: the new one)."""
 
-    def __init__(self, W: int, seed: int = 0) -> None:
+    def __init__(self, W: int, seed: int = 0, blocks: int = 1) -> None:
         rng = np.random.default_rng(seed)
         self.n = n = 4
         self.total = rng.normal(size=(W, n, n))
@@ -148,12 +157,14 @@ class MinimalHop:
         self.H, self.Rinv, self.Lam = np.eye(2, n), 4.0 * np.eye(2), np.eye(n)
         self.P = np.eye(n)
         self.iu = np.triu_indices(n)
+        self.blocks = blocks
 
     def send(self, z: np.ndarray) -> bytes:
         self.total[-1] += self.Lam
         self.total_vec[-1] += self.H.T @ (self.Rinv @ z)
-        d, dv = self.total - self.channel, self.total_vec - self.channel_vec
-        return msgpack.packb({"src": "a", "dst": "b", "seq": 1, "times": self.times.tobytes(),
+        new = slice(-self.blocks, None)
+        d, dv = self.total[new] - self.channel[new], self.total_vec[new] - self.channel_vec[new]
+        return msgpack.packb({"src": "a", "dst": "b", "seq": 1, "times": self.times[new].tobytes(),
                               "info": d[:, self.iu[0], self.iu[1]].tobytes(), "vec": dv.tobytes()})
 
     def receive(self, data: bytes) -> np.ndarray:
@@ -199,12 +210,27 @@ def with_children(cfgs, body):
 
 
 # ---------------------------------------------------------------------- measurements
-def message_sizes(windows) -> dict[int, int]:
+def message_sizes(windows) -> dict[int, tuple[int, int]]:
+    """Per window: (bytes of the whole window, bytes in the steady state: the new block, acknowledged)."""
     out = {}
     for W in windows:
         a = make_node("a", ["b"], W, fill=True)
-        out[W] = len(a.message_to("b"))
+        b = FusionNode("b", ["a"], MOTION, window=W, prior=PRIOR, epoch=7)
+        full = a.message_to("b")
+        b.predict(a.latest_time)
+        b.receive(full)
+        a.receive(b.message_to("a"))   # b acknowledges
+        t = round((W + 1) * DT, 9)
+        a.predict(t)
+        a.update(t, np.ones(2), SENSOR)
+        out[W] = (len(full), len(a.message_to("b")))
     return out
+
+
+def drain(tr: ZenohTransport, node: FusionNode) -> None:
+    """Fuse what arrived for ``node`` (its neighbours' acknowledgements)."""
+    for d in tr.receive(node.name):
+        node.receive(d.data)
 
 
 def raw_pingpong(size: int, n: int, pause: float) -> dict:
@@ -256,6 +282,8 @@ def per_hop(W: int, n: int, pause: float, minimal: bool = False) -> dict:
             for i in range(n + 10):
                 t = round((W + 1 + i) * DT, 9)
                 z = rng.normal(size=2)
+                if not minimal:
+                    drain(tr, a)   # b's acknowledgements, before the timed hop
                 t0 = time.monotonic()
                 if minimal:
                     data = a.send(z)
@@ -303,6 +331,7 @@ def chain(W: int, n: int, length: int = 5) -> dict:
             rng = np.random.default_rng(2)
             for i in range(n + 5):
                 t = round((W + 1 + i) * DT, 9)
+                drain(tr, src)
                 t0 = time.monotonic()
                 src.predict(t)
                 src.update(t, rng.normal(size=2), SENSOR)
@@ -332,6 +361,7 @@ def throughput(W: int, seconds: float) -> dict:
             t_start = time.monotonic()
             while time.monotonic() - t_start < seconds:
                 t = round(k * DT, 9)
+                drain(tr, a)
                 a.predict(t)
                 a.update(t, rng.normal(size=2), SENSOR)
                 tr.send("a", "b", a.message_to("b", sent_at=t), t)
@@ -368,7 +398,8 @@ def main() -> int:
 
     sizes = message_sizes([10, 25, 50, 100, 200])
     print("1. message bytes against the window length (4-state target, one measurement per state)")
-    print(table([[W, b, f"{b / W:.1f}"] for W, b in sizes.items()], ["window", "bytes", "bytes/state"]))
+    print(table([[W, b, f"{b / W:.1f}", steady] for W, (b, steady) in sizes.items()],
+                ["window", "whole window", "bytes/state", "steady (new block, acknowledged)"]))
 
     print("\n2-3. per hop: a measurement at a -> b's estimate, against the raw Zenoh one-way time (ping-pong / 2)\n"
           "     measured at the same pace (pause between messages) for both")
@@ -377,7 +408,7 @@ def main() -> int:
     for pace, pause in PACES:
         verdict[pace] = True
         for W in windows:
-            raw = raw_pingpong(sizes[W], n, pause)
+            raw = raw_pingpong(sizes[W][1], n, pause)   # the payload of the steady-state hop
             hop = per_hop(W, n, pause)
             low = per_hop(W, n, pause, minimal=True)
             hops[pace, W] = hop

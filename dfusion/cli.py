@@ -1,12 +1,12 @@
 """The ``dfusion`` command line.
 
-``dfusion simulate SCENARIO [--seed N] [--fusion channel|naive] [--duration S] [--json OUT] [--plot OUT.png]``
-runs a scenario in one process and prints per-node RMSE, ANEES and the gap to
-the centralized EKF, with message counts.
+``dfusion simulate SCENARIO [--seed N] [--fusion channel|naive] [--duration S] [--json OUT] [--plot OUT.png]
+[--no-protection]`` runs a scenario in one process and prints per-node RMSE, ANEES and the gap to
+the centralized EKF, with message counts and the consistency diagnostics (``docs/clutter.md``).
 
-``dfusion run SCENARIO [--speed X] [--json OUT] [--plot OUT.png] [--restart NAME@T[+D]] ...``
-runs the same scenario with one OS process per node over Zenoh and prints the
-same table (``docs/processes.md``).
+``dfusion run SCENARIO [--speed X] [--nodes-per-process N] [--json OUT] [--plot OUT.png] [--restart NAME@T[+D]] ...``
+runs the same scenario with one OS process per node (or N nodes per process) over Zenoh
+and prints the same table (``docs/processes.md``).
 
 ``dfusion replay SCENARIO BAG --topic TOPIC=NODE ... [--truth TOPIC] [--arrival stamp|record]``
 runs the scenario's nodes on the measurements of a ROS 1 or ROS 2 bag instead of the
@@ -30,7 +30,8 @@ def _simulate(args: argparse.Namespace) -> int:
     from dfusion.scenario.loader import load_scenario
     from dfusion.sim.runner import run_scenario
 
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin,
+                       protection=False if args.no_protection else None)
     live = None
     if args.foxglove is not None:
         from dfusion.viz.foxglove import LiveView
@@ -117,6 +118,7 @@ def _run(args: argparse.Namespace) -> int:
             round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
+            nodes_per_process=args.nodes_per_process,
         )
         launcher = Launcher(opts)
         if stop:
@@ -163,6 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
     _output_options(s)
     s.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; docs/new-sensor-kind.md)")
+    s.add_argument("--no-protection", action="store_true",
+                   help="no clutter model (cameras: hard gate only) and no consistency test of neighbours "
+                        "(protection.enabled = false; docs/clutter.md)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("--foxglove", type=int, default=None, metavar="PORT",
                    help="serve the run live to Foxglove on this port (needs pip install 'dfusion[live]'; docs/ros.md)")
@@ -177,8 +182,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     r.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     _output_options(r)
+    r.add_argument("--nodes-per-process", type=int, default=1, metavar="N",
+                   help="run up to N nodes in each OS process, over one Zenoh session (default 1: a process per "
+                        "node; docs/processes.md)")
     r.add_argument("--restart", action="append", default=[], metavar="NAME@T[+D]",
-                   help="SIGKILL node NAME at scenario time T and start it again D seconds later (repeatable)")
+                   help="SIGKILL node NAME (its process: with --nodes-per-process, its host and every node in it) at "
+                        "scenario time T and start it again D seconds later (repeatable)")
     r.add_argument("--network-key-file", default=None,
                    help="authenticate every message with this key (or set $DFUSION_NETWORK_KEY_FILE / "
                         "$DFUSION_NETWORK_KEY; default: a random key for this run)")

@@ -23,8 +23,9 @@ scenario file) are ignored here, so every scenario file is a topology file.
 
 Public API: :func:`load_topology`, :func:`check_tree`, :func:`find_cycle`,
 :func:`spanning_tree`, :func:`tree_diameter`, :func:`path`,
-:func:`minimum_window`, :func:`radio_links` (the links a radio range allows, for
-topologies that change at run time: ``docs/dynamic-topology.md``). Every input this module rejects raises
+:func:`minimum_window`, :func:`settling_rounds`, :func:`random_tree`, the lean
+:class:`Tree` with :func:`load_tree`, and :func:`radio_links` (the links a radio range allows,
+for topologies that change at run time: ``docs/dynamic-topology.md``). Every input this module rejects raises
 :class:`~dfusion.errors.TopologyError` (a :class:`ValueError`), except bad
 numbers given to :func:`minimum_window`, which raise
 :class:`~dfusion.errors.ValidationError` (also a :class:`ValueError`).
@@ -36,16 +37,21 @@ import logging
 import math
 import os
 import tomllib
-from collections.abc import Hashable, Mapping, Sequence
+from collections import deque
+from collections.abc import Hashable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
-
-import networkx as nx
+from typing import TYPE_CHECKING, Any
 
 from dfusion.errors import TopologyError, ValidationError
 
+if TYPE_CHECKING:   # networkx is imported where a graph algorithm needs it (a node program needs none)
+    import networkx as nx
+
 __all__ = [
     "DEFAULT_QUALITY",
+    "Tree",
+    "load_tree",
+    "random_tree",
     "load_topology",
     "check_tree",
     "find_cycle",
@@ -64,6 +70,147 @@ DEFAULT_QUALITY = 1.0
 
 #: Name used in messages when :func:`load_topology` is given a mapping.
 _DICT_SOURCE = "<dict>"
+
+
+def _networkx():
+    import networkx
+
+    return networkx
+
+
+class Tree:
+    """A communication tree as plain data, without networkx: what a node program needs.
+
+    ``nodes`` maps each name to its attributes (the other keys of its node table),
+    ``edges`` each link ``(a, b)`` (in file order) to its attributes (``quality`` and
+    any other link key), ``source`` names the file. :func:`load_tree` builds one and
+    checks that it is a connected tree; :meth:`to_networkx` gives the
+    :func:`load_topology` graph for graph algorithms.
+    """
+
+    def __init__(self, source: str = "") -> None:
+        self.source = source
+        self.nodes: dict[str, dict[str, Any]] = {}
+        self.edges: dict[tuple[str, str], dict[str, Any]] = {}
+        self._adj: dict[str, list[str]] = {}
+
+    # the part of networkx's Graph API that loading uses
+    def add_node(self, name: str, **attributes: Any) -> None:
+        self.nodes.setdefault(name, {}).update(attributes)
+        self._adj.setdefault(name, [])
+
+    def add_edge(self, a: str, b: str, **attributes: Any) -> None:
+        for end in (a, b):
+            self.add_node(end)
+        self.edges[(a, b)] = attributes
+        self._adj[a].append(b)
+        self._adj[b].append(a)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.nodes
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.nodes)
+
+    def __len__(self) -> int:
+        return len(self.nodes)
+
+    def number_of_nodes(self) -> int:
+        return len(self.nodes)
+
+    def number_of_edges(self) -> int:
+        return len(self.edges)
+
+    def has_edge(self, a: str, b: str) -> bool:
+        return (a, b) in self.edges or (b, a) in self.edges
+
+    def neighbors(self, name: str) -> tuple[str, ...]:
+        """The nodes linked to ``name``, in file order."""
+        return tuple(self._adj[name])
+
+    def distances(self, start: str) -> dict[str, int]:
+        """Hops from ``start`` to every node it reaches (breadth-first)."""
+        dist = {start: 0}
+        queue = deque([start])
+        while queue:
+            u = queue.popleft()
+            for v in self._adj[u]:
+                if v not in dist:
+                    dist[v] = dist[u] + 1
+                    queue.append(v)
+        return dist
+
+    def is_tree(self) -> bool:
+        """Connected, with one link fewer than nodes."""
+        return (len(self.nodes) > 0 and len(self.edges) == len(self.nodes) - 1
+                and len(self.distances(next(iter(self.nodes)))) == len(self.nodes))
+
+    def diameter(self) -> int:
+        """Longest shortest path in hops: two breadth-first sweeps (a tree)."""
+        first = self.distances(next(iter(self.nodes)))
+        far = max(first, key=first.__getitem__)
+        return max(self.distances(far).values())
+
+    def to_networkx(self) -> nx.Graph:
+        """The same tree as the graph :func:`load_topology` returns."""
+        graph = _networkx().Graph(source=self.source)
+        for name, attributes in self.nodes.items():
+            graph.add_node(name, **attributes)
+        for (a, b), attributes in self.edges.items():
+            graph.add_edge(a, b, **attributes)
+        return graph
+
+    @classmethod
+    def from_networkx(cls, graph: nx.Graph) -> Tree:
+        """The tree of a graph of :func:`load_topology` (which checked it)."""
+        tree = cls(graph.graph.get("source", ""))
+        for name, attributes in graph.nodes(data=True):
+            tree.add_node(name, **attributes)
+        for a, b, attributes in graph.edges(data=True):
+            tree.add_edge(a, b, **attributes)
+        return tree
+
+    def __repr__(self) -> str:
+        return f"Tree({self.source!r}, {len(self.nodes)} nodes)"
+
+
+def load_tree(
+    path_or_dict: str | os.PathLike[str] | Mapping[str, Any],
+    *,
+    spanning_tree: bool = False,
+    source: str | None = None,
+    require_tree: bool = True,
+) -> Tree:
+    """:func:`load_topology` as a :class:`Tree`: the same checks and errors, networkx only
+    for a spanning tree or to name what is wrong with a graph that is not a tree.
+    ``require_tree=False``: any graph of valid entries (the links that exist at the start of
+    a topology that changes at run time; cycles and several components allowed)."""
+    data, source = _read(path_or_dict, source)
+    if not require_tree:
+        return _build_graph(data, source, Tree(source))
+    if spanning_tree:
+        return Tree.from_networkx(load_topology(data, spanning_tree=True, source=source))
+    tree = _build_graph(data, source, Tree(source))
+    if not tree.is_tree():
+        check_tree(tree.to_networkx())   # raises, naming the components or a cycle
+        raise TopologyError(f"{source}: not a tree")   # not reached
+    return tree
+
+
+def random_tree(n: int, seed: int, prefix: str = "n") -> list[tuple[str, str]]:
+    """The links of a random recursive tree of ``n`` nodes ``{prefix}0 .. {prefix}{n-1}``.
+
+    Node ``k`` links to a node drawn uniformly among ``0 .. k-1`` (``numpy.random.default_rng(seed)``),
+    so the tree is reproducible from ``seed``; its expected depth grows as ``e ln n``
+    (Devroye, "Branching processes in the analysis of the heights of trees", Acta
+    Informatica 24, 1987): diameters of 13-17 hops at 128 nodes.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValidationError(f"a tree needs a positive number of nodes, got {n!r}")
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    return [(f"{prefix}{int(rng.integers(k))}", f"{prefix}{k}") for k in range(1, n)]
 
 
 # --------------------------------------------------------------------------- loading
@@ -142,9 +289,10 @@ def _read(path_or_dict: str | os.PathLike[str] | Mapping[str, Any],
         raise TopologyError(f"{source}: cannot read: {exc}") from exc
 
 
-def _build_graph(data: Mapping[str, Any], source: str) -> nx.Graph:
-    """Validate the ``nodes`` and ``links`` entries and build the graph."""
-    graph = nx.Graph(source=source)
+def _build_graph(data: Mapping[str, Any], source: str, graph: Any = None) -> Any:
+    """Validate the ``nodes`` and ``links`` entries and build the graph (a new networkx one, or ``graph``)."""
+    if graph is None:
+        graph = _networkx().Graph(source=source)
     for index, table in enumerate(_tables(data, "nodes", source)):
         _add_node(graph, table, index, source)
     seen: dict[frozenset[str], int] = {}
@@ -258,7 +406,7 @@ def _check_connected(graph: nx.Graph) -> None:
     prefix = _source(graph)
     if graph.number_of_nodes() == 0:
         raise TopologyError(f"{prefix}the graph has no nodes")
-    components = list(nx.connected_components(graph))
+    components = list(_networkx().connected_components(graph))
     if len(components) > 1:
         listed = "; ".join(
             "{" + ", ".join(sorted(map(str, part))) + "}" for part in components)
@@ -268,6 +416,7 @@ def _check_connected(graph: nx.Graph) -> None:
 
 def find_cycle(graph: nx.Graph) -> list[Hashable] | None:
     """Return one cycle of ``graph`` as a closed node list ``[a, b, c, a]``, or None."""
+    nx = _networkx()
     try:
         edges = nx.find_cycle(graph)
     except nx.NetworkXNoCycle:
@@ -316,7 +465,7 @@ def _ranked(graph: nx.Graph, weight: str) -> nx.Graph:
     """
     order = sorted(graph.edges,
                    key=lambda e: (-_edge_weight(graph, *e, weight), _canonical(*e)))
-    ranked = nx.Graph()
+    ranked = _networkx().Graph()
     ranked.add_nodes_from(graph.nodes)
     ranked.add_weighted_edges_from(
         ((u, v, len(order) - i) for i, (u, v) in enumerate(order)), weight="rank")
@@ -335,7 +484,7 @@ def spanning_tree(graph: nx.Graph, weight: str = "quality") -> nx.Graph:
     """
     _check_simple(graph)
     _check_connected(graph)
-    kept = nx.maximum_spanning_tree(_ranked(graph, weight), weight="rank")
+    kept = _networkx().maximum_spanning_tree(_ranked(graph, weight), weight="rank")
     removed = [(u, v) for u, v in graph.edges if not kept.has_edge(u, v)]
     tree = graph.copy()
     tree.remove_edges_from(removed)
@@ -358,8 +507,10 @@ def tree_diameter(graph: nx.Graph) -> int:
     """Longest shortest path of a tree, in hops (0 for a single node).
 
     Computed exactly by two breadth-first sweeps (valid on trees only); the
-    graph is checked with :func:`check_tree` first.
+    graph is checked with :func:`check_tree` first (a :class:`Tree` was checked when loaded).
     """
+    if isinstance(graph, Tree):
+        return graph.diameter()
     check_tree(graph)
     start = next(iter(graph.nodes))
     far = _farthest(graph, start)[0]
@@ -368,7 +519,7 @@ def tree_diameter(graph: nx.Graph) -> int:
 
 def _farthest(graph: nx.Graph, start: Hashable) -> tuple[Hashable, int]:
     """Node farthest from ``start`` and its distance in hops."""
-    distances = nx.single_source_shortest_path_length(graph, start)
+    distances = _networkx().single_source_shortest_path_length(graph, start)
     node = max(distances, key=distances.__getitem__)
     return node, distances[node]
 
@@ -382,6 +533,7 @@ def path(graph: nx.Graph, a: Hashable, b: Hashable) -> list[Hashable]:
     for node in (a, b):
         if node not in graph:
             raise TopologyError(f"{_source(graph)}unknown node {node!r}")
+    nx = _networkx()
     try:
         return nx.shortest_path(graph, a, b)
     except nx.NetworkXNoPath as exc:

@@ -15,11 +15,15 @@ from hypothesis import strategies as st
 
 from dfusion.errors import TopologyError, ValidationError
 from dfusion.topology import (
+    Tree,
     check_tree,
     find_cycle,
     load_topology,
+    load_tree,
     minimum_window,
     path,
+    random_tree as random_recursive_tree,
+    settling_rounds,
     spanning_tree,
     tree_diameter,
 )
@@ -501,3 +505,62 @@ def test_random_trees_round_trip_and_any_extra_edge_closes_a_cycle(
     assert cycle[0] == cycle[-1]
     assert set(cycle[:-1]) == set(nx.shortest_path(tree, a, b))  # the unique cycle
     assert any({u, v} == {a, b} for u, v in zip(cycle, cycle[1:]))  # contains the new edge
+
+
+# --------------------------------------------------------------------------- the lean Tree
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 40), seed=st.integers(0, 10**6))
+def test_lean_tree_equals_the_networkx_graph(n: int, seed: int) -> None:
+    """load_tree (no networkx) gives the nodes, links, attributes, neighbours and diameter of
+    load_topology's graph; the diameter against brute force over every pair."""
+    graph = random_tree(n, seed)
+    for a, b in graph.edges:
+        graph.edges[a, b]["latency"] = 0.01
+    data = {"nodes": [{"name": v, "rate": 1.0} for v in graph],
+            "links": [{"between": [a, b], "latency": 0.01} for a, b in graph.edges]}
+    tree = load_tree(data, source="x")
+    reference = load_topology(data, source="x")
+    assert isinstance(tree, Tree) and tree.source == "x"
+    assert tree.nodes == dict(reference.nodes(data=True))
+    assert {frozenset(e): d for e, d in tree.edges.items()} == {
+        frozenset((a, b)): d for a, b, d in reference.edges(data=True)}
+    for v in graph:
+        assert sorted(tree.neighbors(v)) == sorted(reference.neighbors(v))
+    assert tree_diameter(tree) == brute_force_diameter(graph) == tree_diameter(reference)
+    assert settling_rounds(tree) == settling_rounds(reference)
+    back = tree.to_networkx()
+    assert nx.utils.graphs_equal(back, reference)
+    assert Tree.from_networkx(back).edges == tree.edges
+
+
+@pytest.mark.parametrize("data", [
+    links(("a", "b"), ("b", "c"), ("c", "a")),
+    links(("a", "b"), ("c", "d")),
+    {"nodes": [{"name": "a"}, {"name": "a"}]},
+    {"links": [{"between": ["a"]}]},
+])
+def test_lean_tree_refuses_what_load_topology_refuses_with_the_same_message(data: dict) -> None:
+    with pytest.raises(TopologyError) as lean:
+        load_tree(data, source="s")
+    with pytest.raises(TopologyError) as full:
+        load_topology(data, source="s")
+    assert str(lean.value) == str(full.value)
+
+
+def test_lean_tree_with_spanning_tree_removes_the_worst_link() -> None:
+    data = links(("a", "b"), ("b", "c"), ("c", "a"), ab=0.9, bc=0.8, ca=0.1)
+    tree = load_tree(data, spanning_tree=True)
+    assert {frozenset(e) for e in tree.edges} == {frozenset("ab"), frozenset("bc")}
+
+
+def test_random_recursive_tree_is_a_reproducible_tree() -> None:
+    edges = random_recursive_tree(128, seed=3)
+    graph = nx.Graph(edges)
+    assert nx.is_tree(graph) and graph.number_of_nodes() == 128
+    assert all(int(a[1:]) < int(b[1:]) for a, b in edges)   # node k links to an earlier node
+    assert random_recursive_tree(128, seed=3) == edges != random_recursive_tree(128, seed=4)
+    assert 8 <= nx.diameter(graph) <= 30
+    with pytest.raises(ValidationError):
+        random_recursive_tree(0, seed=1)

@@ -1,4 +1,4 @@
-"""Estimators: the estimate type, information-form Gaussians, EIF, delayed-state EIF, centralized EKF, the particle-filter engine."""
+"""Estimators: the estimate type, information-form Gaussians, EIF, delayed-state EIF, centralized EKF, the particle-filter engine, probabilistic data association, innovation monitoring (robust weights, lock-out detection)."""
 from __future__ import annotations
 
 import importlib
@@ -10,10 +10,22 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.estimation.eif import ExtendedInformationFilter
     from dfusion.estimation.estimate import Estimate, Estimator
     from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
+    from dfusion.estimation.pda import ClutterModel, PDAInformation, PDAResult, gate_threshold, pda_information, pda_update, pda_weights
     from dfusion.estimation.particle_filter import ParticleFilter, ParticleDepletionError, effective_sample_size, normalize_log_weights, systematic_counts, systematic_resample, stratified_resample, multinomial_resample, roughening_std, weighted_mean_cov, RESAMPLERS, gaussian_summary
     from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
+    from dfusion.estimation.innovation import (Assessment, DivergenceAlarm, InnovationMonitor, JumpEstimate, LockoutDetector,
+                                               MonitorSettings, MonitorStats, estimate_jump, monitored_update)
 
 __all__ = [
+    "DivergenceAlarm",
+    "LockoutDetector",
+    "monitored_update",
+    "estimate_jump",
+    "InnovationMonitor",
+    "JumpEstimate",
+    "Assessment",
+    "MonitorStats",
+    "MonitorSettings",
     "CentralizedEKF",
     "History",
     "measurement_information",
@@ -37,6 +49,22 @@ __all__ = [
     "gaussian_summary",
     "MotionFactor",
     "TrajectoryInformation",
+    "ClutterModel",
+    "PDAResult",
+    "PDAInformation",
+    "pda_weights",
+    "pda_update",
+    "pda_information",
+    "gate_threshold",
+    "DivergenceAlarm",
+    "LockoutDetector",
+    "monitored_update",
+    "estimate_jump",
+    "InnovationMonitor",
+    "JumpEstimate",
+    "Assessment",
+    "MonitorStats",
+    "MonitorSettings",
 ]
 
 _WHERE = {
@@ -63,6 +91,22 @@ _WHERE = {
     "gaussian_summary": ("dfusion.estimation.particle_filter", 'gaussian_summary'),
     "MotionFactor": ("dfusion.estimation.trajectory", 'MotionFactor'),
     "TrajectoryInformation": ("dfusion.estimation.trajectory", 'TrajectoryInformation'),
+    "ClutterModel": ("dfusion.estimation.pda", 'ClutterModel'),
+    "PDAResult": ("dfusion.estimation.pda", 'PDAResult'),
+    "PDAInformation": ("dfusion.estimation.pda", 'PDAInformation'),
+    "pda_weights": ("dfusion.estimation.pda", 'pda_weights'),
+    "pda_update": ("dfusion.estimation.pda", 'pda_update'),
+    "pda_information": ("dfusion.estimation.pda", 'pda_information'),
+    "gate_threshold": ("dfusion.estimation.pda", 'gate_threshold'),
+    "DivergenceAlarm": ("dfusion.estimation.innovation", 'DivergenceAlarm'),
+    "LockoutDetector": ("dfusion.estimation.innovation", 'LockoutDetector'),
+    "monitored_update": ("dfusion.estimation.innovation", 'monitored_update'),
+    "estimate_jump": ("dfusion.estimation.innovation", 'estimate_jump'),
+    "InnovationMonitor": ("dfusion.estimation.innovation", 'InnovationMonitor'),
+    "JumpEstimate": ("dfusion.estimation.innovation", 'JumpEstimate'),
+    "Assessment": ("dfusion.estimation.innovation", 'Assessment'),
+    "MonitorStats": ("dfusion.estimation.innovation", 'MonitorStats'),
+    "MonitorSettings": ("dfusion.estimation.innovation", 'MonitorSettings'),
 }
 
 

@@ -85,6 +85,7 @@ class _Measurement:
     sensor: Any  # MeasurementModel or anything with dim_z, h, H, residual
     R: Array  # snapshot of sensor.R at add time: re-processing uses the same R
     runs: int = 0  # how many times this measurement has been processed
+    frame: bool = False  # sensor is a frame update (add_frame): sensor.update(x, P) -> (x, P)
 
 
 class _MotionEKF(ExtendedKalmanFilter):
@@ -116,7 +117,12 @@ class _MotionEKF(ExtendedKalmanFilter):
         self._finish("predict")
 
     def update_measurement(self, m: _Measurement) -> None:
-        """One EKF update with the buffered measurement ``m``."""
+        """One EKF update with the buffered measurement ``m`` (or its frame update)."""
+        if m.frame:
+            x, P = m.sensor.update(self.x.copy(), self.P.copy())
+            self.x, self.P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
+            self._finish(f"frame update (t={m.t!r}, {m.sensor!r})")
+            return
         self.dim_z = m.sensor.dim_z
         self.update(m.z, HJacobian=m.sensor.H, Hx=m.sensor.h, R=m.R, residual=m.sensor.residual)
         self._finish(f"update (t={m.t!r}, sensor={m.sensor!r})")
@@ -301,16 +307,37 @@ class CentralizedEKF:
         else:
             _checked(hx, (m,), "sensor.h(x)")
             _checked(Hx, (m, self.dim), "sensor.H(x)")
+        self._insert(_Measurement(tf, zv, sensor, R), seq)
+
+    def add_frame(self, t: float, frame: Any, *, seq: int | None = None) -> None:
+        """Buffer a frame update at time ``t``: ``frame.update(x, P) -> (x, P)`` replaces the
+        EKF update there, for updates that are not one measurement (the probabilistic data
+        association of a camera frame's detections,
+        :meth:`dfusion.frontends.camera.CameraFrontEnd.reference_frame`).
+
+        It is processed in time order like a measurement (re-run when a late measurement
+        precedes it); ``seq`` orders it among entries with the same ``t``.
+        """
+        tf = as_time(t)
+        if tf < self.t0:
+            raise TimeError(f"frame time {tf} is before t0 = {self.t0}")
+        if not callable(getattr(frame, "update", None)):
+            raise TypeError(f"frame {frame!r} has no update(x, P) method")
+        self._insert(_Measurement(tf, np.zeros(0), frame, np.zeros((0, 0)), frame=True), seq)
+
+    def _insert(self, entry: _Measurement, seq: int | None) -> None:
+        """Buffer ``entry`` under the key ``(t, seq, arrival)``; invalidate the checkpoints after it."""
         if seq is None:
             seq = self._arrivals
         elif isinstance(seq, bool) or not isinstance(seq, (int, np.integer)):
             raise TypeError(f"seq must be an int, got {seq!r}")
+        tf = entry.t
         key = (tf, int(seq), self._arrivals)
 
         i = bisect.bisect_right(self._keys, key)
         self._keys.insert(i, key)
         self._times.insert(i, tf)
-        self._meas.insert(i, _Measurement(tf, zv, sensor, R))
+        self._meas.insert(i, entry)
         self._ckpt.insert(i, None)
         self._arrivals += 1
         if i < self._n_valid:

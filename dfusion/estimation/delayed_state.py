@@ -262,14 +262,17 @@ class DelayedStateEIF:
         self._times, self.marginalized = list(times), marg
 
     class _Transaction:
-        def __init__(self, f: "DelayedStateEIF") -> None:
+        """Checkpoint on entry; restore on an exception (or always, with ``always=True``)."""
+
+        def __init__(self, f: "DelayedStateEIF", always: bool = False) -> None:
             self.f = f
+            self.always = always
 
         def __enter__(self) -> None:
             self.snap = self.f.checkpoint()
 
         def __exit__(self, exc_type, exc, tb) -> bool:
-            if exc_type is not None:
+            if exc_type is not None or self.always:
                 self.f.restore(self.snap)
             return False
 
@@ -277,6 +280,11 @@ class DelayedStateEIF:
         """Context manager: every change made inside is undone if an exception escapes."""
         self._require_init()
         return DelayedStateEIF._Transaction(self)
+
+    def trial(self) -> "_Transaction":
+        """Context manager: every change made inside is undone on leaving it (what-if evaluations)."""
+        self._require_init()
+        return DelayedStateEIF._Transaction(self, always=True)
 
     _transaction = transaction
 
@@ -441,6 +449,40 @@ class DelayedStateEIF:
                 # validated matrices are symmetrized above; the others are symmetric by contract
                 self._traj.add_information(k, Lam, y)
             self._enforce_window()
+
+    def add_information_moments(
+        self, entries: list[tuple[float, Array, Array]]
+    ) -> tuple[list[Array], list[Array], list[Array]]:
+        """:meth:`add_information_batch` (``validate=False``) that also returns the smoothed
+        moments at the entries' times: ``(means before, covariances before, means after)``,
+        in the order of ``entries`` (raw means, angles not wrapped).
+
+        States are inserted for every entry time first (exact for linear models), so the
+        moments before and after refer to the same trajectory; the window is enforced after
+        the information is added, as in :meth:`add_information_batch`. Two smoothing passes
+        from the oldest entry: O(window). For consistency tests (:mod:`dfusion.fusion.guard`).
+        """
+        self._require_init()
+        if not entries:
+            return [], [], []
+        with self._transaction():
+            for t, _, _ in entries:
+                tf = as_time(t)
+                if self.index_of(tf) is None:
+                    if tf < self._times[0] or tf > self._times[-1]:
+                        raise OutsideWindowError(
+                            f"time {tf} is outside the window [{self._times[0]}, {self._times[-1]}]"
+                        )
+                    self._insert(tf)
+            idx = [self.index_of(as_time(t)) for t, _, _ in entries]
+            k0 = min(idx)
+            means0, covs0 = self._traj.smoothed(k0)
+            for k, (_, Lam, y) in zip(idx, entries):
+                self._traj.add_information(k, Lam, y)
+            means1 = self._traj.smoothed_means(k0)
+            out = ([means0[k - k0] for k in idx], [covs0[k - k0] for k in idx], [means1[k - k0] for k in idx])
+            self._enforce_window()
+        return out
 
     def linearization_point(self, t: float) -> Array:
         """Current mean of the window state at ``t``, angles *not* wrapped.

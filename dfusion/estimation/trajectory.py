@@ -293,6 +293,22 @@ class TrajectoryInformation:
         covs.reverse()
         return means, covs
 
+    def smoothed_means(self, k_from: int) -> list[Array]:
+        """Smoothed means of states ``k_from .. m-1``: the mean recursion of :meth:`smoothed`
+        without the covariances, ``mu_k = mu_k|k + P_k F^T (P^-_{k+1})^-1 (mu_{k+1} - mu^-_{k+1})``."""
+        m = len(self.L)
+        self._forward(m)
+        mu = self.latest()[0]
+        means = [mu]
+        for k in range(m - 2, k_from - 1, -1):
+            ck, nxt = self._cache[k], self._cache[k + 1]
+            Cp = nxt.pred_chol(k + 1)
+            r = np.linalg.solve(Cp.T, np.linalg.solve(Cp, mu - nxt.pred_mean))
+            mu = ck.mean + ck.cov @ (self.factors[k].F.T @ r)
+            means.append(mu)
+        means.reverse()
+        return means
+
     def blocks(self) -> tuple[list[Array], list[Array], list[Array]]:
         """Assembled ``(D, U, eta)``: diagonal and super-diagonal blocks and vector."""
         m = len(self.L)

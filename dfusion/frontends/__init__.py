@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.frontends.base import EIFFrontEnd, FrontEnd, FrontEndStats, embed_source, fit_difference_information, position_information
-    from dfusion.frontends.camera import CameraFrontEnd, CameraStats, gate_threshold
+    from dfusion.frontends.camera import CameraFrame, CameraFrontEnd, CameraStats, gate_threshold
     from dfusion.frontends.env_camera import EnvCameraFrontEnd
     from dfusion.frontends.icp import ICPFrontEnd
     from dfusion.frontends.mcl import MCLFrontEnd
@@ -21,6 +21,7 @@ __all__ = [
     "embed_source",
     "CameraFrontEnd",
     "CameraStats",
+    "CameraFrame",
     "gate_threshold",
     "EnvCameraFrontEnd",
     "ICPFrontEnd",
@@ -38,6 +39,7 @@ _WHERE = {
     "position_information": ("dfusion.frontends.base", 'position_information'),
     "CameraFrontEnd": ("dfusion.frontends.camera", 'CameraFrontEnd'),
     "CameraStats": ("dfusion.frontends.camera", 'CameraStats'),
+    "CameraFrame": ("dfusion.frontends.camera", 'CameraFrame'),
     "gate_threshold": ("dfusion.frontends.camera", 'gate_threshold'),
     "EnvCameraFrontEnd": ("dfusion.frontends.env_camera", 'EnvCameraFrontEnd'),
     "ICPFrontEnd": ("dfusion.frontends.icp", 'ICPFrontEnd'),

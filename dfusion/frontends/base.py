@@ -95,6 +95,29 @@ class FrontEnd(ABC):
         :class:`~dfusion.errors.OutsideWindowError` before anything is changed.
         """
 
+    def process_frame(self, node: FusionNode, t: float, measurements: Array) -> int:
+        """Fuse the measurements of one frame (one sensor, one time ``t``: rows of
+        ``measurements``) into ``node``; returns how many contributed.
+
+        A front end that associates a frame's measurements together (a camera's
+        detections under clutter) overrides it; the default processes them one by one.
+        """
+        return sum(bool(self.process(node, t, z)) for z in np.atleast_2d(np.asarray(measurements, dtype=float)))
+
+    def reference_frame(self, t: float, measurements: Array) -> object | None:
+        """The frame as the centralized reference must apply it: an object with
+        ``update(x, P) -> (x, P)`` (:meth:`dfusion.estimation.CentralizedEKF.add_frame`), or
+        ``None`` (the default): each measurement is an EKF update with the sensor's model."""
+        return None
+
+    def status(self) -> str:
+        """``"ok"``, or ``"lost"`` while the front end's sensor contradicts the node's estimate
+        (a camera's track loss, :mod:`dfusion.frontends.camera`)."""
+        return "ok"
+
+    def finish(self, node: FusionNode) -> None:
+        """End of a run: hand the node anything still held back (default: nothing)."""
+
     def health(self) -> dict[str, float]:
         """Health figures of the front end (its counters), for tables and JSON."""
         return dict(self.stats.as_dict())

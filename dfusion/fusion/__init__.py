@@ -1,4 +1,4 @@
-"""Decentralized fusion: channel filters, fusion nodes and the tree rule for links that change."""
+"""Decentralized fusion: channel filters, fusion nodes, the consistency test of neighbours' information and the tree rule for links that change."""
 from __future__ import annotations
 
 import importlib
@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.fusion.channel import ChannelFilter, Entry, Plan, find_keys, nonzero_blocks, time_key, time_keys
+    from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
     from dfusion.fusion.node import FusionNode, NodeStats
     from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 
@@ -22,6 +23,11 @@ __all__ = [
     "SpanningTree",
     "TreeEpoch",
     "TreeChange",
+    "GuardConfig",
+    "LinkRecord",
+    "NeighbourGuard",
+    "information_statistic",
+    "split_blocks",
 ]
 
 _WHERE = {
@@ -37,6 +43,11 @@ _WHERE = {
     "SpanningTree": ("dfusion.fusion.tree", 'SpanningTree'),
     "TreeEpoch": ("dfusion.fusion.tree", 'TreeEpoch'),
     "TreeChange": ("dfusion.fusion.tree", 'TreeChange'),
+    "GuardConfig": ("dfusion.fusion.guard", 'GuardConfig'),
+    "LinkRecord": ("dfusion.fusion.guard", 'LinkRecord'),
+    "NeighbourGuard": ("dfusion.fusion.guard", 'NeighbourGuard'),
+    "information_statistic": ("dfusion.fusion.guard", 'information_statistic'),
+    "split_blocks": ("dfusion.fusion.guard", 'split_blocks'),
 }
 
 

@@ -78,8 +78,11 @@ _MASK64 = (1 << 64) - 1
 #: catches up with its first message).
 ACK_LAG = 2
 
-#: Largest forward jump of the sequence number within one incarnation (a sender that lost
-#: a million messages in a row is indistinguishable from a forger's jump).
+#: Largest forward jump of the sequence number within one incarnation, for nodes without a
+#: network key (a stranger cannot then lock a sender out with one message numbered near
+#: 2^63). With a key the bound is not applied: only key holders can send an authenticated
+#: message, they can forge any message anyway, and a link that lost more than this many
+#: messages in a row (28 h at 10 Hz) must still come back.
 MAX_SEQ_JUMP = 1_000_000
 #: Messages remembered while unacknowledged: beyond this many the sender sends a full
 #: message instead (and forgets the records).

@@ -36,6 +36,19 @@ others (:meth:`FusionNode.outgoing`). When the rule changes the tree the node wi
 what came over the links that left it (everything, when it enters a new epoch) and starts
 fresh channels on the links that joined it (``docs/dynamic-topology.md``).
 
+**Consistency test and quarantine** (``guard=``, off by default; on in scenarios through
+``[protection]``): the blocks a message adds are tested jointly against the node's belief
+inside the receive transaction, and a neighbour that keeps failing is quarantined: what
+came over its link is withdrawn from the filter and from what the node shares, and the
+withdrawn times are marked changed on the other links (:mod:`dfusion.fusion.guard`).
+
+**Own information held back or withdrawn.** ``update(..., share=False)`` and
+``add_local_information(..., share=False)`` fuse information here without sharing it (a
+camera's tentative frame); :meth:`FusionNode.share_local_information` shares it later and
+:meth:`FusionNode.withdraw_local_information` removes own information. Both mark the time
+changed on every link, so the next partial messages carry the new value (or clear the
+time), and the neighbours replace what they stored.
+
 ``fusion="naive"`` is fusion without channel filters, kept for comparison only:
 each message carries everything the sender learned since its previous message
 to that neighbour (including what came from the recipient) and the receiver
@@ -46,6 +59,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Iterable, Sequence
@@ -56,6 +70,7 @@ from numpy.typing import ArrayLike
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
+from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
 from dfusion.fusion.channel import (
     MAX_SEQ_JUMP,
     ChannelFilter,
@@ -248,6 +263,27 @@ class _Blocks:
             self._set(keys[order], np.concatenate([self.times, times[new]])[order],
                       np.concatenate([self.info, info[new]])[order], np.concatenate([self.vec, vec[new]])[order])
 
+    def subtract(self, entries: Sequence[tuple[float, Array, Array]]) -> np.ndarray:
+        """Subtract ``(info, vec)`` at stored state times (information withdrawn or moved to
+        another store), removing the rounding noise of the difference (:func:`_clean_difference`).
+        Entries at times not stored are ignored. Returns the keys changed."""
+        if not entries:
+            return np.zeros(0, dtype=np.int64)
+        keys = time_keys(np.array([e[0] for e in entries], dtype=float))
+        found, pos = find_keys(self.keys, keys)
+        if not found.any():
+            return np.zeros(0, dtype=np.int64)
+        rows = self._lo + pos[found]
+        info = np.array([e[1] for e in entries], dtype=float)[found]
+        vec = np.array([e[2] for e in entries], dtype=float)[found]
+        scale = np.abs(self._info[rows]).max(axis=(1, 2))
+        vscale = np.abs(self._vec[rows]).max(axis=1)
+        self._info[rows] = _clean_difference(self._info[rows] - info, scale)
+        v = self._vec[rows] - vec
+        v[np.abs(v) <= (ROUNDING_RTOL * vscale)[:, None]] = 0.0
+        self._vec[rows] = v
+        return keys[found]
+
     def prune(self, cutoff: int) -> None:
         """Forget the entries whose key is below ``cutoff``."""
         self._lo += int(self.keys.searchsorted(cutoff))
@@ -371,6 +407,10 @@ class FusionNode:
         the tree took from the channels stays in the node's own estimate, per state time,
         unless the new tree delivers as much earlier (never sent; ``docs/dynamic-topology.md``).
         0: it goes at once.
+    guard : GuardConfig or NeighbourGuard, optional
+        Test every neighbour's information for consistency with this node's belief and
+        quarantine a neighbour that keeps failing (:mod:`dfusion.fusion.guard`; channel
+        fusion only). Default: no test (every message is fused).
 
     Attributes
     ----------
@@ -378,6 +418,7 @@ class FusionNode:
         The local trajectory filter (prior, motion, own and received information).
     channels : dict[str, ChannelFilter]
     stats : NodeStats
+    guard : NeighbourGuard or None
     """
 
     def __init__(
@@ -404,6 +445,7 @@ class FusionNode:
         tree: SpanningTree | None = None,
         peers: Iterable[str] | None = None,
         hold: float = HOLD,
+        guard: GuardConfig | NeighbourGuard | None = None,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ValidationError("node name must be a non-empty string")
@@ -450,13 +492,22 @@ class FusionNode:
         self._tree_undo: tuple | None = None
         self._sent_tree_changes = 0
         #: Held information ``{time key: (t, L, y, until)}``: what a change of the tree took from
-        #: the channels, kept for this node's own estimate (``_hold``).
-        self._held: dict[int, tuple[float, Array, Array, float]] = {}
+        #: the channels, kept for this node's own estimate (``_tree_hold``).
+        self._tree_held: dict[int, tuple[float, Array, Array, float]] = {}
         self.hold = float(hold)
         self._own = _Blocks(n)
         self._total = _Blocks(n)   # entries newer than the newest state wait for predict
+        self._held = _Blocks(n)    # own information fused here but not shared yet
         self._pruned_at = self.filter.oldest_time
         self._naive_sent: dict[str, dict[int, tuple[Array, Array]]] = {}
+        if isinstance(guard, GuardConfig):
+            guard = NeighbourGuard(nbrs, guard)
+        if guard is not None:
+            if fusion != "channel":
+                raise ValidationError("a guard needs channel fusion (it withdraws what came over a link)")
+            if set(guard.links) != set(nbrs):
+                raise ValidationError(f"the guard's links {sorted(guard.links)} are not the neighbours {sorted(nbrs)}")
+        self.guard: NeighbourGuard | None = guard
 
     def __repr__(self) -> str:
         return f"FusionNode({self.name!r}, neighbors={list(self.neighbors)}, {self.filter!r})"
@@ -488,11 +539,16 @@ class FusionNode:
         else:
             f.predict(t, u)
         self._prune()
-        if self._held:
-            self._release_held(t)
+        if self._tree_held:
+            self._release_tree_held(t)
 
-    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel) -> None:
-        """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window)."""
+    def update(self, t: float, z: ArrayLike, sensor: MeasurementModel, *, share: bool = True) -> tuple[Array, Array]:
+        """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window).
+
+        Returns the single-state information ``(Lambda, y)`` it added. With ``share=False``
+        it is fused here but held back from the neighbours until
+        :meth:`share_local_information` (or removed by :meth:`withdraw_local_information`).
+        """
         f = self.filter
         t = as_time(t)
         if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
@@ -500,10 +556,12 @@ class FusionNode:
                 f"measurement time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
             )
         Lam, y = f.update(t, z, sensor)
-        self._add_own(t, Lam, y)
+        self._add_own(t, Lam, y, share)
         self._prune()
+        return Lam, y
 
-    def add_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> None:
+    def add_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike, *,
+                              share: bool = True) -> None:
         """Fuse information produced by a local estimator at time ``t``.
 
         For sensors whose measurements are not fused by the EIF itself, such as a
@@ -511,7 +569,10 @@ class FusionNode:
         minus that of its prediction, in information form). The information counts as
         this node's own, exactly like a measurement: it is shared with the
         neighbours and never double counted. ``info_matrix`` must be symmetric
-        positive semi-definite, of the state's dimension.
+        positive semi-definite, of the state's dimension. With ``share=False`` it is
+        fused here but held back from the neighbours (a tentative data association, for
+        instance) until :meth:`share_local_information`, or removed by
+        :meth:`withdraw_local_information`.
         """
         f = self.filter
         t = as_time(t)
@@ -526,15 +587,68 @@ class FusionNode:
         with f.transaction():
             f.add_information_batch([(t, Lam, y)], validate=False)
             f.estimate()
-        self._add_own(t, Lam, y)
+        self._add_own(t, Lam, y, share)
         self._prune()
 
-    def _add_own(self, t: float, Lam: Array, y: Array) -> None:
-        self._own.add(t, Lam, y)
+    def share_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike) -> bool:
+        """Start sharing own information fused earlier with ``share=False``: it moves from the
+        held-back store to what the node shares, and its time is marked changed on every link,
+        so the next (partial) messages carry it. Returns False (nothing to share) when ``t`` has
+        left the window."""
+        f = self.filter
+        t = as_time(t)
+        if t < f.oldest_time - f.time_tol:
+            return False
+        Lam = np.asarray(info_matrix, dtype=float)
+        y = np.asarray(info_vector, dtype=float)
+        self._held.subtract([(t, Lam, y)])
         self._total.add(t, Lam, y)
-        key = time_key(t)
-        for ch in self.channels.values():
-            ch.dirty.add(key)
+        self._mark_dirty([time_key(t)])
+        return True
+
+    def withdraw_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike, *,
+                                   shared: bool = True) -> bool:
+        """Remove own information added earlier at ``t`` (a front end found it suspect).
+
+        The filter and the node's own information lose ``(info_matrix, info_vector)``. If it
+        was shared (``shared``), the time is marked changed on every link, so the next
+        messages carry the smaller block (or clear the time): the neighbours replace what
+        they stored and lose it too, and forward the change. Removing information is never
+        over-confident. Returns False (and changes nothing) when ``t`` is outside the window:
+        older information is marginalized into the window's base and stays.
+        """
+        f = self.filter
+        t = as_time(t)
+        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
+            return False
+        Lam = np.asarray(info_matrix, dtype=float)
+        y = np.asarray(info_vector, dtype=float)
+        with f.transaction():
+            f.add_information_batch([(t, -Lam, -y)], validate=False)
+            f.estimate()
+        self._own.subtract([(t, Lam, y)])
+        if shared:
+            self._total.subtract([(t, Lam, y)])
+            self._mark_dirty([time_key(t)])
+        else:
+            self._held.subtract([(t, Lam, y)])
+        return True
+
+    def _add_own(self, t: float, Lam: Array, y: Array, share: bool = True) -> None:
+        self._own.add(t, Lam, y)
+        if share:
+            self._total.add(t, Lam, y)
+            self._mark_dirty([time_key(t)])
+        else:
+            self._held.add(t, Lam, y)
+
+    def _mark_dirty(self, keys: Iterable[int], skip: str | None = None) -> None:
+        """The value for every neighbour but ``skip`` changed at ``keys``: the next messages carry them."""
+        keys = list(keys)
+        if keys:
+            for j, ch in self.channels.items():
+                if j != skip:
+                    ch.dirty.update(keys)
 
     def estimate(self, t: float | None = None) -> tuple[Array, Array]:
         """Fused ``(mean, cov)`` of the newest state, or of the window state at ``t``."""
@@ -552,8 +666,11 @@ class FusionNode:
 
     # ------------------------------------------------------------------ messages
     def _values_for(self, ch: ChannelFilter, keys: np.ndarray) -> tuple[Array, Array]:
-        """``V(t) = T(t) - M(t)`` for ``ch``'s neighbour at ``keys`` (rounding noise removed)."""
+        """``V(t) = T(t) - M(t)`` for ``ch``'s neighbour at ``keys`` (rounding noise removed);
+        ``T(t)`` for a quarantined neighbour, whose information ``T`` does not hold."""
         infos, vecs = self._total.values_at(keys)
+        if self.is_quarantined(ch.remote):
+            return infos, vecs
         m_info, m_vec = ch.values_at(keys)
         held = m_info.any(axis=(1, 2)) | m_vec.any(axis=1)
         if held.any():
@@ -657,7 +774,7 @@ class FusionNode:
             raise self._reject("previous-incarnation",
                                f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
         last = ch.last_seq if msg.epoch == ch.epoch else -1
-        if msg.seq > last + MAX_SEQ_JUMP:
+        if msg.seq > last + MAX_SEQ_JUMP and self.frame_key is None:
             raise self._reject("sequence-jump", f"sequence number {msg.seq} from {msg.src!r} jumps past {last}")
         return ch
 
@@ -674,45 +791,54 @@ class FusionNode:
             msg = decode(data, self.frame_key, self.max_message_bytes)
         except MessageError as exc:
             raise self._reject(getattr(exc, "reason", "malformed"), str(exc)) from None
-        if self.tree is not None and not self._tree_heard(msg):
-            return 0     # used by the tree rule only (a beacon, another epoch, not a tree link)
-        ch = self._check(msg)
-        self.stats.duplicates += int(msg.epoch == ch.epoch and msg.seq == ch.last_seq)
-        f = self.filter
-        if msg.naive:
-            plan = None
-            if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
-                return 0
-            inside = msg.times >= f.oldest_time - f.time_tol
-            deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
-            outside, changed = int(np.count_nonzero(~inside)), time_keys(msg.times[inside])
-        else:
-            plan = ch.plan(msg, f.oldest_time, f.time_tol)
-            deltas, outside, changed = plan.deltas, plan.outside, plan.changed
-        deltas, too_far = self._within_reach(deltas)
-        if too_far and plan is not None:
-            plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
-            deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
-        self._apply(msg, ch, plan, deltas, changed, complete=not too_far)
-        self._follow_held(deltas)
-        if msg.dst_epoch == self.epoch:
-            ch.acknowledged(msg.ack, msg.ack_mask)
-        self.stats.messages_received += 1
-        self.stats.blocks_outside_window += outside
-        self.stats.blocks_too_far_ahead += len(too_far)
-        if outside:
-            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
-        self._prune()
+        except Exception as exc:   # a defect of the decoder: the message is still rejected, nothing changed
+            raise self._reject("internal", f"message could not be decoded: {type(exc).__name__}: {exc}") from exc
+        try:
+            if self.tree is not None and not self._tree_heard(msg):
+                return 0     # used by the tree rule only (a beacon, another epoch, not a tree link)
+            ch = self._check(msg)
+            f = self.filter
+            if msg.naive:
+                plan = None
+                if msg.epoch == ch.epoch and msg.seq <= ch.last_seq:
+                    self.stats.duplicates += int(msg.seq == ch.last_seq)
+                    return 0
+                inside = msg.times >= f.oldest_time - f.time_tol
+                deltas = [(t, L, y) for t, L, y, ok in zip(msg.times.tolist(), msg.info, msg.vec, inside) if ok]
+                outside, changed = int(np.count_nonzero(~inside)), time_keys(msg.times[inside])
+            else:
+                plan = ch.plan(msg, f.oldest_time, f.time_tol)
+                deltas, outside, changed = plan.deltas, plan.outside, plan.changed
+            deltas, too_far = self._within_reach(deltas)
+            if plan is not None:
+                too_far = sorted(set(too_far) | set(self._entries_out_of_reach(ch, plan)))
+            if too_far and plan is not None:
+                plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
+                deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
+        except MessageError:
+            raise   # counted by _check (and the tree rule's changes undone by _reject)
+        except Exception as exc:   # nothing changed yet (the tree rule's changes are undone by _reject)
+            raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
+        self._apply(msg, ch, plan, deltas, changed, too_far, outside)
+        self._tree_undo = None
         return len(deltas)
 
     def _within_reach(self, deltas: list) -> tuple[list, list]:
-        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest."""
+        """Split ``deltas`` into those within ``max_ahead`` seconds / ``max_held`` held times and the rest.
+
+        A delta at a time already held back changes that entry and holds no new time: it is
+        always within reach (else a full message would turn it into a zero entry of the
+        channel while the store keeps the old value, which is double counted later).
+        """
         f = self.filter
         horizon = f.latest_time + self.max_ahead + f.time_tol
         room = self.max_held - self._total.count_after(time_key(f.latest_time + f.time_tol))
+        held = self._total.keys
         ok, far = [], []
         for d in deltas:
             if d[0] <= f.latest_time + f.time_tol:
+                ok.append(d)
+            elif find_keys(held, np.array([time_key(d[0])]))[0][0]:
                 ok.append(d)
             elif d[0] <= horizon and room > 0:
                 ok.append(d)
@@ -721,45 +847,198 @@ class FusionNode:
                 far.append(d[0])
         return ok, far
 
+    def _entries_out_of_reach(self, ch: ChannelFilter, plan) -> list[float]:
+        """Times of entries ``plan`` would newly store in ``ch`` beyond ``max_ahead`` seconds or
+        ``max_held`` times ahead of the newest state.
+
+        Zero entries (a cleared time, a zero block) change no information, so
+        :meth:`_within_reach` never sees them; without this bound a message could make the
+        channel store any number of them far in the future.
+        """
+        f = self.filter
+        latest = time_key(f.latest_time + f.time_tol)
+        ahead = plan.keys[plan.keys > latest]
+        if not ahead.size:
+            return []
+        new = ahead[~find_keys(ch.keys, ahead)[0]]
+        if not new.size:
+            return []
+        horizon = time_key(f.latest_time + self.max_ahead + f.time_tol)
+        room = self.max_held - (ahead.size - new.size)
+        within = new[new <= horizon][:max(room, 0)]
+        return (np.setdiff1d(new, within, assume_unique=True) / 1e9).tolist()
+
     def _apply(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list, changed: np.ndarray,
-               complete: bool) -> None:
-        """Apply a planned message to the filter, the channel and the stores, all or nothing."""
+               too_far: list, outside: int) -> None:
+        """Apply a planned message to the filter, the channels, the stores and the statistics, with
+        the acknowledgement it carries and the pruning it causes: all or nothing.
+
+        ``too_far``: times held back (the message is then not acknowledged); ``outside``:
+        blocks older than the window (ignored).
+
+        With a guard (:mod:`dfusion.fusion.guard`) the blocks the message adds are tested as
+        they are applied, inside the same transaction; a message that completes a quarantine
+        also withdraws everything that came over the link. A message over a quarantined link
+        is only stored in the channel, and is a probation test of the neighbour's whole
+        contribution (which may end the quarantine). An exception anywhere undoes all of it,
+        the guard's record of the link included.
+        """
         f = self.filter
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
         cp_filter = f.checkpoint()
         cp_total = self._total.checkpoint()
-        cp_channel = ch.state()
-        dirty = {j: set(c.dirty) for j, c in self.channels.items()}
+        cp_own = self._own.checkpoint()
+        cp_held = self._held.checkpoint()
+        cp_tree_held = dict(self._tree_held)
+        cp_channels = {j: c.state() for j, c in self.channels.items()}
+        pruned_at = self._pruned_at
+        guard = self.guard
+        cp_guard = guard.state(msg.src) if guard is not None else None
         restarted = ch.epoch is not None and msg.epoch > ch.epoch
+        duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
+        event = None
         try:
-            if now:
-                try:
-                    f.add_information_batch(now, validate=False)
-                    f.estimate()   # the belief must still be proper
-                except DfusionError as exc:
-                    raise _Numerical(str(exc)) from None
-            ch.commit(msg, plan, complete)
-            if restarted:
-                ch.remote_restarted()
-            if deltas:
-                self._total.add_many(deltas)
-            if changed.size:
-                keys = changed.tolist()
-                for j, other in self.channels.items():
-                    if j != msg.src:
-                        other.dirty.update(keys)
+            if guard is not None and guard.is_quarantined(msg.src):
+                ch.commit(msg, plan, complete=not too_far)
+                if restarted:
+                    ch.remote_restarted()
+                event = self._probation(msg.src, ch)
+            else:
+                verdict = None
+                if now:
+                    try:
+                        if guard is None:
+                            f.add_information_batch(now, validate=False)
+                        else:
+                            verdict = self._add_tested(now)
+                        f.estimate()   # the belief must still be proper
+                    except DfusionError as exc:
+                        raise _Numerical(str(exc)) from None
+                ch.commit(msg, plan, complete=not too_far)
+                if restarted:
+                    ch.remote_restarted()
+                if deltas:
+                    self._total.add_many(deltas)
+                self._mark_dirty(changed.tolist(), skip=msg.src)
+                self._follow_tree_held(deltas)
+                if guard is not None:
+                    guard.links[msg.src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
+                    if verdict is not None and guard.judge(msg.src, verdict[0], verdict[1]):
+                        self._withdraw(msg.src)
+                        event = "quarantined"
+            if msg.dst_epoch == self.epoch:
+                ch.acknowledged(msg.ack, msg.ack_mask)
+            self._prune()   # an inserted state may have pushed the oldest one out
         except BaseException as exc:
             f.restore(cp_filter)
             self._total.restore(cp_total)
-            ch.restore(cp_channel)
+            self._own.restore(cp_own)
+            self._held.restore(cp_held)
+            self._tree_held = cp_tree_held
             for j, c in self.channels.items():
-                c.dirty = dirty[j]
+                c.restore(cp_channels[j])
+            self._pruned_at = pruned_at
+            if guard is not None:
+                guard.restore(msg.src, cp_guard)
             if isinstance(exc, _Numerical):
                 raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
             if isinstance(exc, Exception):
                 raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
             raise
+        self.stats.messages_received += 1
+        self.stats.duplicates += int(duplicate)
+        self.stats.blocks_outside_window += outside
+        self.stats.blocks_too_far_ahead += len(too_far)
+        if outside:
+            log.debug("%s: %d blocks from %s older than the window were ignored", self.name, outside, msg.src)
+        if event == "quarantined":
+            cfg = guard.config
+            log.warning("%s: neighbour %s quarantined (%d of its last %d tested messages failed the consistency "
+                        "test); what came over the link is withdrawn", self.name, msg.src, cfg.failures, cfg.window)
+        elif event == "released":
+            log.warning("%s: neighbour %s leaves quarantine after %d consistent messages; its information is fused "
+                        "again", self.name, msg.src, guard.config.release)
+
+    # ------------------------------------------------------------------ guard (dfusion.fusion.guard)
+    def is_quarantined(self, neighbor: str) -> bool:
+        """Whether the link to ``neighbor`` is quarantined (its information withdrawn)."""
+        return self.guard is not None and self.guard.is_quarantined(neighbor)
+
+    def health(self) -> str:
+        """``"ok"``, ``"degraded"`` or ``"lost"`` (:meth:`NeighbourGuard.health`; always ok without a guard)."""
+        return "ok" if self.guard is None else self.guard.health()
+
+    def _add_tested(self, entries: list[tuple[float, Array, Array]]) -> tuple[float, int, int]:
+        """Add a message's blocks to the filter, testing the additions jointly (inside the
+        caller's transaction). Returns ``(D^2, dof, blocks tested)``
+        (:func:`dfusion.fusion.guard.information_statistic`)."""
+        f = self.filter
+        add, other = split_blocks(entries)
+        if other:
+            f.add_information_batch(other, validate=False)
+        if not add:
+            return 0.0, 0, 0
+        mu0, P0, mu1 = f.add_information_moments(add)
+        stat, dof = information_statistic(add, mu0, P0, mu1)
+        return stat, dof, len(add)
+
+    def _link_blocks(self, ch: ChannelFilter, sign: float = 1.0) -> tuple[list, list]:
+        """The channel's stored blocks in the window as ``(t, info, vec)`` times ``sign``:
+        ``(those the filter holds, all)``; the others are newer than the newest state and wait
+        in the total store for :meth:`predict`."""
+        if not len(ch):
+            return [], []
+        f = self.filter
+        latest = f.latest_time + f.time_tol
+        live = nonzero_blocks(ch.info, ch.vec) & (ch.times >= f.oldest_time - f.time_tol)
+        every = [(float(ch.times[i]), sign * ch.info[i], sign * ch.vec[i]) for i in np.flatnonzero(live).tolist()]
+        return [e for e in every if e[0] <= latest], every
+
+    def _withdraw(self, neighbor: str) -> None:
+        """Remove everything that came over the link to ``neighbor`` (quarantine): from the filter
+        and from what the node shares; the other links are sent the changed times. Times held
+        after a change of the tree are let go first (the filter then holds what its channels
+        delivered, :meth:`_release_tree_held`): what it subtracts is in the filter once."""
+        self._release_tree_held(math.inf)
+        now, every = self._link_blocks(self.channels[neighbor], -1.0)
+        if now:
+            self.filter.add_information_batch(now, validate=False)
+            self.filter.estimate()
+        changed = self._total.subtract([(t, -L, -y) for t, L, y in every])
+        self._mark_dirty(changed.tolist(), skip=neighbor)
+
+    def _reinstate(self, neighbor: str) -> None:
+        """Add the neighbour's current contribution back (the link leaves quarantine); held
+        times are let go first, as in :meth:`_withdraw`."""
+        self._release_tree_held(math.inf)
+        now, every = self._link_blocks(self.channels[neighbor])
+        if now:
+            self.filter.add_information_batch(now, validate=False)
+            self.filter.estimate()
+        if every:
+            self._total.add_many(every)
+            self._mark_dirty(time_keys(np.array([e[0] for e in every])).tolist(), skip=neighbor)
+
+    def _probation(self, neighbor: str, ch: ChannelFilter) -> str | None:
+        """A message over a quarantined link: test the neighbour's whole current contribution
+        against this node's belief (a trial: nothing is kept); after ``release`` passes in a
+        row, take it back. Returns ``"released"`` then."""
+        now, _ = self._link_blocks(ch)
+        add, _ = split_blocks(now)
+        if not add:
+            return None
+        f = self.filter
+        try:
+            with f.trial():
+                mu0, P0, mu1 = f.add_information_moments(add)
+                stat, dof = information_statistic(add, mu0, P0, mu1)
+        except DfusionError:
+            stat, dof = math.inf, 1
+        if self.guard.probation(neighbor, stat, dof):
+            self._reinstate(neighbor)
+            return "released"
+        return None
 
     def _prune(self) -> None:
         oldest = self.filter.oldest_time
@@ -769,8 +1048,9 @@ class FusionNode:
         cutoff = time_key(oldest) - 1
         self._own.prune(cutoff)
         self._total.prune(cutoff)
-        for k in [k for k in self._held if k < cutoff]:
-            del self._held[k]
+        self._held.prune(cutoff)
+        for k in [k for k in self._tree_held if k < cutoff]:
+            del self._tree_held[k]
         for ch in self.channels.values():
             ch.prune(cutoff)
 
@@ -826,29 +1106,42 @@ class FusionNode:
         """Make the channels follow a change of the tree: withdraw what came over the links that
         left it (everything in a new epoch), fresh channels for the links that joined it."""
         self.neighbors = tuple(sorted(self.tree.links))
-        if not change:
-            return
-        self.stats.tree_changes += 1
-        n = self.filter.n
-        if change.new_epoch:
-            self.stats.new_epochs += 1
-            self._withdraw(list(self.channels.values()), everything=True)
-            self.channels = {j: ChannelFilter(self.name, j, n) for j in sorted(self.tree.tree_links())}
-            return
-        lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
-        if lost:
-            self._withdraw(lost)
-        for j in sorted(change.gained):
-            self.channels[j] = ChannelFilter(self.name, j, n)
+        if change:
+            self.stats.tree_changes += 1
+            n = self.filter.n
+            if change.new_epoch:
+                self.stats.new_epochs += 1
+                self._tree_withdraw(list(self.channels.values()), everything=True)
+                self.channels = {j: ChannelFilter(self.name, j, n) for j in sorted(self.tree.tree_links())}
+            else:
+                lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
+                if lost:
+                    self._tree_withdraw(lost)
+                for j in sorted(change.gained):
+                    self.channels[j] = ChannelFilter(self.name, j, n)
+        if self.guard is not None:
+            # a record per link that exists (after the withdrawal, which asks whether a link was
+            # quarantined); a quarantine outlives changes of the tree while the link exists
+            links = self.guard.links
+            for j in [j for j in links if j not in self.tree.links]:
+                del links[j]
+            for j in self.neighbors:
+                if j not in links:
+                    links[j] = LinkRecord(self.guard.config.window)
 
-    def _withdraw(self, channels: list[ChannelFilter], everything: bool = False) -> None:
+    def _tree_withdraw(self, channels: list[ChannelFilter], everything: bool = False) -> None:
         """Take what ``channels`` delivered out of the stores messages are made from (the other
         channels send those times again: per-time replacement carries the withdrawal on); the
         node's own estimate keeps it per state time until the tree delivers as much
-        (:meth:`_hold`). ``everything``: these are all the channels, what the node sends from
-        becomes its own information alone."""
+        (:meth:`_tree_hold`). ``everything``: these are all the channels, what the node sends from
+        becomes its own information alone (what it fused but does not share yet stays out).
+
+        A quarantined channel's information was withdrawn already (:meth:`_withdraw`): it is
+        not subtracted again."""
         entries: dict[int, list] = {}
         for ch in channels:
+            if self.is_quarantined(ch.remote):
+                continue
             for i in np.flatnonzero(nonzero_blocks(ch.info, ch.vec)).tolist():
                 key = int(ch.keys[i])
                 e = entries.get(key)
@@ -858,79 +1151,85 @@ class FusionNode:
                     e[1] = e[1] - ch.info[i]
                     e[2] = e[2] - ch.vec[i]
         self.stats.withdrawn_blocks += len(entries)
-        self._hold(sorted(entries))
+        self._tree_hold(sorted(entries))
         if everything:
             self._total.restore(self._own.checkpoint())
+            self._total.subtract([(e.t, e.info, e.vec) for _, e in self._held.items()])
         elif entries:
             self._total.add_many([tuple(entries[k]) for k in sorted(entries)])
             keys = list(entries)
             for ch in self.channels.values():
                 ch.dirty.update(keys)
         if self.hold <= 0:
-            self._release_held(self.filter.latest_time + 1.0)
+            self._release_tree_held(self.filter.latest_time + 1.0)
 
-    def _hold(self, keys: list[int]) -> None:
+    def _tree_hold(self, keys: list[int]) -> None:
         """Before the received information at ``keys`` changes with the tree: keep, per state time
         in the filter, what the filter holds of it (``L(t)``), so the estimate does not lose it
         until the new tree delivers as much (``docs/dynamic-topology.md``).
 
         The filter holds, per state time, the node's own information plus either ``L(t)``
-        (a held time) or what its current channels delivered ``R(t) = T(t) - own(t)``; each is
+        (a held time) or what its current channels delivered ``R(t)`` (:meth:`_received_at`); each is
         information of other nodes counted once, so either choice never double counts.
         Messages are made from ``T(t)`` alone: held information is never sent.
         """
         f = self.filter
         lo, hi = time_key(f.oldest_time) - 1, time_key(f.latest_time + f.time_tol)
-        new = np.array([k for k in keys if lo <= k <= hi and k not in self._held], dtype=np.int64)
+        new = np.array([k for k in keys if lo <= k <= hi and k not in self._tree_held], dtype=np.int64)
         if not new.size:
             return
-        total = self._total.values_at(new)
-        own = self._own.values_at(new)
+        received = self._received_at(new)
         until = f.latest_time + self.hold
         for i, k in enumerate(new.tolist()):
-            L, y = total[0][i] - own[0][i], total[1][i] - own[1][i]
+            L, y = received[0][i], received[1][i]
             if L.any() or y.any():
-                self._held[k] = (k / 1e9, L, y, until)
+                self._tree_held[k] = (k / 1e9, L, y, until)
 
-    def _follow_held(self, deltas: list) -> None:
+    def _follow_tree_held(self, deltas: list) -> None:
         """After a message was fused: at held times the filter keeps ``L(t)`` (the message's change
         of ``R(t)`` is taken out again), unless ``R(t)`` now holds at least as much information
         (``R(t) - L(t)`` positive semi-definite): then the time is no longer held."""
-        if not self._held or not deltas:
+        if not self._tree_held or not deltas:
             return
         keys = [time_key(d[0]) for d in deltas]
-        undo = [(d[0], -d[1], -d[2]) for d, k in zip(deltas, keys) if k in self._held
+        undo = [(d[0], -d[1], -d[2]) for d, k in zip(deltas, keys) if k in self._tree_held
                 and d[0] <= self.filter.latest_time + self.filter.time_tol]
         if not undo:
             return
         self._add_to_filter(undo)
-        self._release_held(None, [time_key(d[0]) for d in undo])
+        self._release_tree_held(None, [time_key(d[0]) for d in undo])
 
-    def _release_held(self, now: float | None, keys: list[int] | None = None) -> None:
+    def _release_tree_held(self, now: float | None, keys: list[int] | None = None) -> None:
         """Let held times go: those that expired by ``now`` (``hold`` seconds after they were held)
         and, among ``keys``, those whose ``R(t)`` dominates ``L(t)``: the filter takes
         ``R(t) - L(t)`` at them."""
-        if not self._held:
+        if not self._tree_held:
             return
-        go = [k for k, e in self._held.items() if now is not None and e[3] <= now]
+        go = [k for k, e in self._tree_held.items() if now is not None and e[3] <= now]
         if keys:
-            cand = np.array([k for k in keys if k in self._held and k not in go], dtype=np.int64)
+            cand = np.array([k for k in keys if k in self._tree_held and k not in go], dtype=np.int64)
             if cand.size:
-                tot, own = self._total.values_at(cand), self._own.values_at(cand)
-                R = tot[0] - own[0]
-                L = np.array([self._held[k][1] for k in cand.tolist()])
+                R = self._received_at(cand)[0]
+                L = np.array([self._tree_held[k][1] for k in cand.tolist()])
                 scale = np.maximum(np.abs(R).max(axis=(1, 2)), np.abs(L).max(axis=(1, 2)))
                 ok = np.linalg.eigvalsh(R - L)[:, 0] >= -HELD_RTOL * scale
                 go += cand[ok].tolist()
         if not go:
             return
         keys_go = np.array(sorted(set(go)), dtype=np.int64)
-        tot, own = self._total.values_at(keys_go), self._own.values_at(keys_go)
+        R, r = self._received_at(keys_go)
         change = []
         for i, k in enumerate(keys_go.tolist()):
-            t, L, y, _ = self._held.pop(k)
-            change.append((t, tot[0][i] - own[0][i] - L, tot[1][i] - own[1][i] - y))
+            t, L, y, _ = self._tree_held.pop(k)
+            change.append((t, R[i] - L, r[i] - y))
         self._add_to_filter(change)
+
+    def _received_at(self, keys: np.ndarray) -> tuple[Array, Array]:
+        """``R(t) = T(t) - own(t) + H(t)`` at ``keys``: what the current channels delivered and the
+        filter holds (``T`` is what the node shares: its shared own information and what came
+        over links that are not quarantined; ``H`` its own information not shared yet)."""
+        tot, own, held = self._total.values_at(keys), self._own.values_at(keys), self._held.values_at(keys)
+        return tot[0] - own[0] + held[0], tot[1] - own[1] + held[1]
 
     def _add_to_filter(self, entries: list) -> None:
         f = self.filter
@@ -965,6 +1264,7 @@ class FusionNode:
             self.stats.not_linked += 1
             return False
         undo = None if msg.beacon else self._tree_checkpoint()
+        self._tree_undo = undo     # a failure from here on undoes the rule's changes (_reject)
         if known is not None and msg.epoch > known:   # src restarted: what it said before no longer holds
             self._follow(self.tree.forget(src))
         self.incarnations[src] = msg.epoch
@@ -974,18 +1274,21 @@ class FusionNode:
         self._follow(self.tree.heard_from(src, TreeEpoch(msg.tree_term, msg.tree_root), parent))
         if msg.beacon or src not in self.channels or TreeEpoch(msg.tree_term, msg.tree_root) != self.tree.epoch:
             self.stats.not_fused += 1
+            self._tree_undo = None
             return False
-        self._tree_undo = undo
         return True
 
     def _tree_checkpoint(self) -> tuple:
         return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
                 {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
-                self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._held))
+                self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._tree_held),
+                None if self.guard is None else dict(self.guard.links))
 
     def _tree_restore(self, cp: tuple) -> None:
-        tree, inc, channels, states, filt, total, nbrs, stats, held = cp
-        self._held = held
+        tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links = cp
+        self._tree_held = held
+        if guard_links is not None:
+            self.guard.links = guard_links
         self.tree.restore(tree)
         self.incarnations, self.channels, self.neighbors = inc, channels, nbrs
         for j, st in states.items():
@@ -995,11 +1298,15 @@ class FusionNode:
         self.stats = stats
 
     def information_blocks(self, own: bool = False) -> tuple[np.ndarray, Array, Array]:
-        """The single-state information this node holds per state time: ``(time keys, info, vec)``
+        """The single-state information this node shares per state time: ``(time keys, info, vec)``
         (copies), its own and what it received (also blocks held back for times ahead of its
-        newest state), or with ``own`` its own only."""
-        store = self._own if own else self._total
-        return store.keys.copy(), store.info.copy(), store.vec.copy()
+        newest state), or with ``own`` its own only; both without the own information it fused
+        but does not share yet (``share=False``)."""
+        if not own:
+            return self._total.keys.copy(), self._total.info.copy(), self._total.vec.copy()
+        keys = self._own.keys.copy()
+        held = self._held.values_at(keys)
+        return keys, self._own.info - held[0], self._own.vec - held[1]
 
     @property
     def urgent(self) -> bool:
@@ -1022,6 +1329,9 @@ class _Numerical(Exception):
 
 
 def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
-    """``msg`` without the blocks at ``times``."""
-    drop = np.isin(time_keys(msg.times), time_keys(np.asarray(times)))
-    return dataclasses.replace(msg, times=msg.times[~drop], info=msg.info[~drop], vec=msg.vec[~drop])
+    """``msg`` without the blocks and the cleared times at ``times``."""
+    gone = time_keys(np.asarray(times))
+    drop = np.isin(time_keys(msg.times), gone)
+    cleared = msg.cleared[~np.isin(time_keys(msg.cleared), gone)] if msg.cleared.size else msg.cleared
+    return dataclasses.replace(msg, times=msg.times[~drop], info=msg.info[~drop], vec=msg.vec[~drop],
+                               cleared=cleared)

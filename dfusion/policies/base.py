@@ -34,3 +34,9 @@ class InformationFusionPolicy(Policy):
 
     def decide(self, fused: Estimate, sources: Sequence[Estimate]) -> Estimate:
         return fused
+
+
+def records_output(policy: Policy) -> bool:
+    """Whether a node with ``policy`` has an output of its own to record: its policy is not
+    plain information fusion (whose output is the fused estimate)."""
+    return type(policy) is not InformationFusionPolicy

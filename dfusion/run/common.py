@@ -112,7 +112,7 @@ def security_from_args(args: argparse.Namespace) -> SecurityOptions:
 
 def final_rounds(sc: Scenario) -> int:
     """Rounds of the final phase: :func:`dfusion.topology.settling_rounds` (as in ``dfusion simulate``)."""
-    return settling_rounds(sc.graph)
+    return settling_rounds(sc.tree)
 
 
 @dataclass
@@ -121,7 +121,8 @@ class Status:
 
     ``phase`` is ``"ready"`` (waiting for the start), ``"run"`` (step ``k`` at
     scenario time ``t``), ``"final"`` (after the final phase: the final
-    estimate) or ``"stopped"`` (stopped by a signal). ``output`` is the node's policy
+    estimate) or ``"stopped"`` (stopped by a signal). ``stats`` holds the node's
+    counters; a ``"run"`` publication carries them about once a second (else empty). ``output`` is the node's policy
     output (:meth:`~dfusion.fusion.node.FusionNode.output`) when its policy is not plain
     fusion: ``(source name, mean, cov)``; ``None`` otherwise.
     """

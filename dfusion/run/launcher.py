@@ -71,6 +71,7 @@ from dfusion.run.common import (
     write_secret,
 )
 from dfusion.run.links import describe as describe_links
+from dfusion.run.measurements import nodes_measurements, save_recording
 from dfusion.scenario.security import SecurityOptions, security_options
 from dfusion.run.monitor import Monitor, build_result
 from dfusion.run.supervision import (
@@ -155,12 +156,15 @@ class RunOptions:
     warm_restarts: bool = True
     #: Serve the nodes' estimates live to Foxglove on this WebSocket port (needs ``dfusion[live]``).
     foxglove: int | None = None
+    #: Nodes per OS process (a host: one Zenoh session, one loop driving its nodes); 1: a process per node.
+    nodes_per_process: int = 1
 
 
 @dataclass
 class _Proc:
-    name: str
+    name: str                            # the host: its node's name when it runs one node
     cmd: list[str]
+    nodes: list[str] = field(default_factory=list)
     popen: subprocess.Popen | None = None
     incarnations: int = 0
     killed_by_us: bool = False
@@ -186,8 +190,14 @@ class Launcher:
                                 plugins=opts.plugins)
         for name in self.sc.nodes:
             check_name(name)
+        if isinstance(opts.nodes_per_process, bool) or not isinstance(opts.nodes_per_process, int) \
+                or opts.nodes_per_process < 1:
+            raise DfusionError(f"--nodes-per-process must be a positive integer, got {opts.nodes_per_process!r}")
+        #: host name -> its nodes; a host of one node is named after it
+        self.hosts = host_groups(self.sc, opts.nodes_per_process)
+        self.host_of = {n: h for h, nodes in self.hosts.items() for n in nodes}
         for r in opts.restarts:
-            if r.node not in self.sc.nodes:
+            if r.node not in self.sc.nodes and r.node not in self.hosts:
                 raise DfusionError(f"--restart: {r.node!r} is not a node of {self.sc.path}")
         self.security = opts.security.over(scenario_security(self.sc))
         self.policy = opts.supervision
@@ -202,10 +212,13 @@ class Launcher:
         for name in self.sc.nodes:
             self.security.tls_files(name)                 # and every node's
         self.rounds = final_rounds(self.sc)
-        names = sorted(self.sc.nodes)
         scheme = "tls" if self.tls is not None else "tcp"
-        self.endpoints = dict(zip(names, free_tcp_endpoints(len(names), scheme=scheme)))
-        self.procs = {name: _Proc(name, self._command(name)) for name in names}
+        #: host name -> its session's listen endpoint
+        self.host_endpoints = dict(zip(self.hosts, free_tcp_endpoints(len(self.hosts), scheme=scheme)))
+        #: node name -> the endpoint of its host's session
+        self.endpoints = {n: self.host_endpoints[h] for n, h in sorted(self.host_of.items())}
+        self.procs = {h: _Proc(h, self._command(h), list(nodes)) for h, nodes in self.hosts.items()}
+        self.world = None
         self.monitor: Monitor | None = None
         self.start: float | None = None
         self.stop_reason: str | None = None
@@ -242,14 +255,21 @@ class Launcher:
         log.info("network key: %s (%s)", self.key_file, self.key_source)
 
     # ------------------------------------------------------------------ commands and processes
-    def _command(self, name: str) -> list[str]:
+    def _command(self, host: str) -> list[str]:
         o, sc = self.opts, self.sc
-        cmd = [o.python, "-m", "dfusion.run.node_process", "--scenario", str(Path(o.scenario).resolve()),
-               "--node", name, "--run-dir", str(self.run_dir), "--network", self.network, "--run-id", self.run_id,
-               "--listen", self.endpoints[name], "--speed", repr(o.speed), "--network-key-file", str(self.key_file),
-               "--round-timeout", repr(o.round_timeout)]
-        for nb in sorted(sc.graph.neighbors(name)):
-            cmd += ["--connect", self.endpoints[nb]]
+        nodes = self.hosts[host]
+        cmd = [o.python, "-m", "dfusion.run.node_process", "--scenario", str(Path(o.scenario).resolve())]
+        for name in nodes:
+            cmd += ["--node", name]
+        if len(nodes) > 1:
+            cmd += ["--host", host]
+        cmd += ["--run-dir", str(self.run_dir), "--network", self.network, "--run-id", self.run_id,
+                "--listen", self.host_endpoints[host], "--speed", repr(o.speed), "--network-key-file",
+                str(self.key_file), "--round-timeout", repr(o.round_timeout),
+                "--measurements", str(self.run_dir / "measurements")]
+        peers = sorted({self.host_of[nb] for name in nodes for nb in sc.neighbors(name)} - {host})
+        for peer in peers:
+            cmd += ["--connect", self.host_endpoints[peer]]
         if o.seed is not None:
             cmd += ["--seed", str(o.seed)]
         if o.fusion is not None:
@@ -258,7 +278,7 @@ class Launcher:
             cmd += ["--duration", repr(o.duration)]
         if o.emulate_links:
             cmd.append("--emulate-links")
-        tls = self.security.tls_files(name)
+        tls = self.security.tls_files(nodes[0])   # one session per host: its first node's certificate
         if tls is not None:
             cmd += ["--tls-ca", str(Path(tls.ca).resolve()), "--tls-cert", str(Path(tls.cert).resolve()),
                     "--tls-key", str(Path(tls.key).resolve())]
@@ -277,10 +297,11 @@ class Launcher:
         d.mkdir(exist_ok=True)
         pypath = self._env()["PYTHONPATH"]
         for name, p in self.procs.items():
+            what = f"node {name}" if p.nodes == [name] else f"host {name} (nodes {', '.join(p.nodes)})"
             (d / f"{name}.sh").write_text(
                 "#!/bin/sh\n"
-                f"# node {name} of run {self.run_id} (network {self.network}). Run this while dfusion run is\n"
-                "# running to restart the node by hand: it joins the run (it refuses to start when the node\n"
+                f"# {what} of run {self.run_id} (network {self.network}). Run this while dfusion run is\n"
+                "# running to restart it by hand: it joins the run (it refuses to start when one of its nodes\n"
                 "# already runs or the launcher is gone).\n"
                 f"cd {shlex.quote(os.getcwd())} && PYTHONPATH={shlex.quote(pypath)} exec {shlex.join(p.cmd)}\n")
 
@@ -309,7 +330,7 @@ class Launcher:
         p.incarnations += 1
         p.killed_by_us = False
         p.started = time.monotonic()
-        log.info("node %s started (pid %d, incarnation %d%s)", name, p.popen.pid, p.incarnations,
+        log.info("%s started (pid %d, incarnation %d%s)", _what(p), p.popen.pid, p.incarnations,
                  ", from the warm standby" if warm else "")
         self._write_pids()
 
@@ -352,18 +373,18 @@ class Launcher:
             pass
 
     def _kill(self, name: str) -> None:
-        p = self.procs[name]
+        p = self.procs[self.host_of.get(name, name)]
         if p.popen is not None and p.popen.poll() is None:
             p.killed_by_us = True
             self._signal_group(p.popen, signal.SIGKILL)
             p.popen.wait()
-            log.warning("node %s killed (SIGKILL) at scenario time %.2f", name, self.now())
+            log.warning("%s killed (SIGKILL) at scenario time %.2f", _what(p), self.now())
 
     def _external_pids(self) -> list[int]:
         """Nodes started by hand that hold their lock now (not the launcher's children)."""
         mine = {p.popen.pid for p in self.procs.values() if p.popen is not None}
         out = []
-        for name in self.procs:
+        for name in self.host_of:
             pid = lock_holder(node_lock_path(self.run_dir, name))
             if pid is not None and pid > 0 and pid not in mine:
                 out.append(pid)
@@ -414,8 +435,8 @@ class Launcher:
             return ""
         return "\n".join(text[-lines:])
 
-    def _finished(self, name: str) -> bool:
-        return (self.run_dir / "results" / f"{name}.json").exists()
+    def _finished(self, host: str) -> bool:
+        return all((self.run_dir / "results" / f"{n}.json").exists() for n in self.procs[host].nodes)
 
     # ------------------------------------------------------------------ supervision
     def _check_exits(self) -> None:
@@ -430,13 +451,13 @@ class Launcher:
             if p.killed_by_us or (rc == 0 and finished):
                 continue
             if rc == EXIT_ALREADY_RUNNING:   # an incarnation started by hand holds the node's lock
-                log.warning("node %s: an incarnation started by hand runs: following it", name)
+                log.warning("%s: an incarnation started by hand runs: following it", _what(p))
                 continue
             reason = exit_reason(rc, finished)
             if rc > 0:
-                log.error("node %s: %s; its log ends with:\n%s", name, reason, self._log_tail(name))
+                log.error("%s: %s; its log ends with:\n%s", _what(p), reason, self._log_tail(name))
             if self.start is None:   # before the run: a configuration error, restarting would not help
-                self.failures.append(f"node {name} {reason} before the start")
+                self.failures.append(f"{_what(p)} {reason} before the start")
                 continue
             self._plan_restart(p, reason)
 
@@ -444,27 +465,29 @@ class Launcher:
         now = time.monotonic()
         event: dict[str, Any] = {"node": p.name, "t": round(self.now(), 3), "reason": reason,
                                  "restarted": False, "backoff_s": None, "back_after_s": None, "by_hand": False}
+        if p.nodes != [p.name]:
+            event["nodes"] = list(p.nodes)   # a host: all its nodes went, and come back together
         self.events.append(event)
         pol = self.policy
         if not pol.enabled or p.restarts >= pol.max_restarts:
             why = "supervision is off" if not pol.enabled else f"restart limit {pol.max_restarts} reached"
             p.gave_up = True
-            log.error("node %s %s at scenario time %.2f; not restarted (%s): restart it by hand with "
-                      "sh %s", p.name, reason, self.now(), why, self.run_dir / "commands" / f"{p.name}.sh")
+            log.error("%s %s at scenario time %.2f; not restarted (%s): restart it by hand with "
+                      "sh %s", _what(p), reason, self.now(), why, self.run_dir / "commands" / f"{p.name}.sh")
             event["given_up"] = why
             p.waiting_back = event   # a restart by hand is still timed
             event["_exit"] = now
-            event["_epochs"] = len(self.monitor.records[p.name].epochs) if self.monitor is not None else 0
+            event["_epochs"] = len(self.monitor.records[p.nodes[0]].epochs) if self.monitor is not None else 0
             return
         p.in_a_row = 1 if now - p.started >= pol.stable else p.in_a_row + 1
         delay = pol.delay(p.in_a_row)
         p.restart_at = now + delay
         event["backoff_s"] = round(delay, 3)
         event["_exit"] = now
-        event["_epochs"] = len(self.monitor.records[p.name].epochs) if self.monitor is not None else 0
+        event["_epochs"] = len(self.monitor.records[p.nodes[0]].epochs) if self.monitor is not None else 0
         p.waiting_back = event
-        log.warning("node %s %s at scenario time %.2f: restarting it in %.2f s (restart %d of at most %d)",
-                    p.name, reason, self.now(), delay, p.restarts + 1, pol.max_restarts)
+        log.warning("%s %s at scenario time %.2f: restarting it in %.2f s (restart %d of at most %d)",
+                    _what(p), reason, self.now(), delay, p.restarts + 1, pol.max_restarts)
 
     def _supervise(self) -> None:
         """Planned restarts that are due; incarnations started by hand; the new incarnations' return."""
@@ -472,12 +495,12 @@ class Launcher:
         for name, p in self.procs.items():
             child_running = p.popen is not None and p.popen.poll() is None
             if not child_running:
-                holder = lock_holder(node_lock_path(self.run_dir, name))
+                holder = lock_holder(node_lock_path(self.run_dir, p.nodes[0]))   # a host holds all its nodes' locks
                 ext = holder if holder is not None and holder > 0 else None
                 if ext is not None and ext != p.external:
                     p.by_hand += 1
                     p.restart_at = None
-                    log.warning("node %s: an incarnation started by hand runs (pid %d): following it", name, ext)
+                    log.warning("%s: an incarnation started by hand runs (pid %d): following it", _what(p), ext)
                     if p.waiting_back is not None:
                         p.waiting_back["by_hand"] = True
                 if ext != p.external:
@@ -491,11 +514,11 @@ class Launcher:
                 self._spawn(name)
             ev = p.waiting_back
             if ev is not None and self.monitor is not None:
-                rec = self.monitor.records[name]
+                rec = self.monitor.records[p.nodes[0]]
                 if len(rec.epochs) > ev["_epochs"] and rec.phase in ("run", "final"):
                     ev["back_after_s"] = round(now - ev["_exit"], 3)
                     p.waiting_back = None
-                    log.warning("node %s is back %.2f s after it went (scenario time %.2f)", name,
+                    log.warning("%s is back %.2f s after it went (scenario time %.2f)", _what(p),
                                 ev["back_after_s"], self.now())
 
     def _running(self) -> list[str]:
@@ -515,22 +538,36 @@ class Launcher:
         for stale in [self.run_dir / "start", *self.run_dir.joinpath("results").glob("*.json")]:
             stale.unlink(missing_ok=True)
         self._write_key()
+        self._write_measurements()
         (self.run_dir / "run.json").write_text(json.dumps({
             "run_id": self.run_id, "network": self.network, "scenario": str(Path(self.opts.scenario).resolve()),
             "launcher_pid": os.getpid(), "speed": self.opts.speed, "endpoints": self.endpoints,
-            "tls": self.tls is not None, "links_emulated": self.opts.emulate_links,
+            "hosts": self.hosts, "tls": self.tls is not None, "links_emulated": self.opts.emulate_links,
             "plugins": [_absolute_plugin(x) for x in self.opts.plugins],
         }, indent=1))
         self._write_commands()
 
+    def _write_measurements(self) -> None:
+        """The world of the scenario's seed, simulated once here: every node's measurements in
+        ``RUN_DIR/measurements/NAME.jsonl`` (what the nodes fuse: they need not simulate it, nor import
+        the simulator), and the monitor's reference at the end."""
+        from dfusion.sim.world import simulate_world
+
+        self.world = simulate_world(self.sc)
+        d = self.run_dir / "measurements"
+        d.mkdir(exist_ok=True)
+        for name, meas in nodes_measurements(self.sc, self.world).items():
+            save_recording(d / f"{name}.jsonl", name, meas)
+
     def run(self):
         """Launch, follow and finish the run; returns the result (``None`` if stopped)."""
         t_wall = time.monotonic()
+        t_cpu = time.process_time()
         live = None
         try:
             self._prepare_run_dir()
             self.monitor = Monitor(self.sc, self.network,
-                                   ZenohConfig(connect=tuple(self.endpoints.values()), tls=self.tls),
+                                   ZenohConfig(connect=tuple(self.host_endpoints.values()), tls=self.tls),
                                    network_key=self.key)
             if self.opts.foxglove is not None:
                 from dfusion.viz.foxglove import LiveView
@@ -553,8 +590,9 @@ class Launcher:
             if not self._follow():
                 return None
             finals = self._finals()
-            for name in self.procs:
-                if name not in finals and not any(f.startswith(f"node {name} ") for f in self.failures):
+            for name in self.host_of:
+                what = _what(self.procs[self.host_of[name]])
+                if name not in finals and not any(f.startswith(f"{what} ") for f in self.failures):
                     self.failures.append(f"node {name} did not finish")
             extra = {
                 "speed": self.opts.speed,
@@ -570,8 +608,12 @@ class Launcher:
                 "network_key": self.key_source,
                 "tls": self.tls is not None,
                 "supervision": self.supervision_report(),
+                "launcher_cpu_s": time.process_time() - t_cpu,
+                "hosts": len(self.procs),
+                "nodes_per_process": self.opts.nodes_per_process,
+                "host_nodes": {h: list(p.nodes) for h, p in self.procs.items()},
             }
-            return build_result(self.sc, self.monitor.records, finals, extra=extra)
+            return build_result(self.sc, self.monitor.records, finals, world=self.world, extra=extra)
         finally:
             self.terminate()
             if self.monitor is not None:
@@ -614,10 +656,10 @@ class Launcher:
             if self.failures:
                 raise DfusionError("; ".join(self.failures) + f" (logs in {self.run_dir / 'logs'})")
             ready = self.monitor.ready()
-            if len(ready) == len(self.procs):
+            if len(ready) == len(self.host_of):
                 return True
             if time.monotonic() > deadline:
-                missing = sorted(set(self.procs) - ready)
+                missing = sorted(set(self.host_of) - ready)
                 raise DfusionError(f"nodes not ready after {self.opts.startup_timeout:.0f} s: {missing} "
                                    f"(logs in {self.run_dir / 'logs'})")
             time.sleep(TICK)
@@ -643,7 +685,7 @@ class Launcher:
                 while self._pending and t >= self._pending[0].at:
                     r = self._pending.pop(0)
                     self._kill(r.node)
-                    self._relaunch.append((r.at + r.down, r.node))
+                    self._relaunch.append((r.at + r.down, self.host_of.get(r.node, r.node)))
                 for when, name in sorted(self._relaunch):
                     if t >= when:
                         self._relaunch.remove((when, name))
@@ -654,7 +696,7 @@ class Launcher:
                     shown = (max(0, self.monitor.progress()), len(self.monitor.alive()))
                     if shown != (bar.n, getattr(bar, "_alive", None)):
                         bar.n, bar._alive = shown
-                        bar.set_postfix_str(f"alive {shown[1]}/{len(self.procs)}", refresh=False)
+                        bar.set_postfix_str(f"alive {shown[1]}/{len(self.host_of)}", refresh=False)
                         bar.refresh()
                 running = self._running()
                 if not running and not self._relaunch and not self._pending:
@@ -670,7 +712,7 @@ class Launcher:
     def _finals(self) -> dict[str, Status]:
         finals: dict[str, Status] = {}
         self.monitor.poll()
-        for name in self.procs:
+        for name in sorted(self.host_of):
             path = self.run_dir / "results" / f"{name}.json"
             if path.exists():
                 finals[name] = Status.from_json(json.loads(path.read_text()))
@@ -679,6 +721,44 @@ class Launcher:
             else:
                 log.warning("node %s published no final estimate", name)
         return finals
+
+
+def host_groups(sc, per_process: int) -> dict[str, list[str]]:
+    """The host processes of a run: ``{host: its nodes}``, at most ``per_process`` nodes each.
+
+    One node per process: each host is named after its node. Otherwise the nodes are taken
+    in depth-first order of the tree from the first name (so that a host holds neighbours,
+    whose messages then stay inside its Zenoh session) and cut into ``ceil(n / per_process)``
+    hosts whose sizes differ by at most one, named ``host0``, ``host1``, ... (a suffix is
+    added if a node already has such a name).
+    """
+    names = sorted(sc.nodes)
+    if per_process <= 1:
+        return {n: [n] for n in names}
+    order, seen, stack = [], set(), [names[0]]
+    while stack:
+        u = stack.pop()
+        if u in seen:
+            continue
+        seen.add(u)
+        order.append(u)
+        stack.extend(sorted(set(sc.neighbors(u)) - seen, reverse=True))
+    count = -(-len(order) // per_process)
+    base, extra = divmod(len(order), count)
+    prefix = "host"
+    while any(n.startswith(prefix) for n in names):
+        prefix += "_"
+    hosts, i = {}, 0
+    for h in range(count):
+        size = base + (h < extra)
+        hosts[f"{prefix}{h}"] = order[i:i + size]
+        i += size
+    return hosts
+
+
+def _what(p: _Proc) -> str:
+    """``node NAME``, or ``host NAME (nodes ...)`` for a process of several nodes."""
+    return f"node {p.name}" if p.nodes == [p.name] else f"host {p.name} (nodes {', '.join(p.nodes)})"
 
 
 def scenario_security(sc) -> SecurityOptions:

@@ -33,7 +33,6 @@ import numpy as np
 from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 from dfusion.scenario.spec import Scenario
-from dfusion.sim.world import simulate_world
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +63,21 @@ def world_measurements(sc: Scenario, node: str, world=None) -> list[OwnMeasureme
     """``node``'s measurements in scenario ``sc`` (the world of ``sc.seed``), in fusing order."""
     if node not in sc.nodes:
         raise ValidationError(f"{node!r} is not a node of {sc.path}")
+    return nodes_measurements(sc, world, [node])[node]
+
+
+def nodes_measurements(sc: Scenario, world=None, nodes: Iterable[str] | None = None) -> dict[str, list[OwnMeasurement]]:
+    """Every node's measurements (or those of ``nodes``) in the world of ``sc.seed``, in fusing order."""
     if world is None:
+        from dfusion.sim.world import simulate_world   # a node given a recording never simulates the world
+
         world = simulate_world(sc)
-    return _ordered(OwnMeasurement(m.t, np.asarray(m.z, float), m.arrival) for m in world.measurements if m.node == node)
+    out: dict[str, list[OwnMeasurement]] = {n: [] for n in (sorted(sc.nodes) if nodes is None else nodes)}
+    for m in world.measurements:
+        mine = out.get(m.node)
+        if mine is not None:
+            mine.append(OwnMeasurement(m.t, np.asarray(m.z, float), m.arrival))
+    return {n: _ordered(meas) for n, meas in out.items()}
 
 
 def load_recording(path: str | Path, node: str) -> list[OwnMeasurement]:

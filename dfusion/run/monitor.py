@@ -145,7 +145,8 @@ class Monitor:
         """Record one publication of ``rec``'s node."""
         if st.epoch not in rec.epochs:
             rec.epochs.append(st.epoch)
-        rec.stats[st.epoch] = st.stats
+        if st.stats or st.epoch not in rec.stats:   # a step publication carries the counters once a second
+            rec.stats[st.epoch] = st.stats
         if st.phase == "ready":
             rec.ready = True
         elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
@@ -309,6 +310,8 @@ def build_result(
             "measurements_lost": len(fin.lost) if fin is not None else 0,
             "liveliness_losses": rec.losses,
             "max_lag_wall_s": max((s.get("max_lag_ms", 0) for s in per_epoch), default=0) / 1000,
+            "cpu_s": total.get("cpu_ms", 0) / 1000,
+            "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
         }
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs)
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
@@ -325,9 +328,15 @@ def build_result(
         "fused": delivered - tsum["messages_rejected"] - ignored, "rejected": tsum["messages_rejected"],
         "ignored": ignored, "final_rounds": 0, "final_rounds_over_network": True,
     }
+    speed = (extra or {}).get("speed", 1.0)
+    wall = sc.duration / speed   # wall seconds of the run proper (start to the scenario's end)
     result.metrics["run"] = {
         "nodes": run_nodes,
         "measurements_lost": len(lost),
+        # CPU per node per wall second: every host process's CPU (all its threads) from the start to its
+        # end, shared among its nodes; and the nodes' own work in their loops
+        "cpu_ms_per_node_per_s": 1000 * sum(v["host_cpu_s"] for v in run_nodes.values()) / len(run_nodes) / wall,
+        "node_cpu_ms_per_node_per_s": 1000 * sum(v["cpu_s"] for v in run_nodes.values()) / len(run_nodes) / wall,
         **(extra or {}),
     }
     return result
@@ -352,13 +361,25 @@ def run_table(result) -> str:
         if bits:
             lines.append(f"  {name}: " + "; ".join(bits))
     lag = max((v.get("max_lag_wall_s", 0.0) for v in run.get("nodes", {}).values()), default=0.0)
+    cpu_lines = []
+    if run.get("cpu_ms_per_node_per_s"):
+        cpu = (f"CPU per node per wall second: {run['cpu_ms_per_node_per_s']:.1f} ms (its process's share, every "
+               f"thread), {run.get('node_cpu_ms_per_node_per_s', 0.0):.1f} ms in the node's own loop")
+        if run.get("launcher_cpu_s") is not None:
+            cpu += f"; launcher and monitor {run['launcher_cpu_s']:.1f} s"
+        cpu_lines.append("  " + cpu)
     bits = []
+    if "hosts" in run:
+        n = len(run.get("nodes", {}))
+        per = run.get("nodes_per_process", 1)
+        bits.append(f"{run['hosts']} host process{'es' if run['hosts'] != 1 else ''} for {n} nodes"
+                    + (f" (up to {per} per process)" if per > 1 else " (one per node)"))
     if "speed" in run:
         bits.append(f"speed x{run['speed']:g}, wall {run.get('wall_seconds', math.nan):.1f} s")
     bits.append(f"largest lag behind the clock {lag:.2f} s wall")
     bits.append(f"network {run.get('network', '?')}")
     head = "processes: " + ", ".join(bits)
-    return "\n".join([head] + lines)
+    return "\n".join([head] + cpu_lines + lines)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -45,6 +45,8 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +65,7 @@ from dfusion.run.measurements import (
     MeasurementLog,
     OwnMeasurement,
     load_recording,
+    nodes_measurements,
     save_recording,
     world_measurements,
 )
@@ -77,7 +80,7 @@ from dfusion.run.supervision import (
     node_lock_path,
     set_parent_death_signal,
 )
-from dfusion.sim.runner import records_output
+from dfusion.policies.base import records_output
 from dfusion.transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
 
 log = logging.getLogger("dfusion.node")
@@ -86,11 +89,46 @@ log = logging.getLogger("dfusion.node")
 POLL = 0.05
 #: Wall-clock period of the "ready" publication while waiting for the start.
 READY_PERIOD = 0.2
+#: Wall-clock period of the counters in a node's step publications (the estimate goes every step).
+STATS_PERIOD = 1.0
 EPS = 1e-9
+#: Environment variable naming a directory: each node process profiles its loop with cProfile and
+#: writes ``DIR/HOST.pstats`` when it ends (a diagnostic; ``docs/processes.md``).
+ENV_PROFILE = "DFUSION_PROFILE"
+
+
+@dataclass(frozen=True)
+class Wait:
+    """What a node's program (:meth:`NodeProcess.program`) waits for: the wall-clock
+    ``deadline``, or ``until()`` becoming true before it (checked whenever messages arrive)."""
+
+    deadline: float
+    until: Callable[[], bool] | None = None
+
+
+class StartFile:
+    """The common start time: given, or read from the launcher's start file (at most every :data:`POLL` s)."""
+
+    def __init__(self, path: str | Path | None) -> None:
+        self.path = Path(path) if path else None
+        self._next = 0.0
+
+    def read(self) -> float | None:
+        if self.path is None or time.monotonic() < self._next:
+            return None
+        self._next = time.monotonic() + POLL
+        try:
+            return float(self.path.read_text().strip())
+        except (OSError, ValueError):   # not written yet, or being written
+            return None
 
 
 class NodeProcess:
     """The real-time loop of one fusion node (see the module docstring).
+
+    :meth:`run` runs it alone in its process; a :class:`Host` runs several in one
+    process over one Zenoh session (``--node`` given several times,
+    ``dfusion run --nodes-per-process N``). The loop itself is :meth:`program`.
 
     Parameters
     ----------
@@ -108,7 +146,7 @@ class NodeProcess:
     start_file : path, optional
         A file that will hold the start time (written by the launcher).
     measurements : list of OwnMeasurement
-        This node's measurements, in fusing order.
+        This node's measurements, in fusing order (default: the scenario's world's).
     state_dir : path, optional
         Where the measurement log lives; ``run_id`` identifies the run.
     network_key : bytes, optional
@@ -155,11 +193,11 @@ class NodeProcess:
             raise DfusionError(f"speed must be a positive number, got {speed}")
         self._start_now = start is None and start_file is None   # start as soon as the session is open
         self.sc, self.name, self.network = sc, name, network
-        self.neighbors = tuple(sorted(sc.graph.neighbors(name)))
+        self.neighbors = sc.neighbors(name)
         self.zconfig = zconfig or ZenohConfig()
         self.speed = float(speed)
         self.start = start
-        self.start_file = Path(start_file) if start_file else None
+        self.start_file = StartFile(start_file)
         self.meas = measurements if measurements is not None else world_measurements(sc, name)
         self.state_dir, self.run_id, self.fsync = state_dir, run_id, fsync
         self.key = network_key
@@ -180,6 +218,7 @@ class NodeProcess:
         self.send_period = spec.send_period
         # a random epoch: a new one per incarnation
         self.node = build_node(sc, name, network_key=network_key, network=network, run=run_id or "")
+        self._records_output = records_output(self.node.policy)
         self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
                          "max_lag_ms": 0}
@@ -188,6 +227,14 @@ class NodeProcess:
         self.links: EmulatedLinks | None = None
         self.tr: ZenohTransport | None = None
         self._mlog: MeasurementLog | None = None
+        self._pub = None
+        #: CPU seconds of this node's own work in its process's main thread (its steps and receives),
+        #: counted by whoever drives it (:class:`Host`)
+        self.cpu = 0.0
+        #: this node's share of its process's CPU (every thread, Zenoh's included) since its start
+        self.host_share = 1.0
+        self._cpu_at_start: float | None = None
+        self._stats_due = 0.0
 
     # ------------------------------------------------------------------ clocks and stopping
     def request_stop(self, reason: str) -> None:
@@ -208,46 +255,41 @@ class NodeProcess:
             return -math.inf
         return (time.time() - self.start) * self.speed
 
-    def _wait_wall(self, deadline: float) -> bool:
-        """Receive messages (and send delayed ones) until the wall-clock ``deadline``; False if asked to stop."""
-        while True:
-            if self._should_stop():
-                return False
-            now = time.time()
-            if self.links is not None and self.links.next_due() <= now:
-                self.links.release_due(now)
-            left = deadline - now
-            if left <= 0:
-                return True
-            due = self.links.next_due() - now if self.links is not None else math.inf
-            if self.tr.wait(max(0.0, min(left, POLL, due))):
-                self._receive()
-
     # ------------------------------------------------------------------ the loop
     def run(self) -> int:
-        """Run to the end (or until stopped); returns the exit status (0)."""
-        try:
-            with ZenohTransport(self.network, {self.name: self.neighbors}, self.zconfig, clock=self.now) as tr:
-                self.tr = tr
-                if self.emulate_links:
-                    self.links = EmulatedLinks(self.name, node_links(self.sc.links, self.name), self.sc.seed, tr.send,
-                                               speed=self.speed)
-                self._monitor_key = monitor_key(self.network, self.name)
-                self._pub = tr.session.declare_publisher(self._monitor_key)
-                self._run()
-                if self.stop_reason is not None:
-                    log.info("%s: stopping: %s", self.name, self.stop_reason)
-                    if self.links is not None and self.links.pending():
-                        log.info("%s: %d delayed messages not sent", self.name, self.links.discard())
-                    self._publish("stopped", -1)
-        finally:
-            if self._mlog is not None:
-                self._mlog.close()
-        return 0
+        """Run to the end (or until stopped) alone in this process; returns the exit status (0)."""
+        return Host([self], network=self.network, zconfig=self.zconfig, parent_pid=self.parent_pid,
+                    watch=self.watch).run()
 
-    def _run(self) -> None:
-        if not self._wait_for_start():
-            return
+    def attach(self, tr: ZenohTransport) -> None:
+        """Use ``tr`` (opened by the host) for messages, liveliness and monitor publications."""
+        self.tr = tr
+        if self.emulate_links:
+            self.links = EmulatedLinks(self.name, node_links(self.sc.links, self.name), self.sc.seed, tr.send,
+                                       speed=self.speed)
+        self._monitor_key = monitor_key(self.network, self.name)
+        self._pub = tr.session.declare_publisher(self._monitor_key)
+
+    def stopped(self) -> None:
+        """The loop was stopped before its end (a signal, the launcher gone): say so to the monitor."""
+        log.info("%s: stopping: %s", self.name, self.stop_reason)
+        if self.links is not None and self.links.pending():
+            log.info("%s: %d delayed messages not sent", self.name, self.links.discard())
+        self._publish("stopped", -1)
+
+    def close(self) -> None:
+        if self._mlog is not None:
+            self._mlog.close()
+            self._mlog = None
+
+    def program(self) -> Iterator[Wait]:
+        """The node's life as a generator of :class:`Wait`: start, steps, final phase.
+
+        Whoever drives it (:class:`Host`) resumes it once the wait is over and hands the
+        node its messages meanwhile (:meth:`receive`).
+        """
+        yield from self._wait_for_start()
+        self._cpu_at_start = time.process_time()
         if self.state_dir is not None:
             self._mlog = MeasurementLog(self.state_dir, self.name, self.run_id or repr(self.start), fsync=self.fsync)
         k = self._catch_up()
@@ -255,11 +297,10 @@ class NodeProcess:
         next_send = self.send_period * (math.floor(self.t_started / self.send_period + EPS) + 1)
         for k in range(k + 1, len(self.times)):
             t = float(self.times[k])
-            if not self._wait_wall(self.start + t / self.speed):
-                return
+            yield Wait(self.start + t / self.speed)
             self.node.predict(t)
             self._fuse_until(t)
-            self._receive()
+            self.receive()
             if t + EPS >= next_send:
                 self._send_all(t)
                 while next_send <= t + EPS:
@@ -268,39 +309,33 @@ class NodeProcess:
             lag = (time.time() - self.start) - t / self.speed   # wall seconds behind the schedule
             if lag * 1000 > self.counters["max_lag_ms"]:
                 self.counters["max_lag_ms"] = int(lag * 1000)
-        self._final_phase()
+        yield from self._final_phase()
 
-    def _wait_for_start(self) -> bool:
-        """Wait for the start time; publish "ready" once the neighbours are seen. False if stopped."""
+    def _wait_for_start(self) -> Iterator[Wait]:
+        """Wait for the start time; publish "ready" once the neighbours are seen."""
         opened = time.time()
         last_ready = -math.inf
-        before_start = False
-        if self._start_now:
-            self.start, before_start = time.time(), True
+        before_start = self._start_now
+        if self.start is None and self._start_now:
+            self.start = opened
         while True:
-            if self._should_stop():
-                return False
-            if self.start is None and self.start_file is not None and self.start_file.exists():
-                try:
-                    self.start = float(self.start_file.read_text().strip())
-                except ValueError:
-                    pass   # being written
+            if self.start is None:
+                self.start = self.start_file.read()
+            now = time.time()
             if self.start is not None:
-                if time.time() >= self.start:
+                if now >= self.start:
                     break
                 before_start = True
             up = all(self.tr.alive(nb) for nb in self.neighbors)
-            if (up or time.time() - opened > self.ready_timeout) and time.time() - last_ready >= READY_PERIOD:
+            if (up or now - opened > self.ready_timeout) and now - last_ready >= READY_PERIOD:
                 self._publish("ready", -1)
-                last_ready = time.time()
-            if self.tr.wait(POLL):
-                self._receive()   # an early neighbour's messages (or a stranger's): do not spin on them
+                last_ready = now
+            yield Wait(now + POLL if self.start is None else min(now + POLL, self.start))
         now = self.now()
         # started on time: scenario time 0; started late (restart): everything before now is past
         self.t_started = 0.0 if before_start or now <= self.sc.dt * 0.5 else now
         if self.t_started > 0:
             log.warning("%s: started at scenario time %.3f (incarnation %d)", self.name, self.t_started, self.node.epoch)
-        return True
 
     def _catch_up(self) -> int:
         """After a late start: predict to now, replaying logged measurements; returns the last step done."""
@@ -341,7 +376,8 @@ class NodeProcess:
             self.counters["measurements_refused"] += 1
             log.info("%s: measurement at t=%.3f arrived after it left the window", self.name, m.t)
 
-    def _receive(self) -> int:
+    def receive(self) -> int:
+        """Fuse every message that has arrived for this node; returns the blocks changed."""
         changed = 0
         T = float(self.times[-1])
         for d in self.tr.receive(self.name):
@@ -368,7 +404,11 @@ class NodeProcess:
             else:
                 self.tr.send(self.name, nb, data, t)
 
-    def _final_phase(self) -> None:
+    def _waiting_for(self, r: int) -> list[str]:
+        """Live neighbours whose round ``r`` has not arrived yet."""
+        return [nb for nb in self.neighbors if self._round_seen.get(nb, 0) < r and self.tr.alive(nb)]
+
+    def _final_phase(self) -> Iterator[Wait]:
         """``diameter + 2`` (:func:`dfusion.topology.settling_rounds`) synchronized rounds without new measurements, then the final estimate.
 
         Round ``r``: send to every live neighbour (transport time ``T + r dt``),
@@ -383,22 +423,14 @@ class NodeProcess:
             self.links.flush()   # what is still in flight arrives before the rounds (simulate: net.flush())
         self._fuse_until(math.inf)
         for r in range(1, self.rounds + 1):
-            self._receive()
+            self.receive()
             self._send_all(T + r * self.sc.dt, final=True)
-            deadline = time.time() + self.round_timeout
-            while True:
-                waiting = [nb for nb in self.neighbors if self._round_seen.get(nb, 0) < r and self.tr.alive(nb)]
-                if not waiting:
-                    break
-                if time.time() >= deadline:
-                    log.warning("%s: no round %d from %s after %.1f s: going on", self.name, r, waiting,
-                                self.round_timeout)
-                    break
-                if self._should_stop():
-                    return
-                if self.tr.wait(POLL):
-                    self._receive()
-        self._receive()
+            yield Wait(time.time() + self.round_timeout, until=lambda r=r: not self._waiting_for(r))
+            waiting = self._waiting_for(r)
+            if waiting:
+                log.warning("%s: no round %d from %s after %.1f s: going on", self.name, r, waiting,
+                            self.round_timeout)
+        self.receive()
         status = self._publish("final", len(self.times) - 1)
         if self.result is not None:
             self.result.parent.mkdir(parents=True, exist_ok=True)
@@ -406,11 +438,12 @@ class NodeProcess:
             tmp.write_text(json.dumps(status.to_json()))
             tmp.replace(self.result)
         log.info("%s: final estimate published (t=%.2f)", self.name, T)
-        time.sleep(0.05)   # let the last publications leave before the session closes
+        yield Wait(time.time() + 0.05)   # let the last publications leave before the session closes
 
     def stats(self) -> dict[str, int]:
+        """The node's counters (messages, measurements, CPU, link emulation) as the monitor records them."""
         s = self.node.stats
-        tot = self.tr.stats.total if self.tr is not None else None
+        tot = self.tr.node_totals(self.name) if self.tr is not None else None
         out = {
             "messages_sent": s.messages_sent, "bytes_sent": s.bytes_sent, "messages_received": s.messages_received,
             "messages_rejected": s.messages_rejected, "duplicates": s.duplicates,
@@ -418,6 +451,9 @@ class NodeProcess:
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
         out.update(self.counters)
+        out["cpu_ms"] = int(self.cpu * 1000)
+        if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
+            out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)
         if self.links is not None:
             em = self.links.totals()
             out.update(dropped_emulated=em["dropped"], delayed_emulated=em["delayed"],
@@ -432,15 +468,19 @@ class NodeProcess:
             mean, cov = self.node.estimate()
             t = float(self.times[k])
         output = None
-        if mean is not None and records_output(self.node):
+        if mean is not None and self._records_output:
             chosen = self.node.output()
             output = (chosen.name, chosen.mean, chosen.cov)
+        stats = {}
+        now = time.monotonic()
+        if phase != "run" or now >= self._stats_due:   # the counters once a second, the estimate every step
+            stats, self._stats_due = self.stats(), now + STATS_PERIOD
         st = Status(self.name, self.node.epoch, phase, k, t if math.isfinite(t) else 0.0, mean, cov,
-                    self.t_started, self.stats(), list(self.lost) if phase == "final" else [], output)
+                    self.t_started, stats, list(self.lost) if phase == "final" else [], output)
         try:
-            import zenoh
-
             if phase == "final":
+                import zenoh
+
                 self.tr.session.put(self._monitor_key, st.encode(self.key),
                                     congestion_control=zenoh.CongestionControl.BLOCK)
             else:
@@ -450,11 +490,135 @@ class NodeProcess:
         return st
 
 
+class Host:
+    """Several :class:`NodeProcess` in one OS process, over one Zenoh session.
+
+    Each node keeps its own loop (its program, :meth:`NodeProcess.program`), timing,
+    message keys, state log and result; they share the session, so a message between
+    two nodes of one host is still encoded, published and received through Zenoh
+    (delivered inside the session), exactly as between processes. The host runs the
+    programs in one thread: it resumes each node whose wait is over, in turn, and hands
+    every node its messages as soon as they arrive.
+
+    A node whose program raises ends the host (the exception propagates: the process
+    exits with an error status, and ``dfusion run`` restarts the host with all its
+    nodes, each as a new incarnation).
+
+    Parameters
+    ----------
+    procs : list of NodeProcess
+        The nodes (one network; one start time and speed).
+    network, zconfig : the session's network name and settings.
+    parent_pid, watch : stop when the parent or the launcher is gone.
+    """
+
+    def __init__(self, procs: list[NodeProcess], *, network: str, zconfig: ZenohConfig | None = None,
+                 parent_pid: int | None = None, watch: LauncherWatch | None = None) -> None:
+        if not procs:
+            raise DfusionError("a host needs at least one node")
+        names = [p.name for p in procs]
+        if len(set(names)) != len(names):
+            raise DfusionError(f"a node appears twice in one host: {names}")
+        self.procs = list(procs)
+        self.network = network
+        self.zconfig = zconfig or ZenohConfig()
+        self.parent_pid = parent_pid
+        self.watch = watch
+        self.stop_reason: str | None = None
+        self.tr: ZenohTransport | None = None
+
+    def request_stop(self, reason: str) -> None:
+        """Ask every node to stop (safe from a signal handler: only sets flags)."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        for p in self.procs:
+            p.request_stop(reason)
+
+    def _should_stop(self) -> bool:
+        if self.parent_pid is not None and os.getppid() != self.parent_pid:
+            self.request_stop(f"parent process {self.parent_pid} is gone")
+        if self.watch is not None and not self.watch.alive():
+            self.request_stop(f"the launcher is gone ({self.watch.path} is free)")
+        if self.stop_reason is None:
+            stopped = next((p.stop_reason for p in self.procs if p.stop_reason is not None), None)
+            if stopped is not None:
+                self.request_stop(stopped)
+        return self.stop_reason is not None
+
+    def now(self) -> float:
+        """Scenario time of the host's nodes (the first one's clock: they share start and speed)."""
+        return self.procs[0].now()
+
+    def run(self) -> int:
+        """Run every node to its end (or until stopped); returns the exit status (0)."""
+        try:
+            with ZenohTransport(self.network, {p.name: p.neighbors for p in self.procs}, self.zconfig,
+                                clock=self.now) as tr:
+                self.tr = tr
+                for p in self.procs:
+                    p.attach(tr)
+                    p.host_share = 1.0 / len(self.procs)
+                self._loop(tr)
+                if self.stop_reason is not None:
+                    for p in self.procs:
+                        p.stopped()
+        finally:
+            for p in self.procs:
+                p.close()
+        return 0
+
+    def _loop(self, tr: ZenohTransport) -> None:
+        opened = time.time()
+        for p in self.procs:
+            if p.start is None and p._start_now:   # one start for every node of the host
+                p.start = opened
+        programs = {p.name: p.program() for p in self.procs}
+        waits = {p.name: Wait(0.0) for p in self.procs}
+        procs = {p.name: p for p in self.procs}
+        cpu = time.thread_time   # this thread's CPU: what each node's own work costs
+        while programs:
+            if self._should_stop():
+                return
+            now = time.time()
+            for p in self.procs:
+                if p.links is not None and p.links.next_due() <= now:
+                    p.links.release_due(now)
+            for name in list(programs):
+                w = waits[name]
+                if now >= w.deadline or (w.until is not None and w.until()):
+                    c0 = cpu()
+                    try:
+                        waits[name] = next(programs[name])
+                    except StopIteration:
+                        del programs[name], waits[name]
+                    procs[name].cpu += cpu() - c0
+                    now = time.time()
+            if not programs:
+                return
+            due = min([w.deadline for w in waits.values()]
+                      + [p.links.next_due() for p in self.procs if p.links is not None])
+            if tr.wait(max(0.0, min(due - time.time(), POLL))):
+                for name, p in procs.items():
+                    if tr.pending(name):
+                        if name in programs:
+                            c0 = cpu()
+                            p.receive()
+                            p.cpu += cpu() - c0
+                        else:
+                            tr.receive(name)   # after its final estimate a node fuses nothing more
+                tr.poll()
+
+
 # ---------------------------------------------------------------------- command line
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m dfusion.run.node_process", description="Run one dfusion fusion node over Zenoh.")
+    p = argparse.ArgumentParser(prog="python -m dfusion.run.node_process",
+                                description="Run dfusion fusion nodes over Zenoh: one, or several in one process (a host).")
     p.add_argument("--scenario", required=True, help="scenario TOML file")
-    p.add_argument("--node", required=True, help="this node's name in the scenario")
+    p.add_argument("--node", required=True, action="append", metavar="NAME",
+                   help="a node of the scenario to run here (repeatable: several nodes in this process, one Zenoh "
+                        "session)")
+    p.add_argument("--host", default=None, metavar="NAME",
+                   help="this process's name in its log lines (default: its node's name, or its nodes' joined by +)")
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     p.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     p.add_argument("--duration", type=float, default=None, help="override the scenario's duration")
@@ -470,15 +634,17 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--start-time", type=float, default=None, help="UNIX time of scenario time 0 (default: now)")
     g.add_argument("--start-file", default=None, help="wait for this file to hold the UNIX start time")
-    p.add_argument("--measurements", default=None, help="recording of this node's measurements (.jsonl or .npz)")
+    p.add_argument("--measurements", default=None,
+                   help="recording of the nodes' measurements (.jsonl or .npz), or a directory of NAME.jsonl files")
     p.add_argument("--record", default=None, metavar="OUT",
-                   help="write this node's measurements of the scenario to OUT (.jsonl or .npz) and exit")
+                   help="write the node's measurements of the scenario to OUT (.jsonl or .npz) and exit (one --node)")
     p.add_argument("--state-dir", default=None, help="directory of the measurement log replayed at restart")
     p.add_argument("--run-id", default=None, help="identifies the run in the state log (default: the start time)")
     p.add_argument("--fsync", action="store_true", help="fsync the measurement log after every line")
     p.add_argument("--network-key-file", default=None,
                    help="HMAC key file (default: $DFUSION_NETWORK_KEY_FILE or $DFUSION_NETWORK_KEY)")
-    p.add_argument("--result", default=None, help="write the final estimate and counters here (JSON)")
+    p.add_argument("--result", default=None,
+                   help="write the final estimate and counters here (JSON); with several nodes a directory (NAME.json)")
     p.add_argument("--run-dir", default=None, metavar="DIR",
                    help="join the run of the dfusion run launcher working in DIR (start time, state, result and "
                         "network key from DIR); refused when no launcher runs there or this node already runs; "
@@ -562,62 +728,91 @@ def main(argv: list[str] | None = None) -> int:
     if argv[:1] == ["--standby"] and len(argv) == 2:
         return standby(argv[1])
     args = build_parser().parse_args(argv)
-    proc: NodeProcess | None = None
+    if len(set(args.node)) != len(args.node):
+        build_parser().error(f"a node is named twice: {args.node}")
+    if args.record and len(args.node) != 1:
+        build_parser().error("--record writes one node's measurements: give one --node")
+    host: Host | None = None
     early: list[str] = []
 
     def on_signal(signum, frame):  # only sets a flag; the loop looks at it every POLL seconds
         name = signal.Signals(signum).name
-        if proc is not None:
-            proc.request_stop(name)
+        if host is not None:
+            host.request_stop(name)
         else:
             early.append(name)
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     level = [logging.INFO, logging.DEBUG][min(args.verbose, 1)]
+    label = args.host or "+".join(args.node)
     logging.basicConfig(level=level, stream=sys.stderr, force=True,
-                        format=f"%(asctime)s %(levelname)s [{args.node}] %(name)s: %(message)s")
+                        format=f"%(asctime)s %(levelname)s [{label}] %(name)s: %(message)s")
     watch: LauncherWatch | None = None
-    lock: FileLock | None = None
+    locks: list[FileLock] = []
     try:
         if args.run_dir is not None and not args.record:
             joined = _join_run(args)
             if isinstance(joined, int):
                 return joined
-            watch, lock = joined
+            watch, locks = joined
         sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
                            plugins=args.plugin)
         if args.record:
-            path = save_recording(args.record, args.node, world_measurements(sc, args.node))
+            path = save_recording(args.record, args.node[0], world_measurements(sc, args.node[0]))
             print(f"wrote {path}")
             return 0
-        meas = load_recording(args.measurements, args.node) if args.measurements else None
+        several = len(args.node) > 1
         zc = ZenohConfig(mode=args.mode, listen=tuple(args.listen), connect=tuple(args.connect),
-                         extra=_extra_options(args.zenoh_option), tls=security_from_args(args).tls_files(args.node))
-        proc = NodeProcess(
-            sc, args.node, network=args.network, zconfig=zc, speed=args.speed, start=args.start_time,
-            start_file=args.start_file, measurements=meas, state_dir=args.state_dir, run_id=args.run_id,
-            fsync=args.fsync, network_key=load_network_key(args.network_key_file), result=args.result,
-            emulate_links=args.emulate_links, round_timeout=args.round_timeout, parent_pid=args.parent_pid,
-            ready_timeout=args.ready_timeout, watch=watch,
-        )
+                         extra=_extra_options(args.zenoh_option), tls=security_from_args(args).tls_files(args.node[0]))
+        key = load_network_key(args.network_key_file)
+        meas = _measurements(sc, args.node, args.measurements)
+        procs = [NodeProcess(
+            sc, name, network=args.network, zconfig=zc, speed=args.speed, start=args.start_time,
+            start_file=args.start_file, measurements=meas[name], state_dir=args.state_dir, run_id=args.run_id,
+            fsync=args.fsync, network_key=key,
+            result=(Path(args.result) / f"{name}.json" if several else args.result) if args.result else None,
+            emulate_links=args.emulate_links, round_timeout=args.round_timeout, ready_timeout=args.ready_timeout,
+        ) for name in args.node]
+        host = Host(procs, network=args.network, zconfig=zc, parent_pid=args.parent_pid, watch=watch)
         if early:
             return 0
-        return proc.run()
+        if several:
+            log.info("host %s: nodes %s (pid %d)", label, ", ".join(args.node), os.getpid())
+        profile_dir = os.environ.get(ENV_PROFILE)
+        if not profile_dir:
+            return host.run()
+        import cProfile
+
+        profiler = cProfile.Profile(time.thread_time)   # CPU of the loop's thread, not time spent waiting
+        try:
+            return profiler.runcall(host.run)
+        finally:
+            Path(profile_dir).mkdir(parents=True, exist_ok=True)
+            profiler.dump_stats(Path(profile_dir) / f"{label}.pstats")
     except (DfusionError, OSError) as exc:
         log.error("%s", exc)
         return 2
     finally:
-        if lock is not None:
+        for lock in locks:
             lock.release()
         if watch is not None:
             watch.close()
 
 
-def _join_run(args: argparse.Namespace) -> tuple[LauncherWatch, FileLock] | int:
-    """``--run-dir``: watch the launcher, take this node's lock, and default the run's files.
+def _measurements(sc: Scenario, names: list[str], source: str | None) -> dict[str, list[OwnMeasurement]]:
+    """Each node's measurements: from a recording (a file, or a directory of ``NAME.jsonl``),
+    else from the scenario's world, simulated once for every node of the process."""
+    if source is not None:
+        path = Path(source)
+        return {n: load_recording(path / f"{n}.jsonl" if path.is_dir() else path, n) for n in names}
+    return nodes_measurements(sc, None, names)   # simulates the world (the launcher gives a recording)
 
-    Returns the watch and the lock, or the exit status when the node must not run.
+
+def _join_run(args: argparse.Namespace) -> tuple[LauncherWatch, list[FileLock]] | int:
+    """``--run-dir``: watch the launcher, take every node's lock, and default the run's files.
+
+    Returns the watch and the locks, or the exit status when the nodes must not run.
     """
     run_dir = Path(args.run_dir)
     watch = LauncherWatch(run_dir)
@@ -633,22 +828,27 @@ def _join_run(args: argparse.Namespace) -> tuple[LauncherWatch, FileLock] | int:
             log.error("the launcher (pid %d) is gone", launcher)
             watch.close()
             return EXIT_NO_LAUNCHER
-    lock = FileLock(node_lock_path(run_dir, args.node))
-    if not lock.acquire(timeout=2.0):
-        holder = lock.path.read_text().strip() if lock.path.exists() else "?"
-        log.error("node %s already runs in %s (pid %s): not starting a second incarnation", args.node, run_dir, holder)
-        watch.close()
-        return EXIT_ALREADY_RUNNING
+    locks: list[FileLock] = []
+    for name in args.node:
+        lock = FileLock(node_lock_path(run_dir, name))
+        if not lock.acquire(timeout=2.0):
+            holder = lock.path.read_text().strip() if lock.path.exists() else "?"
+            log.error("node %s already runs in %s (pid %s): not starting a second incarnation", name, run_dir, holder)
+            for taken in locks:
+                taken.release()
+            watch.close()
+            return EXIT_ALREADY_RUNNING
+        locks.append(lock)
     if args.start_time is None and args.start_file is None:
         args.start_file = str(run_dir / "start")
     if args.state_dir is None:
         args.state_dir = str(run_dir / "state")
     if args.result is None:
-        args.result = str(run_dir / "results" / f"{args.node}.json")
+        args.result = str(run_dir / "results" / f"{args.node[0]}.json" if len(args.node) == 1 else run_dir / "results")
     if args.network_key_file is None and (run_dir / "network.key").exists():
         args.network_key_file = str(run_dir / "network.key")
-    log.info("joined the run in %s (launcher pid %s, node pid %d)", run_dir, launcher, os.getpid())
-    return watch, lock
+    log.info("joined the run in %s (launcher pid %s, pid %d)", run_dir, launcher, os.getpid())
+    return watch, locks
 
 
 if __name__ == "__main__":

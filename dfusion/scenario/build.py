@@ -33,9 +33,10 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
 
     Its neighbours are its tree neighbours, its prior the scenario's common prior at
     time 0, its policy a copy of the node's (a policy keeps state, so every node built
-    gets its own). ``epoch`` identifies the incarnation (random when ``None``: a node
-    process gets a new one each time it starts). ``network`` and ``run`` name the network
-    and the run the message key is derived for (``docs/security.md``).
+    gets its own), its guard the consistency test of ``[protection]`` (channel fusion only,
+    :mod:`dfusion.fusion.guard`). ``epoch`` identifies the incarnation (random when ``None``:
+    a node process gets a new one each time it starts). ``network`` and ``run`` name the
+    network and the run the message key is derived for (``docs/security.md``).
 
     Links that change (``sc.dynamic``): ``links`` are the node's links now and
     ``tree_start`` the tree it starts on (:func:`~dfusion.fusion.tree.initial_parents`; ``None``:
@@ -55,7 +56,7 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
             tree = SpanningTree(name, links, epoch=epoch0, parent=parent, known={j: tree_start[j] for j in links})
     return FusionNode(
         name,
-        sorted(sc.graph.neighbors(name)) if tree is None else links,
+        sc.neighbors(name) if tree is None else links,
         sc.target.motion,
         window=sc.window,
         horizon=sc.horizon,
@@ -67,6 +68,7 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
         run=run,
         epoch=epoch,
         tree=tree,
+        guard=sc.protection.node_guard() if sc.fusion == "channel" else None,
     )
 
 

@@ -28,28 +28,32 @@ from dfusion.errors import DfusionError, ScenarioError, TopologyError
 from dfusion.policies.base import Policy
 from dfusion.scenario.kinds import builtin_kinds
 from dfusion.scenario.plugins import load_plugins
+from dfusion.fusion.guard import GuardConfig
 from dfusion.scenario.security import security_options
 from dfusion.scenario.spec import (
+    CLUTTER_MODELS,
     COMMON_NODE_KEYS,
     EVENT_KINDS,
     FUSION_MODES,
     Kinds,
     LinkEvent,
     NodeSpec,
+    Protection,
     Scenario,
     TargetSpec,
 )
 from dfusion.scenario.values import intervals, suggest, vector, waypoint_path
-from dfusion.topology import load_topology, minimum_window
+from dfusion.topology import load_tree, minimum_window
 from dfusion.transport.simulated import LinkSpec
 
-__all__ = ["load_scenario", "build_policy", "node_policies", "TOP_LEVEL_KEYS", "TARGET_KEYS", "LINK_KEYS", "RADIO_KEYS"]
+__all__ = ["load_scenario", "build_policy", "node_policies", "TOP_LEVEL_KEYS", "TARGET_KEYS", "LINK_KEYS",
+           "PROTECTION_KEYS", "RADIO_KEYS"]
 
 log = logging.getLogger(__name__)
 
 #: Keys of the top level of a scenario file.
 TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "spanning_tree", "plugins",
-                            "target", "nodes", "links", "security", "events", "radio"})
+                            "target", "nodes", "links", "security", "protection", "events", "radio"})
 #: Keys of ``[target]`` every motion model takes (each motion adds its own, e.g. ``q``).
 TARGET_KEYS = frozenset({"motion", "initial_mean", "initial_cov_diag"})
 #: Keys of a ``[[links]]`` table.
@@ -57,10 +61,13 @@ LINK_KEYS = frozenset({"between", "quality", "latency", "jitter", "drop", "dupli
                        "outages"})
 #: Keys of the ``[radio]`` table: the behaviour of links that are not in ``[[links]]``, and ranges per kind.
 RADIO_KEYS = frozenset({"latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay", "ranges"})
+#: Keys of ``[protection]`` (``docs/scenarios.md``, ``docs/clutter.md``).
+PROTECTION_KEYS = frozenset({"enabled", "clutter_model", "network_check", "false_alarm", "quarantine", "release"})
 _TABLES = {"target": "a table [target]", "nodes": "an array of tables [[nodes]]",
            "links": "an array of tables [[links]]", "security": "a table [security]",
-           "events": "an array of tables [[events]]", "radio": "a table [radio]"}
-_TABLE_LIST = "[target], [[nodes]], [[links]], [[events]], [radio] and [security]"
+           "protection": "a table [protection]", "events": "an array of tables [[events]]",
+           "radio": "a table [radio]"}
+_TABLE_LIST = "tables are [target], [[nodes]], [[links]], [[events]], [radio], [security] and [protection]"
 
 
 def _fail(src: str, where: str, msg: str) -> ScenarioError:
@@ -101,15 +108,15 @@ def _check_top_level(src: str, raw: Mapping[str, Any]) -> None:
         if key not in TOP_LEVEL_KEYS:
             hint = suggest(key, TOP_LEVEL_KEYS)
             if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-                raise _fail(src, f"[[{key}]]", f"unknown table{hint}; tables are {_TABLE_LIST}")
+                raise _fail(src, f"[[{key}]]", f"unknown table{hint}; {_TABLE_LIST}")
             if isinstance(value, dict):
-                raise _fail(src, f"[{key}]", f"unknown table{hint}; tables are {_TABLE_LIST}")
+                raise _fail(src, f"[{key}]", f"unknown table{hint}; {_TABLE_LIST}")
             raise _fail(src, key, f"unknown top-level key{hint}; known: {', '.join(sorted(TOP_LEVEL_KEYS))}")
     for key, what in _TABLES.items():
         value = raw.get(key)
         if value is None:
             continue
-        ok = isinstance(value, dict) if key in ("target", "security", "radio") else (
+        ok = isinstance(value, dict) if key in ("target", "security", "protection", "radio") else (
             isinstance(value, list) and all(isinstance(v, dict) for v in value))
         if not ok:
             raise _fail(src, key, f"must be {what}, got {type(value).__name__}")
@@ -196,6 +203,29 @@ def _target(src: str, raw: Mapping[str, Any], kinds: Kinds) -> TargetSpec:
     return TargetSpec(kind, motion, mean, np.diag(diag))
 
 
+def _protection(src: str, raw: Mapping[str, Any], enabled: bool | None) -> Protection:
+    """The ``[protection]`` table (every key optional); ``enabled`` overrides ``protection.enabled``."""
+    table = raw.get("protection", {})
+    _check_table_keys(src, "protection", table, PROTECTION_KEYS, "[protection]")
+    for key in ("enabled", "network_check"):
+        if not isinstance(table.get(key, True), bool):
+            raise _fail(src, f"protection.{key}", f"must be true or false, got {table[key]!r}")
+    model = table.get("clutter_model", "pda")
+    if model not in CLUTTER_MODELS:
+        raise _fail(src, "protection.clutter_model", f"must be one of {CLUTTER_MODELS}, got {model!r}")
+    alarm = _num(src, "protection.false_alarm", table.get("false_alarm", 1e-3))
+    q = table.get("quarantine", [3, 10])
+    if not (isinstance(q, list) and len(q) == 2):
+        raise _fail(src, "protection.quarantine", f"must be [failures, window], got {q!r}")
+    release = table.get("release", 10)
+    try:
+        GuardConfig(false_alarm=alarm, failures=q[0], window=q[1], release=release)
+    except DfusionError as exc:
+        raise _fail(src, "protection", str(exc)) from None
+    on = table.get("enabled", True) if enabled is None else bool(enabled)
+    return Protection(on, model, table.get("network_check", True), alarm, q[0], q[1], release)
+
+
 def _node(src: str, i: int, tbl: Mapping[str, Any], sc: Scenario, kinds: Kinds) -> NodeSpec:
     name = tbl.get("name", "?")
     where = f"nodes[{i}] ({name})"
@@ -276,10 +306,13 @@ def load_scenario(
     duration: float | None = None,
     plugins: Iterable[str] = (),
     kinds: Kinds | None = None,
+    protection: bool | None = None,
 ) -> Scenario:
     """Read and validate a scenario file (or an already parsed mapping).
 
-    ``seed``, ``fusion`` and ``duration`` override the file's values. ``plugins`` names
+    ``seed``, ``fusion`` and ``duration`` override the file's values; ``protection``
+    overrides ``protection.enabled`` (``False``: no clutter model at the cameras, no
+    consistency test of neighbours: ``dfusion simulate --no-protection``). ``plugins`` names
     plug-in modules beyond those the file names (``dfusion simulate --plugin``);
     ``kinds`` replaces the built-in kinds (plug-ins are added to it).
     """
@@ -303,7 +336,7 @@ def load_scenario(
         _check_table_keys(src, f"links[{i}]", tbl, LINK_KEYS, "[[links]]")
     undeclared = _undeclared_link_end(src, raw)
     try:
-        graph = load_topology(raw, source=src, spanning_tree=spanning, require_tree=not dynamic)
+        graph = load_tree(raw, source=src, spanning_tree=spanning, require_tree=not dynamic)
     except TopologyError as exc:
         # a misspelt node name in a link usually shows as a disconnected graph: name the cause
         if undeclared is not None and "cycle" not in str(exc):
@@ -332,7 +365,8 @@ def load_scenario(
         raise _fail(src, "fusion", f"must be one of {FUSION_MODES}, got {fu!r}")
 
     target = _target(src, raw, kinds)
-    sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw, kinds=kinds)
+    sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw, kinds=kinds,
+                  protection=_protection(src, raw, protection))
     try:
         sc.security = security_options(raw.get("security"), sc.base_dir)
     except DfusionError as exc:
@@ -446,7 +480,7 @@ def _warn_degenerate(sc: Scenario) -> None:
         latency = max((spec.latency + spec.jitter + spec.reorder_delay for spec in sc.links.values()), default=0.0)
         period = max(spec.send_period for spec in sc.nodes.values())
         delay = max(spec.delay for spec in sc.nodes.values())
-        seconds = minimum_window(sc.graph, max_latency=latency, send_period=period, max_measurement_delay=delay)
+        seconds = minimum_window(sc.tree, max_latency=latency, send_period=period, max_measurement_delay=delay)
         need = math.ceil(seconds / sc.dt - 1e-9) + 1
         if sc.window < need:
             sc.warnings.append(f"window = {sc.window} states is shorter than the {need} this tree needs "

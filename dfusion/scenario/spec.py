@@ -10,24 +10,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Mapping
 
-import networkx as nx
 import numpy as np
 
 from dfusion.errors import ScenarioError
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.scenario.security import SecurityOptions
+from dfusion.topology import Tree
 from dfusion.transport.simulated import LinkSpec
 
 if TYPE_CHECKING:   # type names only: no import at run time
+    import networkx as nx
+
     from dfusion.frontends.base import FrontEnd
     from dfusion.geometry import WaypointPath
     from dfusion.policies.base import Policy
 
-__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "FUSION_MODES",
-           "COMMON_NODE_KEYS", "LinkEvent", "EVENT_KINDS"]
+__all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "Protection",
+           "FUSION_MODES", "COMMON_NODE_KEYS", "CLUTTER_MODELS", "LinkEvent", "EVENT_KINDS"]
 
 #: Values of the top-level key ``fusion``.
 FUSION_MODES = ("channel", "naive")
+
+#: Values of ``protection.clutter_model`` and of a camera node's ``clutter_model``.
+CLUTTER_MODELS = ("pda", "gate")
 
 #: Keys every ``[[nodes]]`` table may have, whatever its sensor kind.
 COMMON_NODE_KEYS = frozenset({"name", "sensor", "rate", "send_period", "delay", "phase", "active", "detection",
@@ -234,6 +239,56 @@ class LinkEvent:
         return f"{self.nodes[0]} - {self.nodes[1]} {'up' if self.kind == 'link_up' else 'down'}"
 
 
+@dataclass(frozen=True)
+class Protection:
+    """The ``[protection]`` table: the cameras' clutter model and the network's consistency test
+    (``docs/clutter.md``).
+
+    Attributes
+    ----------
+    enabled : bool
+        ``False`` turns every protection off (cameras: the hard gate alone, whatever their
+        ``clutter_model``; no consistency test): the behaviour before the protections existed.
+    clutter_model : {"pda", "gate"}
+        ``clutter_model`` of the camera nodes that do not set their own.
+    network_check : bool
+        Every node tests its neighbours' information and quarantines one that keeps failing
+        (:mod:`dfusion.fusion.guard`).
+    false_alarm, failures, window, release
+        The test's false-alarm probability per message, quarantine after ``failures`` failed
+        messages among the last ``window`` tested, release after ``release`` passes in a row
+        (:class:`dfusion.fusion.guard.GuardConfig`).
+    """
+
+    enabled: bool = True
+    clutter_model: str = "pda"
+    network_check: bool = True
+    false_alarm: float = 1e-3
+    failures: int = 3
+    window: int = 10
+    release: int = 10
+
+    def camera_model(self, own: str | None = None) -> str:
+        """The clutter model of a camera node whose table sets ``own`` (None: not set)."""
+        if not self.enabled:
+            return "gate"
+        return own or self.clutter_model
+
+    def node_guard(self) -> Any:
+        """The :class:`~dfusion.fusion.guard.GuardConfig` of every node (None: no test)."""
+        if not (self.enabled and self.network_check):
+            return None
+        from dfusion.fusion.guard import GuardConfig
+
+        return GuardConfig(self.false_alarm, self.failures, self.window, self.release)
+
+    def describe(self) -> str:
+        """One line for tables and JSON: what is on."""
+        if not self.enabled:
+            return "off"
+        return f"cameras {self.clutter_model}, network check {'on' if self.network_check else 'off'}"
+
+
 @dataclass
 class Scenario:
     """A parsed, validated scenario (see ``docs/scenarios.md``).
@@ -247,14 +302,18 @@ class Scenario:
         Degenerate settings found while loading (also logged).
     security : SecurityOptions
         The ``[security]`` table: the network key file and mutual TLS of ``dfusion run``.
+    protection : Protection
+        The ``[protection]`` table (default: every protection on).
+    tree : Tree
+        The ``[[links]]`` as plain data (:class:`dfusion.topology.Tree`): the communication
+        tree, unless the scenario's links change (:attr:`dynamic`), when they are only the
+        links that exist at the start (cycles allowed); :attr:`graph` is the same as a
+        networkx graph, built on first use.
     events : list of LinkEvent
         The ``[[events]]``, in time order.
     radio : LinkSpec
         The ``[radio]`` table: how links that are not in ``[[links]]`` behave (made by a
         radio range or by an event).
-    graph : networkx.Graph
-        The ``[[links]]``: a tree, unless the scenario's links change (:attr:`dynamic`),
-        when they are only the links that exist at the start (cycles allowed).
     """
 
     path: str
@@ -267,11 +326,12 @@ class Scenario:
     target: TargetSpec
     nodes: dict[str, NodeSpec]
     links: dict[tuple[str, str], LinkSpec]
-    graph: nx.Graph
+    tree: Tree
     raw: dict[str, Any]
     kinds: Kinds | None = None
     warnings: list[str] = field(default_factory=list)
     security: SecurityOptions = field(default_factory=SecurityOptions)
+    protection: Protection = field(default_factory=Protection)
     events: list[LinkEvent] = field(default_factory=list)
     radio: LinkSpec = field(default_factory=LinkSpec)
 
@@ -279,6 +339,18 @@ class Scenario:
     def dynamic(self) -> bool:
         """Whether the links change at run time: events, or radio ranges (``docs/dynamic-topology.md``)."""
         return bool(self.events) or any(n.radio_range is not None for n in self.nodes.values())
+
+    @property
+    def graph(self) -> nx.Graph:
+        """The tree as a networkx graph (as :func:`dfusion.topology.load_topology` returns it)."""
+        graph = self.__dict__.get("_graph")
+        if graph is None:
+            graph = self.__dict__["_graph"] = self.tree.to_networkx()
+        return graph
+
+    def neighbors(self, name: str) -> tuple[str, ...]:
+        """The tree neighbours of node ``name``, sorted (the links at the start when links change)."""
+        return tuple(sorted(self.tree.neighbors(name)))
 
     @property
     def steps(self) -> int:

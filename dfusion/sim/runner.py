@@ -6,6 +6,9 @@ Every step ``t = k dt``:
 1. every node predicts to ``t``;
 2. measurements that have reached their node by ``t`` are fused (late ones at
    their own time stamp; one older than the window is refused and counted);
+   the measurements of one frame (same node, time and arrival: a camera's
+   detections) go to the front end together (:meth:`dfusion.frontends.base.FrontEnd.process_frame`:
+   data association);
 3. messages that have arrived by ``t`` are received;
 4. a node whose send period has elapsed sends a message to each neighbour;
 5. node estimates and the centralized estimate (all measurements taken by
@@ -18,6 +21,19 @@ and ``diameter + 2`` lossless rounds are exchanged (:func:`dfusion.topology.sett
 delivered"); ``final_gap`` compares each node's newest mean then with the
 centralized one (``final_gap_position`` in metres and ``final_gap_velocity`` in
 m/s split it by unit).
+
+Two centralized references run on the world's measurements, in time order and
+without delay (:class:`References`): the *fair* one (``centralized``) gets every
+detection, false ones included, through the same gate and clutter model as the
+camera nodes (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`), and is what
+the gaps are measured against; the *oracle* (``centralized_oracle``) skips the false
+detections (it knows which they are) and gates nothing.
+
+Per node the run also reports the diagnostics of ``docs/clutter.md``: the
+consistency test of the neighbours' information (:mod:`dfusion.fusion.guard`),
+a camera's gated detections, NIS and track losses, and the health state per
+step (``ok``, ``degraded``, ``lost``), with ``WARNING`` lines in the table for
+nodes that were lost at some step or are inconsistent.
 
 The world is simulated from the scenario (:func:`dfusion.sim.world.simulate_world`)
 unless one is given: :mod:`dfusion.sim.replay` reads it from a ROS bag.
@@ -42,10 +58,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-import networkx as nx
 import numpy as np
 
 from dfusion.errors import MessageError, OutsideWindowError
@@ -54,14 +70,17 @@ from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
 from dfusion.metrics import chi2_interval, nees, rmse
 from dfusion.models.base import model_at
-from dfusion.policies.base import InformationFusionPolicy
+from dfusion.policies.base import records_output as policy_records_output
 from dfusion.scenario.build import build_front_ends, build_nodes
 from dfusion.scenario.spec import Scenario
 from dfusion.fusion.tree import forest_settled, tree_components
 from dfusion.sim.links import DynamicLinks, agreed_edges
 from dfusion.sim.world import World, simulate_world
 from dfusion.transport.simulated import SimulatedNetwork
-from dfusion.topology import settling_rounds
+from dfusion.topology import Tree, settling_rounds
+
+if TYPE_CHECKING:
+    import networkx as nx
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +107,7 @@ class NodeOutput:
 
 def records_output(node: FusionNode) -> bool:
     """Whether a node's output is recorded: its policy is not plain information fusion."""
-    return type(node.policy) is not InformationFusionPolicy
+    return policy_records_output(node.policy)
 
 
 @dataclass
@@ -100,11 +119,16 @@ class SimulationResult:
     times : (K,) filter grid
     truth : (K, n)
     central_mean, central_cov : (K, n), (K, n, n)
+        The fair centralized reference (same detections, gate and clutter model as the nodes).
     node_mean, node_cov : dict name -> (K, n), (K, n, n)
     outputs : dict name -> NodeOutput
         The policy output of the nodes whose policy is not plain fusion.
     metrics : dict
         The figures printed and written to JSON (see :meth:`to_json`).
+    oracle_mean, oracle_cov, oracle_final : arrays or None
+        The oracle reference (false detections skipped) per step and at the end.
+    health : dict name -> list of str
+        Each node's health per step (``"ok"``, ``"degraded"``, ``"lost"``; :func:`node_health`).
     """
 
     scenario: Scenario
@@ -119,9 +143,14 @@ class SimulationResult:
     outputs: dict[str, NodeOutput] = field(default_factory=dict)
     #: What happened to each measurement a node's front end processed:
     #: ``{"t": step time, "node", "t_meas", "z", "outcome"}`` with ``outcome`` the
-    #: front-end counters that moved (``"contributed"``, ``"gated"``, ...) or
-    #: ``"refused"`` (older than the window). Filled by :func:`run_scenario`.
+    #: front-end counters that moved (``"contributed"``, ``"gated"``, ...) while the
+    #: frame it belongs to was processed, or ``"refused"`` (older than the window).
+    #: Filled by :func:`run_scenario`.
     events: list[dict[str, Any]] = field(default_factory=list)
+    oracle_mean: Array | None = None
+    oracle_cov: Array | None = None
+    oracle_final: Array | None = None
+    health: dict[str, list[str]] = field(default_factory=dict)
     #: Links that change: the :class:`~dfusion.sim.links.DynamicLinks` of the run (its
     #: schedule, its changes, the tree at every step); None for a fixed tree.
     links: DynamicLinks | None = None
@@ -138,8 +167,10 @@ class SimulationResult:
         m = self.metrics
         dim = m["state_dim"]
         vel = any("final_gap_velocity" in v for v in m["nodes"].values())
+        diag = all(v.get("health") is not None for v in m["nodes"].values())
         head = ["node", "RMSE [m]", "ANEES [-]", "final gap pos [m]"] + (["final gap vel [m/s]"] if vel else []) + \
-            ["mean gap pos [m]"] + (["mean gap vel [m/s]"] if vel else []) + ["sent [msgs]", "sent [bytes]"]
+            ["mean gap pos [m]"] + (["mean gap vel [m/s]"] if vel else []) + ["sent [msgs]", "sent [bytes]"] + \
+            (["NIS [-]", "gated", "quar.", "health"] if diag else [])
         rows = [head]
         def gap(x):
             return "left" if x is None else f"{x:.2e}"
@@ -150,9 +181,16 @@ class SimulationResult:
             row.append(f"{v['mean_gap_position']:.2e}")
             if vel:
                 row.append(f"{v['mean_gap_velocity']:.2e}")
-            rows.append(row + [str(v["messages"]), str(v["bytes"])])
-        c = m["centralized"]
-        rows.append(["centralized", f"{c['rmse']:.4f}", f"{c['anees']:.3f}"] + ["-"] * (len(head) - 3))
+            row += [str(v["messages"]), str(v["bytes"])]
+            if diag:
+                nis, gated = v.get("nis_mean"), v.get("gated")
+                row += ["-" if nis is None else f"{nis:.2f}", "-" if gated is None else str(gated),
+                        ",".join(v.get("quarantined") or []) or "-", v["health"]]
+            rows.append(row)
+        for key, label in (("centralized", "centralized"), ("centralized_oracle", "central oracle")):
+            c = m.get(key)
+            if c is not None:
+                rows.append([label, f"{c['rmse']:.4f}", f"{c['anees']:.3f}"] + ["-"] * (len(head) - 3))
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
         lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows]
         lines.insert(1, "-" * len(lines[0]))
@@ -167,8 +205,14 @@ class SimulationResult:
                      f"{m['steps']} independent steps [{a_lo:.2f}, {a_hi:.2f}] (successive steps are correlated, so "
                      f"expect more spread). Far above {dim}: overconfident; far below: too cautious.")
         lines.extend(traffic_lines(m))
+        if diag:
+            lines.append("NIS: mean consistency statistic per degree of freedom of the neighbours' information "
+                         "(expected 1); gated: own detections outside the gate; quar.: quarantined neighbours "
+                         f"at the end; protection: {m.get('protection', '-')}; centralized: the same detections "
+                         "through the same association (fair), central oracle: false detections skipped")
         if "links" in m:
             lines.extend(link_lines(m["links"]))
+        lines.extend(warning_lines(m))
         outs = {name: v["output"] for name, v in m["nodes"].items() if "output" in v}
         if outs:
             lines.append("")
@@ -235,6 +279,22 @@ def traffic_lines(m: dict[str, Any]) -> list[str]:
     return lines
 
 
+def warning_lines(m: dict[str, Any]) -> list[str]:
+    """``WARNING`` lines of a run's metrics: nodes that were lost at some step, and nodes whose
+    ANEES is outside the 95 % interval of one run (inconsistent)."""
+    lo, hi = m["nees_interval"]
+    out = []
+    for name, v in m["nodes"].items():
+        steps = v.get("health_steps") or {}
+        if steps.get("lost", 0):
+            out.append(f"WARNING {name}: lost during {steps['lost']} steps (every neighbour quarantined, or its "
+                       f"camera's track lost); health at the end: {v.get('health', '?')}")
+        if not lo <= v["anees"] <= hi:
+            side = "over-confident" if v["anees"] > hi else "conservative"
+            out.append(f"WARNING {name}: inconsistent, ANEES {v['anees']:.3g} outside [{lo:.3f}, {hi:.3f}] ({side})")
+    return out
+
+
 def _progress(iterable, enabled: bool, total: int):
     if not enabled:
         return iterable
@@ -267,9 +327,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     else:
         nodes, net = dyn.start()
     motion = sc.target.motion
-    central = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
-    sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
     front = build_front_ends(sc)
+    refs = References(sc, front)
     names = sorted(sc.nodes)
     K = sc.steps + 1
     n = motion.dim
@@ -278,6 +337,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     node_mean = {nm: np.full((K, n), np.nan) for nm in names}
     node_cov = {nm: np.full((K, n, n), np.nan) for nm in names}
     c_mean, c_cov = np.empty((K, n)), np.empty((K, n, n))
+    o_mean, o_cov = np.full((K, n), np.nan), np.full((K, n, n), np.nan)
+    health = {nm: [""] * K for nm in names}
     outputs: dict[str, NodeOutput] = {}
 
     def add_output(nm: str) -> None:
@@ -288,34 +349,39 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     for nm in names:
         if nm in nodes:
             add_output(nm)
-    by_arrival = sorted(world.measurements, key=lambda m: (m.arrival, m.t, m.node))
-    by_time = world.measurements  # already in time order
+    by_arrival = frames(sorted(world.measurements, key=lambda m: (m.arrival, m.t, m.node)))
+    by_time = frames(world.measurements)  # already in time order
     next_send = {nm: sc.nodes[nm].send_period for nm in names}
     ia = ic = 0
     refused = 0
     events: list[dict[str, Any]] = []
     counts = {"fused": 0, "rejected": 0, "final_rounds": 0, "used": 0, "dropped_by_front_end": 0}
 
-    def process(m, t_step: float) -> None:
+    def process(frame: list, t_step: float) -> None:
+        """Fuse one frame (the measurements of one node at one time) at its node."""
         nonlocal refused
-        if m.node not in nodes:   # the node left before the measurement reached it
-            refused += 1
-            events.append({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": ["refused"]})
+        m0 = frame[0]
+        if m0.node not in nodes:   # the node left before the measurement reached it
+            refused += len(frame)
+            events.extend({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": ["refused"]}
+                          for m in frame)
             return
-        fe = front[m.node]
+        fe = front[m0.node]
         before = fe.health()
         try:
-            fe.process(nodes[m.node], m.t, m.z)
+            fe.process_frame(nodes[m0.node], m0.t, np.array([m.z for m in frame]))
         except OutsideWindowError:
-            refused += 1
-            log.info("%s: measurement at t=%.3f arrived after it left the window", m.node, m.t)
-            events.append({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": ["refused"]})
+            refused += len(frame)
+            log.info("%s: measurement at t=%.3f arrived after it left the window", m0.node, m0.t)
+            events.extend({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": ["refused"]}
+                          for m in frame)
             return
         after = fe.health()
         moved = [k for k, v in after.items() if k != "processed" and v != before.get(k)]
-        used = after.get("contributed", 0) > before.get("contributed", 0)
-        counts["used" if used else "dropped_by_front_end"] += 1
-        events.append({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": moved})
+        used = min(max(int(after.get("contributed", 0) - before.get("contributed", 0)), 0), len(frame))
+        counts["used"] += used
+        counts["dropped_by_front_end"] += len(frame) - used
+        events.extend({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": moved} for m in frame)
 
     def deliver(dst: str, data: bytes) -> None:
         try:
@@ -334,7 +400,10 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         for nm, o in outputs.items():
             chosen = nodes[nm].output()
             o.mean[k], o.cov[k], o.source[k] = chosen.mean, chosen.cov, chosen.name
-        c_mean[k], c_cov[k] = central.estimate(times[k])
+        for nm in names:
+            if nm in nodes:
+                health[nm][k] = node_health(nodes[nm], front.get(nm))
+        (c_mean[k], c_cov[k]), (o_mean[k], o_cov[k]) = refs.estimate(times[k])
         if on_step is not None:
             est = {nm: (node_mean[nm][k], node_cov[nm][k]) for nm in names if nm in nodes}
             est["centralized"] = (c_mean[k], c_cov[k])
@@ -349,13 +418,11 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         for nm in names:
             if nm in nodes:
                 nodes[nm].predict(t)
-        while ia < len(by_arrival) and by_arrival[ia].arrival <= t + 1e-9:
+        while ia < len(by_arrival) and by_arrival[ia][0].arrival <= t + 1e-9:
             process(by_arrival[ia], t)
             ia += 1
-        while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
-            m = by_time[ic]
-            if not m.clutter:   # the reference knows which detections are false
-                central.add(m.t, m.z, model_at(sensors[m.node], m.t), seq=ic)
+        while ic < len(by_time) and by_time[ic][0].t <= t + 1e-9:
+            refs.add(by_time[ic], seq=ic)
             ic += 1
         for nm in names:
             if nm in nodes:
@@ -378,24 +445,27 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     T = float(times[-1])
     for d in net.flush():
         deliver(d.dst, d.data)
-    for m in by_arrival[ia:]:
-        process(m, T)
-    for m in by_time[ic:]:
-        if not m.clutter:
-            central.add(m.t, m.z, model_at(sensors[m.node], m.t), seq=ic)
+    for frame in by_arrival[ia:]:
+        process(frame, T)
+    for frame in by_time[ic:]:
+        refs.add(frame, seq=ic)
         ic += 1
+    for nm, fe in front.items():
+        if nm in nodes:
+            fe.finish(nodes[nm])
     if dyn is None:
-        counts["final_rounds"] = final_rounds(nodes, sc.graph)
+        counts["final_rounds"] = final_rounds(nodes, sc.tree)
     else:
         counts["final_rounds"] = final_rounds_changing(nodes, dyn.links)
         dyn.end(T)
-    c_final, _ = central.estimate(T)
+    (c_final, _), (o_final, _) = refs.estimate(T)
 
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
-                              events=events, links=dyn)
+                              events=events, oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final,
+                              health=health, links=dyn)
     everyone = nodes if dyn is None else dyn.all_nodes()
     result.metrics = compute_metrics(sc, result, everyone, c_final, net, len(world.measurements), refused,
-                                     present=set(nodes))
+                                     front_ends=front, present=set(nodes))
     if dyn is not None:
         result.metrics["links"] = dyn.metrics()
     total = net.stats.total
@@ -408,7 +478,55 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     return result
 
 
-def final_rounds(nodes: dict[str, FusionNode], graph: nx.Graph) -> int:
+def frames(measurements: list) -> list[list]:
+    """Group consecutive measurements of the same node, time and arrival: the measurements of one
+    frame (a camera's true detection and its false ones share them)."""
+    out: list[list] = []
+    for m in measurements:
+        if out and (out[-1][0].node, out[-1][0].t, out[-1][0].arrival) == (m.node, m.t, m.arrival):
+            out[-1].append(m)
+        else:
+            out.append([m])
+    return out
+
+
+class References:
+    """The two centralized references of a run (see the module docstring).
+
+    ``fair``: every measurement of a frame through its node's front end as the reference
+    applies it (:meth:`dfusion.frontends.base.FrontEnd.reference_frame`: a camera's gate and
+    clutter model), or as EKF updates with the sensor's model. ``oracle``: every true
+    measurement as an EKF update, false detections skipped.
+    """
+
+    def __init__(self, sc: Scenario, front: dict[str, Any]) -> None:
+        motion = sc.target.motion
+        self.fair = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
+        self.oracle = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
+        self.sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
+        self.front = front
+
+    def add(self, frame: list, seq: int) -> None:
+        """Add one frame (measurements of one node at one time; ``seq`` orders equal times)."""
+        m0 = frame[0]
+        sensor = self.sensors[m0.node]
+        for m in frame:
+            if not m.clutter:   # the oracle knows which detections are false
+                self.oracle.add(m.t, m.z, model_at(sensor, m.t), seq=seq)
+        fe = self.front.get(m0.node)
+        update = fe.reference_frame(m0.t, np.array([m.z for m in frame])) if fe is not None else None
+        if update is not None:
+            self.fair.add_frame(m0.t, update, seq=seq)
+        else:
+            for m in frame:
+                self.fair.add(m.t, m.z, model_at(sensor, m.t), seq=seq)
+
+    def estimate(self, t: float) -> tuple[tuple[Array, Array], tuple[Array, Array]]:
+        """``((fair mean, cov), (oracle mean, cov))`` at ``t``."""
+        return self.fair.estimate(t), self.oracle.estimate(t)
+
+
+def final_rounds(nodes: dict[str, FusionNode], graph: Tree | nx.Graph) -> int:
     """:func:`dfusion.topology.settling_rounds` rounds in which every node sends to every
     neighbour, losslessly; returns the number of messages."""
     n = 0
@@ -440,21 +558,25 @@ def final_rounds_changing(nodes: dict[str, FusionNode], links: set[tuple[str, st
     rounds = 2
     for comp in tree_components(edges, nodes):
         if len(comp) > 1:
-            rounds = max(rounds, settling_rounds(nx.Graph([e for e in edges if e[0] in comp])))
+            tree = Tree()
+            for a, b in (e for e in edges if e[0] in comp):
+                tree.add_edge(a, b)
+            rounds = max(rounds, settling_rounds(tree))
     for _ in range(rounds):
         n += one_round()
     return n
 
 
 def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refused,
-                    present: set[str] | None = None) -> dict[str, Any]:
+                    front_ends: dict[str, Any] | None = None, present: set[str] | None = None) -> dict[str, Any]:
     """The figures of a run (the JSON keys of docs/scenarios.md).
 
-    ``nodes`` maps names to objects with ``estimate()`` and ``stats``; ``c_final`` is the
-    centralized mean at the end; ``net`` has ``stats.total`` (delivered, dropped).
-    Shared by ``dfusion simulate`` and ``dfusion run``. With links that change a node's
-    figures are over the steps it was present (its rows are NaN otherwise), and a node not
-    ``present`` at the end has no final gap (None).
+    ``nodes`` maps names to objects with ``estimate()`` and ``stats`` (and, for the
+    diagnostics, ``guard`` and ``health()``); ``c_final`` is the fair centralized mean at the
+    end; ``net`` has ``stats.total`` (delivered, dropped); ``front_ends`` (optional) gives the
+    camera counters. Shared by ``dfusion simulate`` and ``dfusion run``. With links that
+    change a node's figures are over the steps it was present (its rows are NaN otherwise),
+    and a node not ``present`` at the end has no final gap (None).
     """
     axes = sc.target.axes
     motion = sc.target.motion
@@ -473,6 +595,17 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
         },
         "nodes": {},
     }
+    o_final = getattr(res, "oracle_final", None)
+    out["centralized_oracle"] = None   # a result without the oracle reference (dfusion run's, for now)
+    if getattr(res, "oracle_mean", None) is not None:
+        out["centralized_oracle"] = {
+            "rmse": rmse(res.oracle_mean, res.truth, axes),
+            "anees": float(np.mean(nees(res.oracle_mean, res.oracle_cov, res.truth, resid))),
+        }
+    prot = getattr(sc, "protection", None)
+    if prot is not None:
+        out["protection"] = prot.describe()
+    health = getattr(res, "health", None) or {}
     pos, vel = state_parts(motion.dim, axes)
     for nm, node in nodes.items():
         final_mean, _ = node.estimate()
@@ -486,6 +619,8 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
             "rmse": rmse(mean_k, truth_k, axes),
             "anees": float(np.mean(nees(mean_k, cov_k, truth_k, resid))),
             "final_gap": float(np.max(np.abs(final_mean - c_final))) if here else None,
+            "final_gap_oracle": (float(np.max(np.abs(final_mean - o_final)))
+                                 if o_final is not None and here else None),
             "mean_gap": float(np.mean(gap)),
             "final_gap_position": float(np.linalg.norm(fd[pos])) if here else None,
             "mean_gap_position": float(np.mean(np.linalg.norm(diff[:, pos], axis=1))),
@@ -499,6 +634,7 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
         if vel:
             out["nodes"][nm]["final_gap_velocity"] = float(np.linalg.norm(fd[vel])) if here else None
             out["nodes"][nm]["mean_gap_velocity"] = float(np.mean(np.linalg.norm(diff[:, vel], axis=1)))
+        out["nodes"][nm].update(node_diagnostics(node, (front_ends or {}).get(nm), health.get(nm)))
         o = res.outputs.get(nm)
         if o is not None:
             out["nodes"][nm]["output"] = output_metrics(o, res.truth, axes, resid)
@@ -509,6 +645,42 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
     out["messages_dropped"] = int(total.dropped)
     out["measurements"] = n_meas
     out["measurements_refused"] = refused
+    return out
+
+
+def node_health(node, front=None) -> str:
+    """The worse of the node's health (its guard: quarantines) and its front end's status (a
+    camera's track loss): ``"ok"`` < ``"degraded"`` < ``"lost"``."""
+    order = ("ok", "degraded", "lost")
+    states = [node.health() if hasattr(node, "health") else "ok"]
+    if front is not None:
+        states.append(front.status())
+    return max(states, key=order.index)
+
+
+def node_diagnostics(node, front=None, health_series: list[str] | None = None) -> dict[str, Any]:
+    """Per-node diagnostics (``docs/clutter.md``): the consistency test of the neighbours'
+    information (``nis_mean``, ``tests``, ``failures``, ``quarantines``, ``quarantined``,
+    ``untested_blocks``), a camera's ``detections``, those ``gated``, its ``camera_nis`` and
+    ``track_losses``, and the health at the end (``health``) and per step (``health_steps``).
+    Every key is present; None where the object does not report it (no guard, not a camera,
+    or a ``dfusion run`` node, whose process does not send them)."""
+    out: dict[str, Any] = {"tests": None, "failures": None, "nis_mean": None, "quarantines": None,
+                           "quarantined": [], "untested_blocks": None, "gated": None, "detections": None,
+                           "camera_nis": None, "track_losses": None, "health": None, "health_steps": None}
+    guard = getattr(node, "guard", None)
+    if guard is not None:
+        out.update(guard.summary())
+    st = getattr(front, "stats", None)
+    if st is not None and hasattr(st, "gated"):
+        out["gated"] = int(st.gated)
+        out["detections"] = int(st.detections)
+        out["camera_nis"] = None if math.isnan(st.nis_mean) else float(st.nis_mean)
+        out["track_losses"] = int(getattr(st, "losses", 0))
+    if hasattr(node, "health"):
+        out["health"] = node_health(node, front)
+        series = health_series or []
+        out["health_steps"] = {h: int(sum(1 for x in series if x == h)) for h in ("ok", "degraded", "lost")}
     return out
 
 

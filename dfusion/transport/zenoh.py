@@ -483,6 +483,19 @@ class ZenohTransport(Transport):
         """
         return StatsReport.from_links(self._stats)
 
+    def node_totals(self, node: str) -> TransportStats:
+        """One local node's side: ``sent``/``bytes_sent`` summed over its outgoing links,
+        ``delivered``/``bytes_delivered`` over its incoming ones (no copy of every link)."""
+        out = TransportStats()
+        for nb in self.neighbors[node]:
+            o, i = self._stats[(node, nb)], self._stats[(nb, node)]
+            out.sent += o.sent
+            out.bytes_sent += o.bytes_sent
+            out.dropped += o.dropped + i.dropped
+            out.delivered += i.delivered
+            out.bytes_delivered += i.bytes_delivered
+        return out
+
     # ------------------------------------------------------------------ liveliness
     def poll(self) -> list[tuple[str, bool]]:
         """Apply pending liveliness changes, log them and call the callbacks; returns them."""

@@ -635,3 +635,49 @@ def test_property_any_arrival_order_with_interleaved_estimates_equals_time_order
     x, P = filt.estimate()
     assert_rel(x, x_ref)
     assert_rel(P, P_ref)
+
+
+# ----------------------------------------------------------------------------- frame updates
+class _KalmanFrame:
+    """A frame update that is one linear position measurement, written with filterpy: the
+    reference says add_frame must give exactly what add does with the same measurement."""
+
+    def __init__(self, z, sensor: PositionSensor) -> None:
+        self.z, self.sensor = np.asarray(z, dtype=float), sensor
+        self.calls = 0
+
+    def update(self, x, P):
+        self.calls += 1
+        kf = KalmanFilter(dim_x=4, dim_z=2)
+        kf.x, kf.P, kf.H, kf.R = x.reshape(-1, 1).copy(), P.copy(), H_POS4, self.sensor.R
+        kf.update(self.z.reshape(-1, 1))
+        return kf.x.ravel(), kf.P
+
+
+def test_frame_updates_are_rerun_in_time_order_like_measurements():
+    """Half the measurements as frame updates, all added in shuffled order with estimates in
+    between: the result is filterpy's Kalman filter in time order; a late measurement re-runs
+    the frames after it."""
+    meas, prior = make_scenario(seed=4, per_sensor=8)
+    rng = np.random.default_rng(4)
+    order = rng.permutation(len(meas))
+    ekf = cv_filter(prior)
+    frames = []
+    for i, j in enumerate(order):
+        t, z, s = meas[j]
+        if j % 2:
+            frames.append(_KalmanFrame(z, s))
+            ekf.add_frame(t, frames[-1], seq=int(j))
+        else:
+            ekf.add(t, z, s, seq=int(j))
+        if i % 5 == 0:
+            ekf.estimate(ekf.t_latest)
+    x_ref, P_ref, _ = kf_reference(sorted(meas, key=lambda m: m[0]), 0.0, prior, t_end=10.0)
+    x, P = ekf.estimate(10.0)
+    assert_rel(x, x_ref)
+    assert_rel(P, P_ref)
+    assert max(f.calls for f in frames) > 1          # re-run after late arrivals
+    with pytest.raises(TypeError):
+        ekf.add_frame(1.0, object())
+    with pytest.raises(TimeError):
+        ekf.add_frame(-1.0, frames[0])

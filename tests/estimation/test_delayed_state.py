@@ -423,3 +423,39 @@ def test_rejected_input_on_a_window_that_still_holds_the_first_state():
         m, P = f.estimate()
         np.testing.assert_array_equal(m, est[0])
         np.testing.assert_array_equal(P, est[1])
+
+
+def test_add_information_moments_returns_the_smoothed_moments_before_and_after():
+    """The moments at the entries' times (one between two states: inserted) are the window
+    estimates (checked against the RTS smoother above) before and after the same batch;
+    trial() undoes everything done inside it."""
+    def filled():
+        rng = np.random.default_rng(3)
+        g = make_filter()
+        for k in range(1, 12):
+            g.predict(0.1 * k)
+            g.update(0.1 * k, rng.normal(size=2), PositionSensor(2, 0.7))
+        return g
+
+    rng = np.random.default_rng(8)
+    entries = []
+    for t in (0.3, 0.45, 0.9):
+        A = rng.normal(size=(2, 4))
+        L = A.T @ A
+        entries.append((t, L, L @ rng.normal(size=4)))
+    f, before, after = filled(), filled(), filled()
+    before.ensure_state(0.45)
+    after.add_information_batch(entries, validate=False)
+    times = f.times.tolist()
+    with f.trial():
+        f.add_information_moments(entries)
+        assert len(f) == 13
+    assert f.times.tolist() == times
+    assert_close_rel(f.estimate()[0], filled().estimate()[0], 0.0)
+    mu0, P0, mu1 = f.add_information_moments(entries)
+    for (t, _, _), m0, C0, m1 in zip(entries, mu0, P0, mu1):
+        assert_close_rel(m0, before.estimate(t)[0], 1e-10)
+        assert_close_rel(C0, before.estimate(t)[1], 1e-10)
+        assert_close_rel(m1, after.estimate(t)[0], 1e-10)
+    for t in (0.0, 0.45, 1.1):
+        assert_close_rel(f.estimate(t)[0], after.estimate(t)[0], 1e-12)

@@ -214,6 +214,7 @@ def _without(d: dict, key: str) -> dict:
     ({"width": 64.5}, "width"),
     ({"false_detection_rate": -0.1}, "false_detection_rate"),
     ({"gate": 1.5}, "gate"),
+    ({"clutter_model": "mht"}, "clutter_model"),
     ({"zoom": 2}, "zoom"),
     ({"position": [0.0, -6.0, -1.0]}, "above"),
 ])

@@ -106,3 +106,28 @@ def test_the_scenarios_security_table_is_read_and_the_command_line_wins(tmp_path
     assert scenario_security(SimpleNamespace(raw={}, base_dir=None)) == SecurityOptions()
     with pytest.raises(ValidationError, match="security.tls.cetr"):
         scenario_security(SimpleNamespace(raw={"security": {"tls": {"cetr": "x"}}}, base_dir=None))
+
+
+def test_host_groups_hold_every_node_once_in_hosts_of_even_sizes(tmp_path):
+    """--nodes-per-process N: ceil(n / N) hosts whose sizes differ by at most one, every node in one,
+    neighbours together (depth-first order), named host0.. (never a node's name); N = 1: a host per node,
+    named after it."""
+    from dfusion.run.launcher import host_groups
+    from dfusion.scenario import load_scenario
+    from dfusion.topology import random_tree
+
+    names = {f"n{k}" for k in range(23)} | {"host0"}
+    links = random_tree(23, seed=2) + [("n5", "host0")]
+    text = "duration = 1.0\n" + "".join(f'[[nodes]]\nname = "{n}"\nsensor = "position"\n' for n in sorted(names)) \
+        + "".join(f'[[links]]\nbetween = ["{a}", "{b}"]\n' for a, b in links)
+    (tmp_path / "t.toml").write_text(text)
+    sc = load_scenario(tmp_path / "t.toml")
+    assert host_groups(sc, 1) == {n: [n] for n in sorted(names)}
+    for per in (2, 5, 8, 24, 100):
+        hosts = host_groups(sc, per)
+        sizes = [len(v) for v in hosts.values()]
+        assert len(hosts) == -(-len(names) // per) and max(sizes) - min(sizes) <= 1 and max(sizes) <= per
+        assert sorted(n for v in hosts.values() for n in v) == sorted(names)
+        assert not set(hosts) & names
+        order = [n for v in hosts.values() for n in v]   # depth-first: each node links to an earlier one
+        assert all(any(sc.graph.has_edge(order[i], w) for w in order[:i]) for i in range(1, len(order)))

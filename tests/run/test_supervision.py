@@ -19,6 +19,7 @@ import pytest
 pytest.importorskip("zenoh")
 
 from dfusion.run.launcher import Launcher, RunOptions  # noqa: E402
+from dfusion.run.monitor import run_table  # noqa: E402
 from dfusion.run.supervision import (  # noqa: E402
     EXIT_ALREADY_RUNNING,
     EXIT_NO_LAUNCHER,
@@ -243,3 +244,82 @@ def test_a_node_restarted_by_hand_with_its_command_line_joins_the_run(tmp_path):
     assert not launcher.failures
     print(f"b restarted by hand: back after {sup['back_after_s'][0]:.2f} s wall; final gaps "
           f"{max(v['final_gap'] for v in m['nodes'].values()):.1e}")
+
+
+#: The 3-node chain's settings (dt 0.2, a window spanning the run) for a tree of six nodes
+TREE6 = CHAIN3.split("[[nodes]]")[0].format(duration=24.0, window=150).replace("dt = 0.1", "dt = 0.2") + "".join(f"""
+[[nodes]]
+name = "{n}"
+sensor = "position"
+std = {0.5 + 0.1 * i}
+rate = 2.5
+send_period = 0.6
+""" for i, n in enumerate("abcdef")) + "".join(f"""
+[[links]]
+between = ["{a}", "{b}"]
+latency = 0.02
+drop = {drop}
+""" for a, b, drop in (("a", "b", 0.0), ("b", "c", 0.2), ("b", "d", 0.0), ("d", "e", 0.0), ("d", "f", 0.2)))
+
+
+def test_a_sigkilled_host_comes_back_with_all_its_nodes_and_the_network_reconverges(tmp_path):
+    """Six nodes in two host processes (--nodes-per-process 3). SIGKILL of a host mid-run: the launcher
+    restarts it (from the warm standby), each of its three nodes comes back as a new incarnation and
+    replays its log, and every node ends on the centralized estimate of what was measured (final gap
+    <= 1e-9: linear, window spanning the run). Nodes of one host exchange their messages through Zenoh
+    (their transport counters), and no process outlives the run."""
+    path = tmp_path / "tree6.scenario.toml"
+    path.write_text(TREE6)
+    run_dir = tmp_path / "run"
+    opts = RunOptions(scenario=str(path), speed=2.0, run_dir=str(run_dir), nodes_per_process=3,
+                      supervision=RestartPolicy(backoff=0.1, backoff_max=0.4))
+    launcher = Launcher(opts)
+    assert launcher.hosts == {"host0": ["a", "b", "c"], "host1": ["d", "e", "f"]}   # depth-first: neighbours together
+    thread, box = start_in_thread(launcher)
+    seen: set[int] = set()
+    try:
+        wait_until(lambda: launcher.start is not None and launcher.now() > 6.0, 90, "the run", thread)
+        host = launcher.procs["host1"]
+        recs = [launcher.monitor.records[n] for n in host.nodes]
+        wait_until(lambda: "standby" in node_pids(run_dir), 30, "the warm standby", thread)
+        pid = host.popen.pid
+        seen.update(node_pids(run_dir).values())
+        os.kill(pid, signal.SIGKILL)
+        killed_at = launcher.now()
+        wait_until(lambda: host.popen.pid != pid, 30, "host1 restarted", thread)
+        wait_until(lambda: all(len(r.epochs) == 2 and r.phase == "run" for r in recs), 30, "host1's nodes back", thread)
+        thread.join(timeout=120)
+        assert not thread.is_alive()
+    finally:
+        launcher.request_stop("test finished")
+        thread.join(timeout=10)
+    seen.update(launcher.spawned)
+    assert "error" not in box, box.get("error")
+    result = box["result"]
+    assert result is not None
+    m = result.metrics
+    run = m["run"]
+    assert run["hosts"] == 2 and run["nodes_per_process"] == 3
+    assert run["host_nodes"] == {"host0": ["a", "b", "c"], "host1": ["d", "e", "f"]}
+    sup = run["supervision"]["nodes"]
+    assert sup["host1"]["restarts"] == 1 and sup["host1"]["exits"] == ["killed by SIGKILL"]
+    assert sup["host0"]["restarts"] == 0 and sup["host0"]["exits"] == []
+    for name in "abcdef":
+        v = run["nodes"][name]
+        assert v["incarnations"] == (2 if name in "def" else 1), (name, v)
+        assert v["finished"]
+        assert v["messages_received"] > 0
+        if name in "def":
+            assert v["measurements_replayed"] > 0
+    # a's and c's only neighbour (b) runs in their host: what they fused came through the session
+    assert run["nodes"]["a"]["messages_received"] > 0 and run["nodes"]["c"]["messages_received"] > 0
+    for name, v in m["nodes"].items():
+        assert v["final_gap"] <= 1e-9, (name, v["final_gap"])
+    assert not launcher.failures
+    assert not [p for p in seen if pid_alive(p)], "a process outlived the launcher"
+    log = (run_dir / "logs" / "host1.log").read_text()
+    assert "incarnation 2 (warm standby)" in log and "host host1: nodes d, e, f" in log
+    assert (run_dir / "commands" / "host1.sh").exists()
+    assert "processes: 2 host processes for 6 nodes (up to 3 per process)" in run_table(result)
+    print(f"host1 (d, e, f) SIGKILLed at t={killed_at:.1f} s: back after {sup['host1']['back_after_s'][0]:.2f} s "
+          f"wall; final gaps {max(v['final_gap'] for v in m['nodes'].values()):.1e}")

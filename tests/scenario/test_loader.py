@@ -144,3 +144,25 @@ def test_the_security_table_is_checked_when_the_scenario_is_loaded(tmp_path):
     assert "security.tls.dri" in msg and "unknown key" in msg
     msg = error_of(write(tmp_path, 'security = "on"\n' + GOOD))
     assert "security" in msg and "must be a table [security]" in msg
+
+
+def test_the_protection_table_is_checked_strictly(tmp_path):
+    from dfusion.fusion.guard import GuardConfig
+
+    text = GOOD.replace("[target]", "[protection]\nfalse_alarm = 0.01\nquarantine = [2, 5]\nrelease = 4\n\n[target]")
+    sc = load_scenario(write(tmp_path, text))
+    assert sc.protection.node_guard() == GuardConfig(0.01, 2, 5, 4)
+    assert load_scenario(write(tmp_path, GOOD, "plain.toml")).protection.node_guard() == GuardConfig()   # on by default
+    assert load_scenario(write(tmp_path, text, "off.toml"), protection=False).protection.node_guard() is None
+    off = GOOD.replace("[target]", "[protection]\nnetwork_check = false\n\n[target]")
+    assert load_scenario(write(tmp_path, off, "nocheck.toml")).protection.node_guard() is None
+    for i, (bad, words) in enumerate([
+            ("quarantine = [5, 2]", ["protection", "must not exceed"]),
+            ('clutter_model = "mht"', ["protection.clutter_model", "'mht'"]),
+            ('enabled = "yes"', ["protection.enabled", "true or false"]),
+            ("false_alarm = 1.5", ["protection", "false_alarm"]),
+            ("relase = 3", ["protection.relase", "did you mean 'release'"]),
+            ("quarantine = 3", ["protection.quarantine", "[failures, window]"])]):
+        msg = error_of(write(tmp_path, GOOD.replace("[target]", f"[protection]\n{bad}\n\n[target]"), f"bad{i}.toml"))
+        for part in words:
+            assert part in msg, msg

@@ -1,0 +1,307 @@
+r"""Consistency test of a neighbour's information, and quarantine of a neighbour that keeps failing it.
+
+**The test.** With per-time replacement (:mod:`dfusion.fusion.channel`) a message
+changes, per state time ``t``, what the receiver holds from the sender: its filter gets
+the block ``(Lambda, y) = new - old`` (the channel's plan), what the message adds. That
+block is a pseudo-measurement of the state: with ``Lambda = V diag(l) V^T`` (``r``
+positive eigenvalues), ``z = Lambda^+ y`` is a measurement of ``V^T x(t)`` with noise
+``diag(l)^-1``. Against the receiver's belief *without* the message, its innovation
+``nu = V^T (z - mu0)`` has covariance ``V^T (P0 + Lambda^+) V`` and ``nu^T S^-1 nu ~
+chi2_r`` when both sides' models hold (Bar-Shalom, Li & Kirubarajan, *Estimation with
+Applications to Tracking and Navigation*, 2001, sec. 5.4: the normalized innovation
+squared). All blocks of one message are tested jointly: their pseudo-measurements are
+stacked against the joint belief over the trajectory, which gives one statistic with
+``sum r`` degrees of freedom. It is computed without forming the joint covariance, from
+the smoothed means at the blocks' times before (``mu0``) and after (``mu1``) adding them
+(:meth:`~dfusion.estimation.delayed_state.DelayedStateEIF.add_information_moments`)::
+
+    D^2 = sum_t (z_t - mu0_t)^T Lambda_t (z_t - mu1_t)        ~ chi2_{sum r_t}
+
+(the identity ``nu^T S^-1 nu = (z - H mu0)^T R^-1 (z - H mu1)`` of a Kalman update,
+applied to the stacked pseudo-measurement; ``mu1 - mu0`` is the joint update of the
+trajectory, so the correlations between the blocks' times are accounted for). The
+message *fails* when ``D^2 > chi2^-1_{sum r}(1 - alpha)``; ``alpha`` (default 1e-3)
+is the false-alarm probability *per message*, whatever the number of blocks.
+
+Only what is new is tested, and it is tested against a belief that already holds
+everything else the receiver knows, so under the model the statistics of successive
+messages are independent (the innovations of a filter are white): a healthy
+neighbour fails ``k`` of ``m`` consecutive messages with probability about
+``C(m, k) alpha^k`` (1.2e-7 for the defaults ``k = 3``, ``m = 10``). Blocks that
+remove information (a negative eigenvalue: the sender dropped or replaced something)
+are added first and not tested; blocks for state times newer than the receiver's
+newest state wait in the node and are not tested; directions whose information is
+negligible for the receiver (``l_i v_i^T P0 v_i <= 1e-9``) are left out. A block whose
+``y`` leaves the range of ``Lambda`` (no measurement can produce it) by more than
+rounding (``y_out^T P0 y_out > 1e-6``: the mean would move by a thousandth of a
+standard deviation without any information) fails at once.
+
+**In the receive transaction.** :meth:`dfusion.fusion.node.FusionNode.receive` plans a
+message (decoding, validation, the channel's plan) without changing anything, then
+applies the plan inside one transaction: the test runs as the plan's additions are
+added to the filter, the verdict is recorded, and a verdict that completes a quarantine
+withdraws the link in the same transaction. An exception anywhere undoes all of it, the
+link's record included: a message is tested, fused and judged completely or not at all.
+
+**Quarantine.** A failed message is still fused (one failure is the expected false
+alarm of a healthy network, and refusing it would not make the fused result exact: the
+sender's next messages carry the same times again). A neighbour whose last ``m`` tested
+messages hold ``k`` failures is quarantined: the receiver *withdraws* everything that
+came over that link. With per-time replacement that means treating the channel's stored
+values ``M_ij(t)`` as removed: they are subtracted from the filter (every state time
+still in the window) and from what the node shares, ``T_i``, and those times are marked
+changed on every other link, so the next partial messages carry the smaller values ``V =
+T - M`` (or clear the time) and the rest of the tree withdraws the same information.
+Removing information is never over-confident; the cost is that what the quarantined
+neighbour relayed from further away is lost too. Blocks older than the receiver's window
+are already marginalized into its base and stay. While the link is quarantined the node
+keeps storing the neighbour's messages in the channel (what it would contribute; they
+are acknowledged as usual), fuses none of them, marks nothing changed for them, and sends
+the neighbour its whole belief ``V = T`` (nothing of the neighbour's is in it, so the
+value for that link did not change when the quarantine began). Each message received
+then is a *probation* test: the neighbour's whole current contribution (every stored
+block in the window) against the receiver's belief, jointly as above, in a trial (undone
+at once). After ``release`` consecutive passing probation tests the link leaves
+quarantine and the neighbour's current contribution is added back to the filter and to
+``T``, its times marked changed on the other links (exactly what normal operation would
+hold). Probation statistics of successive messages share most of their blocks, so they
+are strongly correlated: requiring ``release`` passes in a row mainly requires the
+neighbour's picture to agree with the receiver's for ``release`` send periods; a
+neighbour that restarted (a new incarnation) replaces its old blocks and can pass.
+
+**Health** (:meth:`NeighbourGuard.health`): ``"lost"`` when every neighbour of a
+node is quarantined (it no longer trusts anyone: either it or all of them are
+wrong), ``"degraded"`` when some neighbour is quarantined or a link has failed
+at least 2 of its last ``m`` tests (half way to quarantine with the defaults),
+``"ok"`` otherwise.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from dfusion.errors import ValidationError
+from dfusion.linalg import Array
+
+log = logging.getLogger(__name__)
+
+__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "information_statistic", "split_blocks", "HEALTH_STATES"]
+
+HEALTH_STATES = ("ok", "degraded", "lost")
+
+#: Eigenvalues of a block below this fraction of its largest are zero (rounding).
+EIG_RTOL = 1e-9
+#: A direction whose information changes the receiver's variance by less than this fraction is left out.
+NEGLIGIBLE = 1e-9
+#: The part of ``y`` outside the range of ``Lambda`` may shift the receiver's mean by this many
+#: standard deviations (squared) at most: more is information no measurement can produce.
+RANGE_TOL = 1e-6
+
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """Parameters of the consistency test and the quarantine (module docstring).
+
+    Attributes
+    ----------
+    false_alarm : float
+        ``alpha``: probability that a healthy neighbour's message fails the test.
+    failures, window : int
+        Quarantine after ``failures`` failed messages among the last ``window`` tested ones.
+    release : int
+        Consecutive passing probation tests that end a quarantine.
+    """
+
+    false_alarm: float = 1e-3
+    failures: int = 3
+    window: int = 10
+    release: int = 10
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.false_alarm < 1.0):
+            raise ValidationError(f"false_alarm must be in (0, 1), got {self.false_alarm!r}")
+        for name in ("failures", "window", "release"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValidationError(f"{name} must be a positive integer, got {v!r}")
+        if self.failures > self.window:
+            raise ValidationError(f"failures ({self.failures}) must not exceed window ({self.window})")
+
+
+@dataclass
+class LinkRecord:
+    """What a node's guard knows about one neighbour."""
+
+    window: int
+    tests: int = 0                  # messages tested (normal operation)
+    failures: int = 0               # of which failed
+    stat_sum: float = 0.0           # sum of the statistics of the tested messages
+    dof_sum: int = 0                # and of their degrees of freedom
+    untested_blocks: int = 0        # blocks not tested (removals, ahead of the newest state)
+    quarantined: bool = False
+    quarantines: int = 0            # times the link was quarantined
+    releases: int = 0               # times it left quarantine
+    probation_tests: int = 0
+    passes: int = 0                 # consecutive passing probation tests
+    recent: deque = field(default_factory=deque)
+
+    def __post_init__(self) -> None:
+        self.recent = deque(self.recent, maxlen=self.window)
+
+    @property
+    def recent_failures(self) -> int:
+        return int(sum(self.recent))
+
+
+def split_blocks(entries: list[tuple[float, Array, Array]]) -> tuple[list, list]:
+    """``(additions, others)``: blocks whose information matrix is positive semi-definite
+    (up to rounding: eigenvalues above ``-EIG_RTOL`` times the largest), and the rest."""
+    add, other = [], []
+    for e in entries:
+        L = e[1]
+        w = np.linalg.eigvalsh(L)
+        scale = float(np.max(np.abs(w))) if w.size else 0.0
+        if scale > 0.0 and w[0] >= -EIG_RTOL * scale:
+            add.append(e)
+        elif scale > 0.0:
+            other.append(e)
+        elif np.any(e[2]):
+            add.append(e)   # y without Lambda: tested (rounding passes, more fails: out of range)
+    return add, other
+
+
+def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
+                          mu1: list[Array]) -> tuple[float, int]:
+    """``(D^2, dof)`` of the blocks ``entries`` as joint pseudo-measurements (module docstring).
+
+    ``mu0, P0``: the belief's smoothed means and covariances at the blocks' times before
+    they are added; ``mu1``: the means after. Returns ``(inf, dof)`` if some ``y`` is not
+    in the range of its ``Lambda``.
+    """
+    stat, dof = 0.0, 0
+    for (t, L, y), m0, C0, m1 in zip(entries, mu0, P0, mu1):
+        w, V = np.linalg.eigh(0.5 * (L + L.T))
+        scale = float(np.max(np.abs(w))) if w.size else 0.0
+        pos = w > EIG_RTOL * scale if scale > 0 else np.zeros(w.shape, dtype=bool)
+        Vp = V[:, pos]
+        out = y - Vp @ (Vp.T @ y)
+        if float(out @ C0 @ out) > RANGE_TOL:
+            return math.inf, dof + int(pos.sum())
+        if not pos.any():
+            continue
+        lam = w[pos]
+        signal = lam * np.einsum("ij,jk,ki->i", Vp.T, C0, Vp)
+        use = signal > NEGLIGIBLE
+        if not use.any():
+            continue
+        Vu, lu = Vp[:, use], lam[use]
+        zc = (Vu.T @ y) / lu                       # V^T z, the pseudo-measurement in the kept directions
+        a = zc - Vu.T @ m0
+        b = zc - Vu.T @ m1
+        stat += float(np.sum(a * lu * b))
+        dof += int(use.sum())
+    return stat, dof
+
+
+class NeighbourGuard:
+    """Consistency records and quarantine decisions of one node (module docstring)."""
+
+    def __init__(self, neighbors, config: GuardConfig | None = None) -> None:
+        self.config = config or GuardConfig()
+        self.links: dict[str, LinkRecord] = {j: LinkRecord(self.config.window) for j in neighbors}
+        self._thresholds: dict[int, float] = {}
+
+    def __repr__(self) -> str:
+        q = sorted(self.quarantined)
+        return f"NeighbourGuard({self.config}, quarantined={q})"
+
+    def state(self, j: str) -> LinkRecord:
+        """A copy of ``j``'s record (to undo a message's effect on it with :meth:`restore`)."""
+        r = self.links[j]
+        return replace(r, recent=deque(r.recent, maxlen=r.window))
+
+    def restore(self, j: str, record: LinkRecord) -> None:
+        """Put back ``j``'s record as :meth:`state` copied it."""
+        self.links[j] = record
+
+    def threshold(self, dof: int) -> float:
+        """``chi2^-1_dof(1 - alpha)``."""
+        c = self._thresholds.get(dof)
+        if c is None:
+            from scipy.stats import chi2  # here, not at the top: a node without a guard needs no scipy
+
+            c = self._thresholds[dof] = float(chi2.isf(self.config.false_alarm, dof))
+        return c
+
+    @property
+    def quarantined(self) -> set[str]:
+        return {j for j, r in self.links.items() if r.quarantined}
+
+    def is_quarantined(self, j: str) -> bool:
+        r = self.links.get(j)
+        return r is not None and r.quarantined
+
+    def judge(self, j: str, stat: float, dof: int) -> bool:
+        """Record one tested message of ``j``; returns True when ``j`` is to be quarantined now."""
+        r = self.links[j]
+        if dof <= 0:
+            return False
+        failed = not (stat <= self.threshold(dof))
+        r.tests += 1
+        r.failures += failed
+        if math.isfinite(stat):
+            r.stat_sum += stat
+            r.dof_sum += dof
+        r.recent.append(failed)
+        if failed:
+            log.debug("neighbour %s failed the consistency test: D^2 = %.3g > %.3g (%d dof)",
+                     j, stat, self.threshold(dof), dof)
+        if r.recent_failures >= self.config.failures:
+            r.quarantined = True
+            r.quarantines += 1
+            r.passes = 0
+            r.recent.clear()
+            return True
+        return False
+
+    def probation(self, j: str, stat: float, dof: int) -> bool:
+        """Record one probation test of quarantined ``j``; returns True when ``j`` is released now."""
+        r = self.links[j]
+        if dof <= 0:
+            return False
+        r.probation_tests += 1
+        r.passes = r.passes + 1 if stat <= self.threshold(dof) else 0
+        if r.passes >= self.config.release:
+            r.quarantined = False
+            r.releases += 1
+            r.passes = 0
+            return True
+        return False
+
+    def health(self) -> str:
+        """``"ok"``, ``"degraded"`` or ``"lost"`` (module docstring)."""
+        if not self.links:
+            return "ok"
+        q = self.quarantined
+        if len(q) == len(self.links):
+            return "lost"
+        if q or any(r.recent_failures >= 2 for r in self.links.values()):
+            return "degraded"
+        return "ok"
+
+    def summary(self) -> dict:
+        """Totals over the links: tests, failures, normalized statistic, quarantines."""
+        rs = self.links.values()
+        dof = sum(r.dof_sum for r in rs)
+        return {
+            "tests": sum(r.tests for r in rs),
+            "failures": sum(r.failures for r in rs),
+            "nis_mean": (sum(r.stat_sum for r in rs) / dof) if dof else None,
+            "quarantines": sum(r.quarantines for r in rs),
+            "quarantined": sorted(self.quarantined),
+            "untested_blocks": sum(r.untested_blocks for r in rs),
+        }

@@ -1,0 +1,119 @@
+"""The node program (dfusion.run.node_process): what it imports, and several nodes in one process (a host).
+
+The import contract is checked in fresh interpreters (``sys.modules`` after the node program
+has loaded a scenario, built its node and run steps). The host is a real process on loopback.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("zenoh")
+
+from dfusion.run.measurements import nodes_measurements, save_recording  # noqa: E402
+from dfusion.run.monitor import centralized_reference  # noqa: E402
+from dfusion.scenario import load_scenario  # noqa: E402
+from dfusion.sim.world import simulate_world  # noqa: E402
+from tests.run.test_processes import CHAIN3, ROOT  # noqa: E402
+
+#: What a node program must not load (plotting, the simulator, scipy and the libraries that pull it in).
+HEAVY = ("scipy", "matplotlib", "networkx", "filterpy", "dfusion.sim", "dfusion.viz", "dfusion.estimation.centralized")
+
+PROBE = textwrap.dedent("""
+    import json, sys
+    from dfusion.run.node_process import NodeProcess
+    from dfusion.run.measurements import load_recording
+    from dfusion.scenario import load_scenario
+    sc = load_scenario(sys.argv[1])
+    name = sys.argv[2]
+    proc = NodeProcess(sc, name, start=0.0, measurements=load_recording(sys.argv[3], name))
+    for t in proc.times[1:101]:          # the loop's predict and fuse, and a message to every neighbour
+        proc.node.predict(float(t))
+        proc._fuse_until(float(t))
+        for nb in proc.neighbors:
+            proc.node.message_to(nb)
+    proc.node.estimate()
+    assert proc.counters["measurements_fused"] > 0
+    print(json.dumps(sorted(sys.modules)))
+""")
+
+
+def loaded_by_node_program(scenario: Path, node: str, tmp_path: Path) -> list[str]:
+    sc = load_scenario(scenario)
+    rec = save_recording(tmp_path / f"{node}.jsonl", node, nodes_measurements(sc, None, [node])[node])
+    out = subprocess.run([sys.executable, "-c", PROBE, str(scenario), node, str(rec)], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def heavy(modules: list[str]) -> list[str]:
+    return [m for m in modules if any(m == h or m.startswith(h + ".") for h in HEAVY)]
+
+
+def test_a_position_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp_path):
+    scenario = tmp_path / "chain3.scenario.toml"
+    scenario.write_text(CHAIN3.format(duration=20.0, window=100))
+    modules = loaded_by_node_program(scenario, "a", tmp_path)
+    assert "dfusion.run.node_process" in modules and "zenoh" in modules and "numpy" in modules
+    assert heavy(modules) == []
+    print(f"position node program: {len(modules)} modules, none of {', '.join(HEAVY)}")
+
+
+def test_a_camera_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp_path):
+    scenario = ROOT / "topologies" / "urus.scenario.toml"
+    modules = loaded_by_node_program(scenario, "cam_left", tmp_path)
+    assert "dfusion.models.camera" in modules
+    assert heavy(modules) == []
+
+
+def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_path):
+    """``python -m dfusion.run.node_process --node a --node b --node c``: one process, one Zenoh
+    session, three nodes with their own loops and results; their messages go through Zenoh (each
+    node's transport counters), and each final estimate is the centralized EKF's (<= 1e-9)."""
+    scenario = tmp_path / "chain3.scenario.toml"
+    scenario.write_text(CHAIN3.format(duration=4.0, window=100))
+    sc = load_scenario(scenario)
+    results = tmp_path / "results"
+    start = time.time() + 2.0
+    log = tmp_path / "host.log"
+    with log.open("w") as out:
+        proc = subprocess.run(
+            [sys.executable, "-m", "dfusion.run.node_process", "--scenario", str(scenario), "--node", "a", "--node", "b",
+             "--node", "c", "--host", "h", "--network", f"host{os.getpid()}", "--start-time", repr(start),
+             "--speed", "4", "--result", str(results), "--state-dir", str(tmp_path / "state")],
+            stdout=out, stderr=subprocess.STDOUT, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    text = log.read_text()
+    assert proc.returncode == 0, text
+    assert "[h]" in text and "host h: nodes a, b, c" in text
+    _, _, c_final = centralized_reference(sc, simulate_world(sc))
+    epochs = set()
+    for name in "abc":
+        st = json.loads((results / f"{name}.json").read_text())
+        assert st["phase"] == "final" and st["node"] == name
+        assert np.max(np.abs(np.asarray(st["mean"]) - c_final)) <= 1e-9, (name, st["mean"], c_final)
+        s = st["stats"]
+        assert s["messages_received"] > 0 and s["delivered"] >= s["messages_received"] and s["published"] > 0
+        epochs.add(st["epoch"])
+        assert (tmp_path / "state" / f"{name}.measurements.jsonl").exists()
+    assert len(epochs) == 3   # three incarnations, one per node
+
+
+def test_the_node_program_refuses_twice_the_same_node_and_record_of_several(tmp_path):
+    scenario = tmp_path / "chain3.scenario.toml"
+    scenario.write_text(CHAIN3.format(duration=4.0, window=100))
+    base = [sys.executable, "-m", "dfusion.run.node_process", "--scenario", str(scenario)]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    twice = subprocess.run(base + ["--node", "a", "--node", "a"], capture_output=True, text=True, env=env, timeout=60)
+    assert twice.returncode == 2 and "named twice" in twice.stderr
+    record = subprocess.run(base + ["--node", "a", "--node", "b", "--record", str(tmp_path / "x.jsonl")],
+                            capture_output=True, text=True, env=env, timeout=60)
+    assert record.returncode == 2 and "one --node" in record.stderr
