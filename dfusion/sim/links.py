@@ -145,6 +145,8 @@ class DynamicLinks:
         self._joined: set[str] = set()
         #: every step's agreed tree links (for figures): (t, edges)
         self.history: list[tuple[float, set[Pair]]] = []
+        #: every step's roots of the tree epochs the present nodes are in (for figures): (t, names)
+        self.roots: list[tuple[float, set[str]]] = []
 
     def start(self) -> tuple[dict[str, FusionNode], SimulatedNetwork]:
         """The nodes present at time 0 on the links that exist then, and the network."""
@@ -154,6 +156,7 @@ class DynamicLinks:
                                         seed=self.sc.seed, nodes=sorted(self.sc.nodes))
         self._settled_tree = agreed_edges(self.nodes)
         self.history.append((0.0, set(self._settled_tree)))
+        self.roots.append((0.0, self._roots()))
         return self.nodes, self.network
 
     def step(self, t: float, on_join: Callable[[str], None] | None = None) -> list[str]:
@@ -202,6 +205,7 @@ class DynamicLinks:
         if settled:
             self._settled_tree = edges
         self.history.append((t, edges))
+        self.roots.append((t, self._roots()))
         comps = None
         for c in self.changes:
             if c.info_settled is not None:
@@ -213,6 +217,9 @@ class DynamicLinks:
                 if information_settled(self.nodes, comps, c.t):
                     c.info_settled = t
                     c.components = comps
+
+    def _roots(self) -> set[str]:
+        return {x.tree.epoch.root for x in self.nodes.values()}
 
     def end(self, t: float) -> None:
         """After the final rounds: changes still open settle now if they do."""

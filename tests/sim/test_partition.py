@@ -110,3 +110,16 @@ def test_a_fixed_tree_runs_the_fixed_tree_protocol(tmp_path):
     assert res.links is None and "links" not in res.metrics
     for n, v in res.metrics["nodes"].items():
         assert v["final_gap"] < 1e-8
+
+
+def test_tree_frames_are_taken_after_the_changes_settled(tmp_path):
+    from dfusion.viz.treeframes import frame_times, plot_tree_frames
+
+    sc = ring(tmp_path, 1)
+    sc.duration = 32.0
+    res = run_scenario(sc)
+    times = frame_times(res)
+    settled = [c.tree_settled for c in res.links.changes if c.tree_changed]
+    assert times[0] == 0.0 and set(settled) <= set(times)
+    out = plot_tree_frames(res, tmp_path / "frames.png")
+    assert out.stat().st_size > 10_000
