@@ -14,7 +14,8 @@ simulated world (``docs/ros.md``).
 
 Outputs of all three: ``--json`` (the figures and the per-step series), ``--csv``
 (the series), ``--plot`` (error plots), ``--topdown`` (the top-down figure),
-``--mcap`` (a recording for Foxglove, ``docs/ros.md``).
+``--mcap`` (a recording for Foxglove, ``docs/ros.md``); ``simulate --frames`` (the tree over
+time, for scenarios whose links change: ``docs/dynamic-topology.md``).
 """
 from __future__ import annotations
 
@@ -63,6 +64,10 @@ def _outputs(result, args: argparse.Namespace, *, title: str | None = None) -> N
         from dfusion.viz import plot_result
 
         print(f"wrote {plot_result(result, args.plot, title=title)}")
+    if getattr(args, "frames", None):
+        from dfusion.viz.treeframes import plot_tree_frames
+
+        print(f"wrote {plot_tree_frames(result, args.frames)}")
     if getattr(args, "topdown", None):
         from dfusion.viz.topdown import plot_topdown
 
@@ -163,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     s.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     _output_options(s)
+    s.add_argument("--frames", metavar="OUT.png", help="links that change: write top-down frames of the fusion tree "
+                                                       "over time, with the robots and the person "
+                                                       "(docs/dynamic-topology.md)")
     s.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; docs/new-sensor-kind.md)")
     s.add_argument("--no-protection", action="store_true",

@@ -12,6 +12,9 @@ sec. 5.2). The composition ``a (+) b`` maps a pose ``b`` given in the frame of
     between(a, b) = a^-1 (+) b          (pose b seen from pose a)
 
 Angles are wrapped to ``[-pi, pi)``.
+
+:class:`WaypointPath` is a moving node's path: straight segments between waypoints at a
+constant speed (a robot of a scenario, ``docs/scenarios.md``).
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike
 
+from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 
 __all__ = [
@@ -30,6 +34,7 @@ __all__ = [
     "se2_between",
     "transform_points",
     "heading_of",
+    "WaypointPath",
 ]
 
 
@@ -92,3 +97,67 @@ def heading_of(x: Array, min_speed: float = 1e-9) -> float:
     return math.atan2(vy, vx) if vx * vx + vy * vy > min_speed * min_speed else 0.0
 
 
+
+
+class WaypointPath:
+    """Straight segments between waypoints, driven at a constant speed.
+
+    Parameters
+    ----------
+    points : (k, 2) array
+        Waypoints (m), ``k >= 2``, consecutive ones distinct.
+    speed : float
+        Metres per second, ``> 0``.
+    start : float
+        Time (s) the motion starts; before it the node waits at the first waypoint.
+    loop : bool
+        After the last waypoint go on to the first one and around again; otherwise stop at
+        the last one.
+
+    The position at ``t`` is at arc length ``s = speed (t - start)`` along the polyline
+    (modulo its closed length when looping); the heading is that of the current segment.
+    """
+
+    def __init__(self, points: ArrayLike, speed: float, start: float = 0.0, loop: bool = False) -> None:
+        pts = np.asarray(points, dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 2 or not np.all(np.isfinite(pts)):
+            raise ValidationError(f"path must be a list of at least two [x, y] waypoints, got {points!r}")
+        if loop:
+            pts = np.vstack([pts, pts[:1]])
+        seg = np.diff(pts, axis=0)
+        lengths = np.hypot(seg[:, 0], seg[:, 1])
+        if np.any(lengths <= 0):
+            raise ValidationError("path: two consecutive waypoints coincide")
+        if not (isinstance(speed, (int, float)) and not isinstance(speed, bool) and math.isfinite(speed)
+                and speed > 0):
+            raise ValidationError(f"speed must be a positive number (m/s), got {speed!r}")
+        if not (isinstance(start, (int, float)) and math.isfinite(start)):
+            raise ValidationError(f"start must be a finite time, got {start!r}")
+        self.points, self.speed, self.start, self.loop = pts, float(speed), float(start), bool(loop)
+        self._seg, self._cum = seg, np.concatenate([[0.0], np.cumsum(lengths)])
+
+    @property
+    def length(self) -> float:
+        """Length of the polyline (m), closed when looping."""
+        return float(self._cum[-1])
+
+    def _at(self, t: float) -> tuple[int, float]:
+        s = max(0.0, self.speed * (float(t) - self.start))
+        s = s % self.length if self.loop else min(s, self.length)
+        i = min(int(np.searchsorted(self._cum, s, side="right")) - 1, len(self._seg) - 1)
+        return i, (s - self._cum[i]) / (self._cum[i + 1] - self._cum[i])
+
+    def position(self, t: float) -> Array:
+        """``(x, y)`` at time ``t``."""
+        i, u = self._at(t)
+        return self.points[i] + u * self._seg[i]
+
+    def heading(self, t: float) -> float:
+        """Heading (rad) of the segment driven at ``t``."""
+        i, _ = self._at(t)
+        return math.atan2(self._seg[i, 1], self._seg[i, 0])
+
+    def pose(self, t: float) -> Array:
+        """``(x, y, theta)`` at time ``t``."""
+        x, y = self.position(t)
+        return np.array([x, y, self.heading(t)])

@@ -23,8 +23,9 @@ scenario file) are ignored here, so every scenario file is a topology file.
 
 Public API: :func:`load_topology`, :func:`check_tree`, :func:`find_cycle`,
 :func:`spanning_tree`, :func:`tree_diameter`, :func:`path`,
-:func:`minimum_window`, :func:`settling_rounds`, :func:`random_tree`, and the lean
-:class:`Tree` with :func:`load_tree`. Every input this module rejects raises
+:func:`minimum_window`, :func:`settling_rounds`, :func:`random_tree`, the lean
+:class:`Tree` with :func:`load_tree`, and :func:`radio_links` (the links a radio range allows,
+for topologies that change at run time: ``docs/dynamic-topology.md``). Every input this module rejects raises
 :class:`~dfusion.errors.TopologyError` (a :class:`ValueError`), except bad
 numbers given to :func:`minimum_window`, which raise
 :class:`~dfusion.errors.ValidationError` (also a :class:`ValueError`).
@@ -59,6 +60,7 @@ __all__ = [
     "path",
     "minimum_window",
     "settling_rounds",
+    "radio_links",
 ]
 
 logger = logging.getLogger(__name__)
@@ -177,10 +179,15 @@ def load_tree(
     *,
     spanning_tree: bool = False,
     source: str | None = None,
+    require_tree: bool = True,
 ) -> Tree:
     """:func:`load_topology` as a :class:`Tree`: the same checks and errors, networkx only
-    for a spanning tree or to name what is wrong with a graph that is not a tree."""
+    for a spanning tree or to name what is wrong with a graph that is not a tree.
+    ``require_tree=False``: any graph of valid entries (the links that exist at the start of
+    a topology that changes at run time; cycles and several components allowed)."""
     data, source = _read(path_or_dict, source)
+    if not require_tree:
+        return _build_graph(data, source, Tree(source))
     if spanning_tree:
         return Tree.from_networkx(load_topology(data, spanning_tree=True, source=source))
     tree = _build_graph(data, source, Tree(source))
@@ -214,6 +221,7 @@ def load_topology(
     *,
     spanning_tree: bool = False,
     source: str | None = None,
+    require_tree: bool = True,
 ) -> nx.Graph:
     """Read, validate and return a communication tree.
 
@@ -229,6 +237,10 @@ def load_topology(
         graph is refused either way.
     source
         Name used in error messages; defaults to the path, or ``"<dict>"``.
+    require_tree
+        If False, any graph of valid entries is returned (cycles, several components):
+        the links of a topology that changes at run time, where the tree rule of
+        :mod:`dfusion.fusion.tree` keeps the fusion links a tree.
 
     Returns
     -------
@@ -246,6 +258,8 @@ def load_topology(
     """
     data, source = _read(path_or_dict, source)
     graph = _build_graph(data, source)
+    if not require_tree:
+        return graph
     if spanning_tree:
         graph = _maximum_spanning_tree(graph)
     check_tree(graph)
@@ -574,3 +588,21 @@ def minimum_window(
     delay = _non_negative("max_measurement_delay", max_measurement_delay)
     return tree_diameter(graph) * (latency + period) + delay
 
+
+
+def radio_links(positions: Mapping[str, Sequence[float]], ranges: Mapping[str, float]) -> set[tuple[str, str]]:
+    """The links a radio range allows: pairs ``(a, b)`` (``a < b``) of nodes of ``ranges`` whose
+    positions are at most ``min(range_a, range_b)`` apart (each end must hear the other).
+
+    ``positions`` maps names to ``(x, y)`` (or ``(x, y, z)``: the distance is taken in the
+    plane); a node without a position or a range takes no part. A simulator passes the true
+    positions; a node process may pass its own estimates of where the nodes are.
+    """
+    names = sorted(n for n in ranges if n in positions)
+    xy = {n: (float(positions[n][0]), float(positions[n][1])) for n in names}
+    out = set()
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            if math.hypot(xy[a][0] - xy[b][0], xy[a][1] - xy[b][1]) <= min(ranges[a], ranges[b]):
+                out.add((a, b))
+    return out

@@ -7,7 +7,7 @@ format byte by byte; in short::
 
     frame = b"DF" | version (1 byte, 2) | flags (1 byte) | body | crc32 (4 bytes) | mac (16 bytes, keyed frames)
     body  = msgpack array [src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at,
-                           times, mask, values, cleared]
+                           times, mask, values, cleared, tree_term, tree_root, parent]
 
 * ``times``: the blocks' time keys (integer nanoseconds): the first as int64, then the
   gaps as uint32 (int64 when a gap exceeds 4.29 s: flag ``WIDE_TIMES``);
@@ -16,6 +16,9 @@ format byte by byte; in short::
   whole bytes per block), ``values`` the float64 numbers whose bit is set, little-endian:
   zero entries (a camera's information on the velocity) cost nothing;
 * ``cleared``: int64 time keys whose information from ``src`` is now zero;
+* ``tree_term``, ``tree_root``, ``parent``: the sender's tree epoch and its parent in it, for
+  the tree rule over links that change (:mod:`dfusion.fusion.tree`); ``0, "", ""`` on a
+  fixed tree. A *beacon* (flag ``BEACON``) carries only these: no blocks;
 * ``crc32`` (:func:`zlib.crc32`, little-endian) over every byte before it: corruption is
   detected without a key;
 * ``mac``: ``HMAC-SHA256(K, frame up to and including the crc)`` truncated to 16 bytes,
@@ -62,8 +65,11 @@ __all__ = [
 VERSION = 2
 MAGIC = b"DF"
 #: Flags (the fourth byte).
-KEYED, FULL, NAIVE, WIDE_TIMES = 1, 2, 4, 8
-_KNOWN_FLAGS = KEYED | FULL | NAIVE | WIDE_TIMES
+KEYED, FULL, NAIVE, WIDE_TIMES, BEACON = 1, 2, 4, 8, 16
+_KNOWN_FLAGS = KEYED | FULL | NAIVE | WIDE_TIMES | BEACON
+#: Fields of the body; :data:`_EARLIER_FIELDS` is the layout before the tree fields.
+BODY_FIELDS = 17
+_EARLIER_FIELDS = 14
 _HEAD = 4
 _CRC = 4
 MAC_BYTES = 16
@@ -158,6 +164,13 @@ class InfoMessage:
         recipient holds, the others stay as they are.
     naive : bool
         Naive fusion (no channel filter), for comparison only: the blocks are increments.
+    tree_term, tree_root, parent : int, str, str
+        The sender's tree epoch ``(tree_term, tree_root)`` and its parent in it (``""``: it
+        is the root), for the tree rule (:mod:`dfusion.fusion.tree`); ``0, "", ""`` when
+        the sender runs on a fixed tree.
+    beacon : bool
+        A beacon: only the tree fields mean something (no blocks; sent over links that
+        are not tree links).
     """
 
     src: str
@@ -175,6 +188,10 @@ class InfoMessage:
     cleared: Array = field(default_factory=lambda: np.zeros(0))
     full: bool = True
     naive: bool = False
+    tree_term: int = 0
+    tree_root: str = ""
+    parent: str = ""
+    beacon: bool = False
 
     @property
     def n(self) -> int:
@@ -221,11 +238,11 @@ def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
          float(msg.start), float(msg.sent_at), times,
          np.packbits(mask, axis=1, bitorder="little").tobytes(),
          np.ascontiguousarray(rows[mask], dtype=_F8).tobytes(),
-         time_keys(msg.cleared).astype(_I8).tobytes()],
+         time_keys(msg.cleared).astype(_I8).tobytes(), int(msg.tree_term), msg.tree_root, msg.parent],
         use_bin_type=True,
     )
     flags = (KEYED if key is not None else 0) | (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) \
-        | (WIDE_TIMES if wide else 0)
+        | (WIDE_TIMES if wide else 0) | (BEACON if msg.beacon else 0)
     frame = MAGIC + bytes((VERSION, flags)) + body
     frame += _CRC_STRUCT.pack(zlib.crc32(frame))
     if key is not None:
@@ -303,10 +320,30 @@ def _bin(v: object, name: str) -> bytes:
     return v
 
 
-def _str(v: object, name: str) -> str:
-    if not isinstance(v, str) or not v or len(v) > 256:
-        raise _reject("malformed", f"field {name!r} must be a non-empty name")
+def _str(v: object, name: str, empty: bool = False) -> str:
+    if not isinstance(v, str) or (not v and not empty) or len(v.encode("utf-8")) > 256:
+        raise _reject("malformed", f"field {name!r} must be a {'' if empty else 'non-empty '}name of at most "
+                                   "256 bytes")
     return v
+
+
+def _tree_fields(src: str, term: object, root: object, parent: object, flags: int,
+                 m: int, cleared: int) -> tuple[int, str, str]:
+    """The checked tree fields (``docs/wire-format.md``)."""
+    term = _int(term, "tree_term", 0, MAX_SEQ)
+    root, parent = _str(root, "tree_root", empty=True), _str(parent, "parent", empty=True)
+    if not root:
+        if term or parent or flags & BEACON:
+            raise _reject("malformed", "a message without a tree root (a fixed tree) has tree_term 0, no parent "
+                                       "and is no beacon")
+    elif parent == src:
+        raise _reject("malformed", f"{src!r} names itself as its parent")
+    elif (not parent) != (root == src):
+        raise _reject("malformed", "a node without a parent must be the root of its tree epoch, and the root "
+                                   "has no parent")
+    if flags & BEACON and (m or cleared or flags & (FULL | NAIVE)):
+        raise _reject("malformed", "a beacon carries no blocks, clears nothing and is neither full nor naive")
+    return term, root, parent
 
 
 def _decode_keys(buf: bytes, name: str, wide: bool) -> np.ndarray:
@@ -353,9 +390,13 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
                                  max_array_len=32, max_map_len=0, max_str_len=256)
     except Exception as exc:  # msgpack raises many types on garbage
         raise _reject("malformed", f"not a msgpack body: {type(exc).__name__}: {exc}") from None
-    if not isinstance(fields, list) or len(fields) != 14:
-        raise _reject("malformed", "the body must be an array of 14 fields")
-    (src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at, times_b, mask_b, values_b, cleared_b) = fields
+    if isinstance(fields, list) and len(fields) == _EARLIER_FIELDS:
+        raise _reject("malformed", f"a body of {_EARLIER_FIELDS} fields (the layout before the tree fields): this "
+                                   f"node reads {BODY_FIELDS} (docs/wire-format.md)")
+    if not isinstance(fields, list) or len(fields) != BODY_FIELDS:
+        raise _reject("malformed", f"the body must be an array of {BODY_FIELDS} fields")
+    (src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at, times_b, mask_b, values_b, cleared_b,
+     tree_term, tree_root, parent) = fields
     src, dst = _str(src, "src"), _str(dst, "dst")
     epoch = _int(epoch, "epoch", 0, MAX_SEQ)
     dst_epoch = _int(dst_epoch, "dst_epoch", 0, MAX_SEQ)
@@ -380,6 +421,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
             raise _reject("malformed", "cleared times are not strictly increasing times")
         if np.intersect1d(cleared, keys, assume_unique=True).size:
             raise _reject("malformed", "a time is both cleared and carried")
+    tree_term, tree_root, parent = _tree_fields(src, tree_term, tree_root, parent, flags, m, cleared.size)
     start_key = int(round(start * 1e9))
     if (m and keys[0] < start_key) or (cleared.size and cleared[0] < start_key):
         raise _reject("malformed", "a state time precedes the window start")
@@ -413,7 +455,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
         if bad is not None:
             raise _reject("malformed", f"information block at t={times[bad]} is not positive semi-definite")
     return InfoMessage(src, dst, epoch, seq, start, sent_at, times, info, vec, dst_epoch, ack, ack_mask,
-                       cleared / 1e9, full, naive)
+                       cleared / 1e9, full, naive, tree_term, tree_root, parent, bool(flags & BEACON))
 
 
 def _not_psd(info: Array) -> int | None:

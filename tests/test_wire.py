@@ -49,9 +49,9 @@ NETWORK_KEY = b"network-key-for-the-wire-tests"
 NETWORK, RUN = "plant-3", "2026-11-25T13:00"
 KEY = FrameKey(NETWORK_KEY, NETWORK, RUN)
 # the flag bits (the fourth byte), from docs/wire-format.md
-KEYED, FULL, NAIVE, WIDE = 1, 2, 4, 8
+KEYED, FULL, NAIVE, WIDE, BEACON = 1, 2, 4, 8, 16
 FIELDS = ("src", "dst", "epoch", "dst_epoch", "seq", "ack", "ack_mask", "n", "start", "sent_at",
-          "times", "mask", "values", "cleared")
+          "times", "mask", "values", "cleared", "tree_term", "tree_root", "parent")
 
 
 # ---------------------------------------------------------------- independent references
@@ -85,7 +85,7 @@ def upper_triangle(L) -> list[float]:
 
 
 def reference_fields(msg: InfoMessage) -> tuple[list, int]:
-    """The 14 body fields and the flags of ``msg``, by the rules of docs/wire-format.md, with
+    """The 17 body fields and the flags of ``msg``, by the rules of docs/wire-format.md, with
     plain Python (no numpy bit packing, no dfusion code)."""
     m, n = len(msg.times), msg.vec.shape[1]
     keys = [round(float(t) * 1e9) for t in msg.times]          # Python's round: half to even
@@ -106,8 +106,10 @@ def reference_fields(msg: InfoMessage) -> tuple[list, int]:
         values += b"".join(struct.pack("<d", x) for x in numbers if x != 0.0)
     cleared = b"".join(struct.pack("<q", round(float(t) * 1e9)) for t in msg.cleared)
     fields = [msg.src, msg.dst, int(msg.epoch), int(msg.dst_epoch), int(msg.seq), int(msg.ack), int(msg.ack_mask), n,
-              float(msg.start), float(msg.sent_at), times, bytes(mask), bytes(values), cleared]
-    flags = (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) | (WIDE if wide else 0)
+              float(msg.start), float(msg.sent_at), times, bytes(mask), bytes(values), cleared,
+              int(msg.tree_term), msg.tree_root, msg.parent]
+    flags = (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) | (WIDE if wide else 0) | \
+        (BEACON if msg.beacon else 0)
     return fields, flags
 
 
@@ -295,7 +297,7 @@ def test_a_frame_written_out_by_hand():
                       dst_epoch=9, ack=2, ack_mask=1, full=True)
     f8 = lambda x: struct.pack("<d", x)            # noqa: E731 (little-endian float64)
     body = (
-        b"\x9e"                                     # fixarray of 14
+        b"\xdc\x00\x11"                             # array 16 of 17 fields
         + b"\xa1a" + b"\xa1b"                       # fixstr "a", "b"
         + b"\x07" + b"\x09" + b"\x03" + b"\x02" + b"\x01" + b"\x02"   # epoch dst_epoch seq ack ack_mask n
         + b"\xcb" + struct.pack(">d", 0.5)          # start: msgpack float 64 (big-endian)
@@ -304,6 +306,7 @@ def test_a_frame_written_out_by_hand():
         + b"\xc4\x01" + bytes([0b11111])            # mask: L00 L01 L11 y0 y1 all non-zero
         + b"\xc4\x28" + f8(4.0) + f8(0.5) + f8(2.0) + f8(1.0) + f8(-2.0)
         + b"\xc4\x00"                               # cleared: none
+        + b"\x00" + b"\xa0" + b"\xa0"                # tree_term 0, tree_root "", parent "": a fixed tree
     )
     head = b"DF\x02\x02" + body                     # version 2, flags FULL
     crc = struct.pack("<I", zlib.crc32(head))
@@ -403,7 +406,7 @@ def test_other_versions_are_rejected(version):
     rejected(data, reason="version", match=f"message version {version}: this node speaks version 2 only")
 
 
-@pytest.mark.parametrize("flags", [16, 32, 64, 128, 0xF0 | FULL])
+@pytest.mark.parametrize("flags", [32, 64, 128, 0xE0 | FULL])
 def test_unknown_flags_are_rejected(flags):
     rejected(frame_of(fields_of(), flags), reason="malformed", match="unknown flags")
 
@@ -572,15 +575,16 @@ def test_the_mac_is_checked_before_the_body_is_parsed():
 
 
 # ---------------------------------------------------------------- rejections: the body
-def test_body_not_msgpack_or_not_14_fields():
+def test_body_not_msgpack_or_not_17_fields():
     raw = lambda body: seal(b"DF\x02\x02" + body, False)        # noqa: E731
     rejected(raw(b"\xc1"), reason="malformed", match="not a msgpack body")
     rejected(raw(msgpack.packb(fields_of()) + b"\x00"), reason="malformed", match="not a msgpack body")  # trailing
     rejected(raw(msgpack.packb(fields_of())[:-3]), reason="malformed", match="not a msgpack body")      # truncated
-    for body in ([], fields_of()[:13], fields_of() + [0], {"src": "a"}, 14, "x" * 14, None):
+    for body in ([], fields_of()[:16], fields_of() + [0], {"src": "a"}, 17, "x" * 17, None):
         rejected(frame_of(body) if not isinstance(body, list) else frame_of(body), reason="malformed")
-    for body in (fields_of()[:13], fields_of() + [0], [None] * 14 + [0]):
-        rejected(frame_of(body), reason="malformed", match="array of 14 fields")
+    for body in (fields_of()[:16], fields_of()[:13], fields_of() + [0], [None] * 17 + [0]):
+        rejected(frame_of(body), reason="malformed", match="array of 17 fields")
+    rejected(frame_of(fields_of()[:14]), reason="malformed", match="14 fields .the layout before the tree fields")
     rejected(raw(b"\xdc\x00\x21" + b"\x00" * 33), reason="malformed", match="not a msgpack body")  # 33 > 32 items
 
 
@@ -948,11 +952,12 @@ def predicted_size(msg: InfoMessage, keyed: bool) -> int:
     nonzero = int(np.count_nonzero(msg.info[:, *np.triu_indices(n)])) + int(np.count_nonzero(msg.vec))
     keys = time_keys(msg.times)
     gap = 8 if m > 1 and np.diff(keys).max() >= 2**32 else 4
-    body = (1 + _str(msg.src) + _str(msg.dst)
+    body = (3 + _str(msg.src) + _str(msg.dst)      # array 16 header: 17 fields
             + sum(_int(x) for x in (msg.epoch, msg.dst_epoch, msg.seq, msg.ack, msg.ack_mask, n))
             + 9 + 9
             + _bin(8 + gap * (m - 1) if m else 0) + _bin(m * ((width + 7) // 8)) + _bin(8 * nonzero)
-            + _bin(8 * len(msg.cleared)))
+            + _bin(8 * len(msg.cleared))
+            + _int(msg.tree_term) + _str(msg.tree_root) + _str(msg.parent))
     return 4 + body + 4 + (16 if keyed else 0)
 
 

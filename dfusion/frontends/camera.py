@@ -39,12 +39,15 @@ at its position, for switching policies; :meth:`CameraFrontEnd.reliability` give
 the current estimate at any time.
 
 The scenario kind ``camera`` (:mod:`dfusion.scenario.camera_kind`) builds this front
-end from a node table.
+end from a node table; ``robot_camera`` builds :class:`MountedCameraFrontEnd`, the same for
+a camera on a robot that moves (:class:`~dfusion.models.camera.MountedCamera`: the camera
+at the detection's time).
 """
 from __future__ import annotations
 
 import logging
 import math
+from typing import Any
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,12 +58,12 @@ from dfusion.estimation.pda import ClutterModel, PDAResult, gate_threshold, pda_
 from dfusion.frontends.base import FrontEnd, FrontEndStats
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
-from dfusion.models.camera import PinholeCamera
+from dfusion.models.camera import MountedCamera, PinholeCamera
 from dfusion.reliability import camera_reliability_at
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CameraFrontEnd", "CameraStats", "CameraFrame", "gate_threshold", "miss_probability",
+__all__ = ["CameraFrontEnd", "MountedCameraFrontEnd", "CameraStats", "CameraFrame", "gate_threshold", "miss_probability",
            "loss_log_likelihood_ratio", "CLUTTER_MODELS"]
 
 #: ``"pda"``: probabilistic data association of each frame; ``"gate"``: the hard gate alone,
@@ -186,7 +189,7 @@ class CameraFrame:
     def update(self, x: Array, P: Array) -> tuple[Array, Array]:
         """The EKF posterior ``(x, P)`` after this frame (the prediction is ``(x, P)``)."""
         fe = self.front
-        cam = fe.camera
+        cam = fe.camera_at(self.t)
         if fe.clutter_model == "gate":
             for z in self.detections:
                 if not fe._projectable(x):
@@ -331,6 +334,11 @@ class CameraFrontEnd(FrontEnd):
         S = H @ cov @ H.T + cam.R
         return float(nu @ np.linalg.solve(S, nu))
 
+    def camera_at(self, t: float) -> PinholeCamera:
+        """The camera that took the frame of time ``t`` (a fixed camera: always the same);
+        the methods that follow use it as ``self.camera``."""
+        return self.camera
+
     def detection_probability(self, mean: Array, cov: Array) -> float:
         """``P_D`` times the probability that the predicted target projects into the image."""
         cam = self.camera
@@ -353,6 +361,7 @@ class CameraFrontEnd(FrontEnd):
         ``t`` is older than the node's window.
         """
         Z = np.asarray(detections, dtype=float).reshape(-1, 2)
+        self.camera_at(t)
         if self.clutter_model == "gate":
             return sum(self._gate_one(node, t, z) for z in Z)
         mean, cov = self.prediction(node, t)
@@ -517,3 +526,20 @@ class CameraFrontEnd(FrontEnd):
         """Camera reliability (switching paper eq. 1-9) at the node's newest estimate; 0 out of view."""
         mean, _ = node.estimate()
         return self._reliability(mean)
+
+
+class MountedCameraFrontEnd(CameraFrontEnd):
+    """:class:`CameraFrontEnd` for a camera on a moving robot: each frame is gated, associated
+    and fused with the camera where it was at the frame's time (``mounted.at(t)``); the
+    centralized reference's :class:`CameraFrame` takes the same camera. Keyword arguments
+    (the clutter model and its settings) are those of :class:`CameraFrontEnd`."""
+
+    def __init__(self, mounted: MountedCamera, gate: float = 0.99, recognition_error: float | None = None,
+                 source_name: str = "camera", **kwargs: Any) -> None:
+        super().__init__(mounted.at(0.0), gate, recognition_error, source_name, **kwargs)
+        self.mounted = mounted
+
+    def camera_at(self, t: float) -> PinholeCamera:
+        """The mounted camera at ``t``, which becomes ``self.camera``."""
+        self.camera = self.mounted.at(t)
+        return self.camera

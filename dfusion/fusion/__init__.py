@@ -1,4 +1,4 @@
-"""Decentralized fusion: channel filters, fusion nodes, and the consistency test of neighbours' information."""
+"""Decentralized fusion: channel filters, fusion nodes, the consistency test of neighbours' information and the tree rule for links that change."""
 from __future__ import annotations
 
 import importlib
@@ -8,6 +8,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.fusion.channel import ChannelFilter, Entry, Plan, find_keys, nonzero_blocks, time_key, time_keys
     from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
     from dfusion.fusion.node import FusionNode, NodeStats
+    from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 
 __all__ = [
     "time_key",
@@ -19,6 +20,9 @@ __all__ = [
     "ChannelFilter",
     "NodeStats",
     "FusionNode",
+    "SpanningTree",
+    "TreeEpoch",
+    "TreeChange",
     "GuardConfig",
     "LinkRecord",
     "NeighbourGuard",
@@ -36,6 +40,9 @@ _WHERE = {
     "time_keys": ("dfusion.fusion.channel", 'time_keys'),
     "FusionNode": ("dfusion.fusion.node", 'FusionNode'),
     "NodeStats": ("dfusion.fusion.node", 'NodeStats'),
+    "SpanningTree": ("dfusion.fusion.tree", 'SpanningTree'),
+    "TreeEpoch": ("dfusion.fusion.tree", 'TreeEpoch'),
+    "TreeChange": ("dfusion.fusion.tree", 'TreeChange'),
     "GuardConfig": ("dfusion.fusion.guard", 'GuardConfig'),
     "LinkRecord": ("dfusion.fusion.guard", 'LinkRecord'),
     "NeighbourGuard": ("dfusion.fusion.guard", 'NeighbourGuard'),

@@ -28,6 +28,14 @@ the node's window cannot be added any more: it is dropped and counted in
 ``stats.blocks_outside_window`` (conservative, never over-confident; choose the window
 with :func:`dfusion.topology.minimum_window` to avoid it).
 
+**Links that change** (``tree=SpanningTree(...)``, :mod:`dfusion.fusion.tree`). The node
+is told which links exist (:meth:`FusionNode.link_up`, :meth:`FusionNode.link_down`) and
+keeps the fusion links a tree with its neighbours by the tree rule: every message carries
+the node's tree epoch and parent, fusion messages go over tree links and beacons over the
+others (:meth:`FusionNode.outgoing`). When the rule changes the tree the node withdraws
+what came over the links that left it (everything, when it enters a new epoch) and starts
+fresh channels on the links that joined it (``docs/dynamic-topology.md``).
+
 **Consistency test and quarantine** (``guard=``, off by default; on in scenarios through
 ``[protection]``): the blocks a message adds are tested jointly against the node's belief
 inside the receive transaction, and a neighbour that keeps failing is quarantined: what
@@ -49,6 +57,7 @@ rumour-propagation failure the channel filter prevents.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -61,7 +70,7 @@ from numpy.typing import ArrayLike
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
-from dfusion.fusion.guard import GuardConfig, NeighbourGuard, information_statistic, split_blocks
+from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
 from dfusion.fusion.channel import (
     MAX_SEQ_JUMP,
     ChannelFilter,
@@ -70,6 +79,7 @@ from dfusion.fusion.channel import (
     time_key,
     time_keys,
 )
+from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.policies.base import InformationFusionPolicy, Policy
@@ -84,6 +94,10 @@ MESSAGE_MODES = ("partial", "full")
 #: Default bounds of a node (see the module docstring).
 MAX_AHEAD = 10.0
 LOG_INTERVAL = 10.0
+#: Default ``hold`` (seconds): how long information a change of the tree took stays in a node's estimate.
+HOLD = 10.0
+#: Relative tolerance of "R(t) holds at least as much as L(t)" (rounding of sums of blocks).
+HELD_RTOL = 1e-9
 
 
 @dataclass
@@ -94,6 +108,13 @@ class NodeStats:
     ``unauthenticated``, ``version``, ``oversized`` (the frame), ``misaddressed``,
     ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``sequence-jump``,
     ``numerical`` (the filter would not stay proper), ``internal``.
+
+    With links that change (``FusionNode(tree=...)``): ``not_fused`` counts messages used
+    by the tree rule only (beacons, messages of another tree epoch or over a link that is
+    not a tree link at this end), ``not_linked`` messages that arrived over a link that no
+    longer exists (ignored), ``tree_changes`` the events that changed this node's tree
+    links, ``new_epochs`` how often it entered a new tree epoch, ``withdrawn_blocks`` the
+    blocks it withdrew.
     """
 
     messages_sent: int = 0
@@ -105,6 +126,11 @@ class NodeStats:
     blocks_outside_window: int = 0
     blocks_too_far_ahead: int = 0
     rejections: dict[str, int] = field(default_factory=dict)
+    not_fused: int = 0
+    not_linked: int = 0
+    tree_changes: int = 0
+    new_epochs: int = 0
+    withdrawn_blocks: int = 0
 
 
 class RejectionLog:
@@ -367,6 +393,20 @@ class FusionNode:
     messages : {"partial", "full"}
         ``"full"`` sends the whole window in every message (the previous protocol's
         behaviour, kept for comparison); the default sends what changed.
+    tree : SpanningTree, optional
+        Links that change at run time: the node's state of the tree rule
+        (:mod:`dfusion.fusion.tree`; ``SpanningTree(name)`` for a node that joins a running
+        network). ``neighbors`` are then the links that exist at the start (they must be
+        ``tree.links``); the node keeps its fusion links a tree by the rule.
+        ``None`` (default): a fixed tree, ``neighbors`` are the tree neighbours.
+    peers : iterable of str, optional
+        With ``tree``: the nodes that may link to this one (messages of others are rejected
+        as ``not-a-neighbour``); ``None``: any node of the network.
+    hold : float
+        With ``tree``: seconds (of the node's clock) for which information that a change of
+        the tree took from the channels stays in the node's own estimate, per state time,
+        unless the new tree delivers as much earlier (never sent; ``docs/dynamic-topology.md``).
+        0: it goes at once.
     guard : GuardConfig or NeighbourGuard, optional
         Test every neighbour's information for consistency with this node's belief and
         quarantine a neighbour that keeps failing (:mod:`dfusion.fusion.guard`; channel
@@ -402,6 +442,9 @@ class FusionNode:
         max_held: int | None = None,
         log_interval: float = LOG_INTERVAL,
         messages: str = "partial",
+        tree: SpanningTree | None = None,
+        peers: Iterable[str] | None = None,
+        hold: float = HOLD,
         guard: GuardConfig | NeighbourGuard | None = None,
     ) -> None:
         if not isinstance(name, str) or not name:
@@ -417,6 +460,9 @@ class FusionNode:
             raise ValidationError(f"messages must be one of {MESSAGE_MODES}, got {messages!r}")
         if network_key is not None and (not isinstance(network_key, (bytes, bytearray)) or len(network_key) < 16):
             raise ValidationError("network_key must be at least 16 bytes (or None to turn authentication off)")
+        if tree is not None and (tree.name != name or set(nbrs) != tree.links or fusion == "naive"):
+            raise ValidationError(f"tree of {name!r}: its name and links must be the node's and its neighbours, "
+                                  "and naive fusion has no tree rule")
         self.name = name
         self.neighbors = nbrs
         self.fusion = fusion
@@ -430,13 +476,25 @@ class FusionNode:
         t0, mean, cov = prior
         self.filter.initialize(t0, mean, cov)
         n = self.filter.n
-        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j, n) for j in nbrs}
+        #: The tree rule's state (``None``: a fixed tree).
+        self.tree = tree
+        self.peers = None if peers is None else frozenset(peers)
+        #: The newest incarnation heard from each node (links that change).
+        self.incarnations: dict[str, int] = {}
+        fusing = nbrs if tree is None else sorted(tree.tree_links())
+        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j, n) for j in fusing}
         self.stats = NodeStats()
         self.sources: dict[str, Estimate] = {}
         self.max_message_bytes = int(max_message_bytes)
         self.max_ahead = float(max_ahead)
         self.max_held = int(max_held if max_held is not None else (window or 100))
         self.rejection_log = RejectionLog(name, log_interval)
+        self._tree_undo: tuple | None = None
+        self._sent_tree_changes = 0
+        #: Held information ``{time key: (t, L, y, until)}``: what a change of the tree took from
+        #: the channels, kept for this node's own estimate (``_tree_hold``).
+        self._tree_held: dict[int, tuple[float, Array, Array, float]] = {}
+        self.hold = float(hold)
         self._own = _Blocks(n)
         self._total = _Blocks(n)   # entries newer than the newest state wait for predict
         self._held = _Blocks(n)    # own information fused here but not shared yet
@@ -482,6 +540,8 @@ class FusionNode:
         else:
             f.predict(t, u)
         self._prune()
+        if self._tree_held:
+            self._release_tree_held(t)
 
     def update(self, t: float, z: ArrayLike, sensor: MeasurementModel, *, share: bool = True) -> tuple[Array, Array]:
         """Fuse a local measurement taken at ``t`` (``t`` may be in the past, inside the window).
@@ -681,6 +741,8 @@ class FusionNode:
         """
         ch = self.channels.get(neighbor)
         if ch is None:
+            if self.tree is not None and neighbor in self.tree.links:
+                return self._beacon(neighbor, sent_at)
             raise ValidationError(f"{neighbor!r} is not a neighbour of {self.name!r}")
         f = self.filter
         oldest_key = time_key(f.oldest_time) - 1
@@ -710,12 +772,13 @@ class FusionNode:
             times=times,
             info=infos,
             vec=vecs,
-            dst_epoch=ch.epoch or 0,
+            dst_epoch=ch.epoch or self.incarnations.get(neighbor, 0),
             ack=ch.applied_seq,
             ack_mask=ch.received_mask(),
             cleared=cleared,
             full=full and self.fusion != "naive",
             naive=self.fusion == "naive",
+            **self._tree_fields(),
         )
         data = encode(msg, self.frame_key)
         ch.record_sent(msg.seq, keys, msg.full)
@@ -737,6 +800,9 @@ class FusionNode:
         return infos, vecs
 
     def _reject(self, reason: str, detail: str) -> MessageError:
+        if self._tree_undo is not None:   # the tree rule took the message in before it was refused: undo that
+            undo, self._tree_undo = self._tree_undo, None
+            self._tree_restore(undo)
         self.stats.messages_rejected += 1
         self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + 1
         self.rejection_log.add(reason, detail)
@@ -755,6 +821,8 @@ class FusionNode:
             raise self._reject("dimension", f"state dimension {msg.n} from {msg.src!r}, expected {self.filter.n}")
         if msg.naive != (self.fusion == "naive"):
             raise self._reject("malformed", f"{msg.src!r} uses another fusion mode")
+        if bool(msg.tree_root) != (self.tree is not None):
+            raise self._reject("malformed", f"{msg.src!r} uses another tree mode (a fixed tree or the tree rule)")
         if ch.epoch is not None and msg.epoch < ch.epoch:
             raise self._reject("previous-incarnation",
                                f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
@@ -771,6 +839,7 @@ class FusionNode:
         non-neighbour, addressed to another node, of another state dimension, of an earlier
         incarnation, too far ahead in its sequence numbers, or not fusable.
         """
+        self._tree_undo = None
         try:
             msg = decode(data, self.frame_key, self.max_message_bytes)
         except MessageError as exc:
@@ -778,6 +847,8 @@ class FusionNode:
         except Exception as exc:   # a defect of the decoder: the message is still rejected, nothing changed
             raise self._reject("internal", f"message could not be decoded: {type(exc).__name__}: {exc}") from exc
         try:
+            if self.tree is not None and not self._tree_heard(msg):
+                return 0     # used by the tree rule only (a beacon, another epoch, not a tree link)
             ch = self._check(msg)
             f = self.filter
             if msg.naive:
@@ -798,10 +869,11 @@ class FusionNode:
                 plan = ch.plan(_without(msg, too_far), f.oldest_time, f.time_tol)
                 deltas, changed = self._within_reach(plan.deltas)[0], plan.changed
         except MessageError:
-            raise   # counted by _check
-        except Exception as exc:   # nothing changed yet
+            raise   # counted by _check (and the tree rule's changes undone by _reject)
+        except Exception as exc:   # nothing changed yet (the tree rule's changes are undone by _reject)
             raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
         self._apply(msg, ch, plan, deltas, changed, too_far, outside)
+        self._tree_undo = None
         return len(deltas)
 
     def _within_reach(self, deltas: list) -> tuple[list, list]:
@@ -871,6 +943,7 @@ class FusionNode:
         cp_total = self._total.checkpoint()
         cp_own = self._own.checkpoint()
         cp_held = self._held.checkpoint()
+        cp_tree_held = dict(self._tree_held)
         cp_channels = {j: c.state() for j, c in self.channels.items()}
         pruned_at = self._pruned_at
         guard = self.guard
@@ -901,6 +974,7 @@ class FusionNode:
                 if deltas:
                     self._total.add_many(deltas)
                 self._mark_dirty(changed.tolist(), skip=msg.src)
+                self._follow_tree_held(deltas)
                 if guard is not None:
                     guard.links[msg.src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
                     if verdict is not None and guard.judge(msg.src, verdict[0], verdict[1]):
@@ -914,6 +988,7 @@ class FusionNode:
             self._total.restore(cp_total)
             self._own.restore(cp_own)
             self._held.restore(cp_held)
+            self._tree_held = cp_tree_held
             for j, c in self.channels.items():
                 c.restore(cp_channels[j])
             self._pruned_at = pruned_at
@@ -977,7 +1052,10 @@ class FusionNode:
 
     def _withdraw(self, neighbor: str) -> None:
         """Remove everything that came over the link to ``neighbor`` (quarantine): from the filter
-        and from what the node shares; the other links are sent the changed times."""
+        and from what the node shares; the other links are sent the changed times. Times held
+        after a change of the tree are let go first (the filter then holds what its channels
+        delivered, :meth:`_release_tree_held`): what it subtracts is in the filter once."""
+        self._release_tree_held(math.inf)
         now, every = self._link_blocks(self.channels[neighbor], -1.0)
         if now:
             self.filter.add_information_batch(now, validate=False)
@@ -986,7 +1064,9 @@ class FusionNode:
         self._mark_dirty(changed.tolist(), skip=neighbor)
 
     def _reinstate(self, neighbor: str) -> None:
-        """Add the neighbour's current contribution back (the link leaves quarantine)."""
+        """Add the neighbour's current contribution back (the link leaves quarantine); held
+        times are let go first, as in :meth:`_withdraw`."""
+        self._release_tree_held(math.inf)
         now, every = self._link_blocks(self.channels[neighbor])
         if now:
             self.filter.add_information_batch(now, validate=False)
@@ -1024,8 +1104,271 @@ class FusionNode:
         self._own.prune(cutoff)
         self._total.prune(cutoff)
         self._held.prune(cutoff)
+        for k in [k for k in self._tree_held if k < cutoff]:
+            del self._tree_held[k]
         for ch in self.channels.values():
             ch.prune(cutoff)
+
+    # ------------------------------------------------------------------ links that change
+    def _tree_fields(self) -> dict:
+        """The tree fields of this node's messages (empty on a fixed tree)."""
+        if self.tree is None:
+            return {}
+        t = self.tree
+        return {"tree_term": t.epoch.term, "tree_root": t.epoch.root, "parent": t.parent or ""}
+
+    def _beacon(self, neighbor: str, sent_at: float | None) -> bytes:
+        """A beacon for ``neighbor``: the tree fields, no blocks."""
+        f = self.filter
+        msg = InfoMessage(src=self.name, dst=neighbor, epoch=self.epoch, seq=0, start=f.oldest_time,
+                          sent_at=f.latest_time if sent_at is None else float(sent_at), times=np.zeros(0),
+                          info=np.zeros((0, f.n, f.n)), vec=np.zeros((0, f.n)),
+                          dst_epoch=self.incarnations.get(neighbor, 0), full=False, beacon=True,
+                          **self._tree_fields())
+        data = encode(msg, self.frame_key)
+        self.stats.messages_sent += 1
+        self.stats.bytes_sent += len(data)
+        return data
+
+    def outgoing(self, sent_at: float | None = None) -> list[tuple[str, bytes]]:
+        """``(neighbour, message)`` for every link: a fusion message on a tree link, a beacon on
+        the others (links that change); every neighbour's message on a fixed tree."""
+        self._sent_tree_changes = self.stats.tree_changes
+        return [(j, self.message_to(j, sent_at)) for j in self.neighbors]
+
+    @property
+    def tree_links(self) -> tuple[str, ...]:
+        """The links that carry fusion (on a fixed tree: every neighbour)."""
+        return tuple(sorted(self.channels))
+
+    def link_up(self, neighbor: str) -> None:
+        """A link to ``neighbor`` now exists (links that change; the transport saw it appear)."""
+        self._tree_required()
+        if neighbor == self.name or (self.peers is not None and neighbor not in self.peers):
+            raise ValidationError(f"{self.name!r} cannot link to {neighbor!r}")
+        self._follow(self.tree.link_up(neighbor))
+
+    def link_down(self, neighbor: str) -> None:
+        """The link to ``neighbor`` is gone (it broke, or ``neighbor`` left): see the tree rule."""
+        self._tree_required()
+        self._follow(self.tree.link_down(neighbor))
+
+    def _tree_required(self) -> None:
+        if self.tree is None:
+            raise ValidationError(f"{self.name!r} runs on a fixed tree (FusionNode(tree=...) for links that change)")
+
+    def _follow(self, change: TreeChange) -> None:
+        """Make the channels follow a change of the tree: withdraw what came over the links that
+        left it (everything in a new epoch), fresh channels for the links that joined it."""
+        self.neighbors = tuple(sorted(self.tree.links))
+        if change:
+            self.stats.tree_changes += 1
+            n = self.filter.n
+            if change.new_epoch:
+                self.stats.new_epochs += 1
+                self._tree_withdraw(list(self.channels.values()), everything=True)
+                self.channels = {j: ChannelFilter(self.name, j, n) for j in sorted(self.tree.tree_links())}
+            else:
+                lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
+                if lost:
+                    self._tree_withdraw(lost)
+                for j in sorted(change.gained):
+                    self.channels[j] = ChannelFilter(self.name, j, n)
+        if self.guard is not None:
+            # a record per link that exists (after the withdrawal, which asks whether a link was
+            # quarantined); a quarantine outlives changes of the tree while the link exists
+            links = self.guard.links
+            for j in [j for j in links if j not in self.tree.links]:
+                del links[j]
+            for j in self.neighbors:
+                if j not in links:
+                    links[j] = LinkRecord(self.guard.config.window)
+
+    def _tree_withdraw(self, channels: list[ChannelFilter], everything: bool = False) -> None:
+        """Take what ``channels`` delivered out of the stores messages are made from (the other
+        channels send those times again: per-time replacement carries the withdrawal on); the
+        node's own estimate keeps it per state time until the tree delivers as much
+        (:meth:`_tree_hold`). ``everything``: these are all the channels, what the node sends from
+        becomes its own information alone (what it fused but does not share yet stays out).
+
+        A quarantined channel's information was withdrawn already (:meth:`_withdraw`): it is
+        not subtracted again."""
+        entries: dict[int, list] = {}
+        for ch in channels:
+            if self.is_quarantined(ch.remote):
+                continue
+            for i in np.flatnonzero(nonzero_blocks(ch.info, ch.vec)).tolist():
+                key = int(ch.keys[i])
+                e = entries.get(key)
+                if e is None:
+                    entries[key] = [float(ch.times[i]), -ch.info[i], -ch.vec[i]]
+                else:
+                    e[1] = e[1] - ch.info[i]
+                    e[2] = e[2] - ch.vec[i]
+        self.stats.withdrawn_blocks += len(entries)
+        self._tree_hold(sorted(entries))
+        if everything:
+            self._total.restore(self._own.checkpoint())
+            self._total.subtract([(e.t, e.info, e.vec) for _, e in self._held.items()])
+        elif entries:
+            self._total.add_many([tuple(entries[k]) for k in sorted(entries)])
+            keys = list(entries)
+            for ch in self.channels.values():
+                ch.dirty.update(keys)
+        if self.hold <= 0:
+            self._release_tree_held(self.filter.latest_time + 1.0)
+
+    def _tree_hold(self, keys: list[int]) -> None:
+        """Before the received information at ``keys`` changes with the tree: keep, per state time
+        in the filter, what the filter holds of it (``L(t)``), so the estimate does not lose it
+        until the new tree delivers as much (``docs/dynamic-topology.md``).
+
+        The filter holds, per state time, the node's own information plus either ``L(t)``
+        (a held time) or what its current channels delivered ``R(t)`` (:meth:`_received_at`); each is
+        information of other nodes counted once, so either choice never double counts.
+        Messages are made from ``T(t)`` alone: held information is never sent.
+        """
+        f = self.filter
+        lo, hi = time_key(f.oldest_time) - 1, time_key(f.latest_time + f.time_tol)
+        new = np.array([k for k in keys if lo <= k <= hi and k not in self._tree_held], dtype=np.int64)
+        if not new.size:
+            return
+        received = self._received_at(new)
+        until = f.latest_time + self.hold
+        for i, k in enumerate(new.tolist()):
+            L, y = received[0][i], received[1][i]
+            if L.any() or y.any():
+                self._tree_held[k] = (k / 1e9, L, y, until)
+
+    def _follow_tree_held(self, deltas: list) -> None:
+        """After a message was fused: at held times the filter keeps ``L(t)`` (the message's change
+        of ``R(t)`` is taken out again), unless ``R(t)`` now holds at least as much information
+        (``R(t) - L(t)`` positive semi-definite): then the time is no longer held."""
+        if not self._tree_held or not deltas:
+            return
+        keys = [time_key(d[0]) for d in deltas]
+        undo = [(d[0], -d[1], -d[2]) for d, k in zip(deltas, keys) if k in self._tree_held
+                and d[0] <= self.filter.latest_time + self.filter.time_tol]
+        if not undo:
+            return
+        self._add_to_filter(undo)
+        self._release_tree_held(None, [time_key(d[0]) for d in undo])
+
+    def _release_tree_held(self, now: float | None, keys: list[int] | None = None) -> None:
+        """Let held times go: those that expired by ``now`` (``hold`` seconds after they were held)
+        and, among ``keys``, those whose ``R(t)`` dominates ``L(t)``: the filter takes
+        ``R(t) - L(t)`` at them."""
+        if not self._tree_held:
+            return
+        go = [k for k, e in self._tree_held.items() if now is not None and e[3] <= now]
+        if keys:
+            cand = np.array([k for k in keys if k in self._tree_held and k not in go], dtype=np.int64)
+            if cand.size:
+                R = self._received_at(cand)[0]
+                L = np.array([self._tree_held[k][1] for k in cand.tolist()])
+                scale = np.maximum(np.abs(R).max(axis=(1, 2)), np.abs(L).max(axis=(1, 2)))
+                ok = np.linalg.eigvalsh(R - L)[:, 0] >= -HELD_RTOL * scale
+                go += cand[ok].tolist()
+        if not go:
+            return
+        keys_go = np.array(sorted(set(go)), dtype=np.int64)
+        R, r = self._received_at(keys_go)
+        change = []
+        for i, k in enumerate(keys_go.tolist()):
+            t, L, y, _ = self._tree_held.pop(k)
+            change.append((t, R[i] - L, r[i] - y))
+        self._add_to_filter(change)
+
+    def _received_at(self, keys: np.ndarray) -> tuple[Array, Array]:
+        """``R(t) = T(t) - own(t) + H(t)`` at ``keys``: what the current channels delivered and the
+        filter holds (``T`` is what the node shares: its shared own information and what came
+        over links that are not quarantined; ``H`` its own information not shared yet)."""
+        tot, own, held = self._total.values_at(keys), self._own.values_at(keys), self._held.values_at(keys)
+        return tot[0] - own[0] + held[0], tot[1] - own[1] + held[1]
+
+    def _add_to_filter(self, entries: list) -> None:
+        f = self.filter
+        with f.transaction():
+            f.add_information_batch(entries, validate=False)
+            f.estimate()   # prior, motion and own information stay: the belief stays proper
+
+    def _tree_heard(self, msg: InfoMessage) -> bool:
+        """The tree rule's part of :meth:`receive` (links that change): whether to fuse ``msg``.
+
+        Checks what the rule needs (recipient, sender, tree mode, dimension, incarnation),
+        gives the tree fields to the rule and makes the channels follow its changes. A
+        message is fused only when it is a fusion message of this node's tree epoch over a
+        tree link; the others are counted in ``stats.not_fused`` (``stats.not_linked`` when
+        the link no longer exists). If the message is then refused, :meth:`_reject` undoes
+        what this did (``self._tree_undo``): a rejection changes nothing.
+        """
+        src = msg.src
+        if msg.dst != self.name:
+            raise self._reject("misaddressed", f"message for {msg.dst!r} delivered to {self.name!r}")
+        if src == self.name or (self.peers is not None and src not in self.peers):
+            raise self._reject("not-a-neighbour", f"{src!r} may not link to {self.name!r}")
+        if not msg.tree_root:
+            raise self._reject("malformed", f"{src!r} uses another tree mode (a fixed tree)")
+        if msg.n != self.filter.n:
+            raise self._reject("dimension", f"state dimension {msg.n} from {src!r}, expected {self.filter.n}")
+        known = self.incarnations.get(src)
+        if known is not None and msg.epoch < known:
+            raise self._reject("previous-incarnation",
+                               f"message of an earlier incarnation of {src!r} ({msg.epoch} < {known})")
+        if src not in self.tree.links:
+            self.stats.not_linked += 1
+            return False
+        undo = None if msg.beacon else self._tree_checkpoint()
+        self._tree_undo = undo     # a failure from here on undoes the rule's changes (_reject)
+        if known is not None and msg.epoch > known:   # src restarted: what it said before no longer holds
+            self._follow(self.tree.forget(src))
+        self.incarnations[src] = msg.epoch
+        parent = msg.parent or None
+        if parent == self.name and msg.dst_epoch not in (0, self.epoch):
+            parent = None     # it names an earlier incarnation of this node
+        self._follow(self.tree.heard_from(src, TreeEpoch(msg.tree_term, msg.tree_root), parent))
+        if msg.beacon or src not in self.channels or TreeEpoch(msg.tree_term, msg.tree_root) != self.tree.epoch:
+            self.stats.not_fused += 1
+            self._tree_undo = None
+            return False
+        return True
+
+    def _tree_checkpoint(self) -> tuple:
+        return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
+                {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
+                self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._tree_held),
+                None if self.guard is None else dict(self.guard.links))
+
+    def _tree_restore(self, cp: tuple) -> None:
+        tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links = cp
+        self._tree_held = held
+        if guard_links is not None:
+            self.guard.links = guard_links
+        self.tree.restore(tree)
+        self.incarnations, self.channels, self.neighbors = inc, channels, nbrs
+        for j, st in states.items():
+            channels[j].restore(st)
+        self.filter.restore(filt)
+        self._total.restore(total)
+        self.stats = stats
+
+    def information_blocks(self, own: bool = False) -> tuple[np.ndarray, Array, Array]:
+        """The single-state information this node shares per state time: ``(time keys, info, vec)``
+        (copies), its own and what it received (also blocks held back for times ahead of its
+        newest state), or with ``own`` its own only; both without the own information it fused
+        but does not share yet (``share=False``)."""
+        if not own:
+            return self._total.keys.copy(), self._total.info.copy(), self._total.vec.copy()
+        keys = self._own.keys.copy()
+        held = self._held.values_at(keys)
+        return keys, self._own.info - held[0], self._own.vec - held[1]
+
+    @property
+    def urgent(self) -> bool:
+        """The tree links changed since :meth:`outgoing` was last called: send now rather than at
+        the next send period (the new tree links start with full messages, beacons carry a new
+        epoch on)."""
+        return self.tree is not None and self.stats.tree_changes != self._sent_tree_changes
 
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""
@@ -1045,6 +1388,5 @@ def _without(msg: InfoMessage, times: list[float]) -> InfoMessage:
     gone = time_keys(np.asarray(times))
     drop = np.isin(time_keys(msg.times), gone)
     cleared = msg.cleared[~np.isin(time_keys(msg.cleared), gone)] if msg.cleared.size else msg.cleared
-    return InfoMessage(msg.src, msg.dst, msg.epoch, msg.seq, msg.start, msg.sent_at, msg.times[~drop],
-                       msg.info[~drop], msg.vec[~drop], msg.dst_epoch, msg.ack, msg.ack_mask, cleared,
-                       msg.full, msg.naive)
+    return dataclasses.replace(msg, times=msg.times[~drop], info=msg.info[~drop], vec=msg.vec[~drop],
+                               cleared=cleared)

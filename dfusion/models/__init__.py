@@ -5,8 +5,8 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
-    from dfusion.models.base import MeasurementModel, MotionModel
-    from dfusion.models.camera import PinholeCamera, SceneCamera
+    from dfusion.models.base import MeasurementModel, MotionModel, model_at
+    from dfusion.models.camera import MountedCamera, PinholeCamera, SceneCamera
     from dfusion.models.laser import BeamErfcModel, LaserConfig, LaserScanSensor, LikelihoodFieldModel
     from dfusion.models.measurement import LandmarkRangeBearing, PositionFix, PositionSensor, RangeBearing, RSSISensor, TargetRangeBearing, fit_path_loss
     from dfusion.models.motion import ConstantVelocity, Unicycle
@@ -17,6 +17,8 @@ __all__ = [
     "MeasurementModel",
     "PinholeCamera",
     "SceneCamera",
+    "MountedCamera",
+    "model_at",
     "LaserConfig",
     "BeamErfcModel",
     "LikelihoodFieldModel",
@@ -40,6 +42,8 @@ _WHERE = {
     "MotionModel": ("dfusion.models.base", 'MotionModel'),
     "PinholeCamera": ("dfusion.models.camera", 'PinholeCamera'),
     "SceneCamera": ("dfusion.models.camera", 'SceneCamera'),
+    "MountedCamera": ("dfusion.models.camera", 'MountedCamera'),
+    "model_at": ("dfusion.models.base", 'model_at'),
     "BeamErfcModel": ("dfusion.models.laser", 'BeamErfcModel'),
     "LaserConfig": ("dfusion.models.laser", 'LaserConfig'),
     "LaserScanSensor": ("dfusion.models.laser", 'LaserScanSensor'),

@@ -9,6 +9,7 @@ finite differences.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import Any
 
 import numpy as np
 
@@ -99,3 +100,10 @@ class MeasurementModel(ABC):
         return d
 
 
+
+
+def model_at(sensor: Any, t: float) -> Any:
+    """The measurement model of ``sensor`` for a measurement taken at time ``t``: ``sensor.at(t)``
+    for a model that moves (:class:`dfusion.models.camera.MountedCamera`), ``sensor`` itself otherwise."""
+    at = getattr(sensor, "at", None)
+    return sensor if at is None else at(t)

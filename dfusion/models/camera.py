@@ -10,11 +10,15 @@ axis), ``x`` right, ``y`` down in the image::
     p_w = (x, y, point_height)
     p_c = R_wc^T (p_w - C)
     h(x) = (fx p_c[0] / p_c[2] + cx,  fy p_c[1] / p_c[2] + cy)        (pixels)
+
+``MountedCamera``: a camera on a moving platform (a robot driving a path): at time ``t``
+it is the :class:`SceneCamera` at the platform's pose, ``MountedCamera.at(t)``.
 """
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections import OrderedDict
+from typing import Any, Callable
 
 import numpy as np
 
@@ -250,3 +254,68 @@ class SceneCamera(PinholeCamera):
     def sample_clutter(self, rng: np.random.Generator, k: int) -> Array:
         """``k`` false detections ``(u, v)`` uniform in ``[0, width) x [0, height)``, shape ``(k, 2)``."""
         return rng.random((int(k), 2)) * np.array([self.width, self.height], dtype=float)
+
+
+class MountedCamera:
+    """A camera carried by a moving platform: at time ``t`` the :class:`SceneCamera` at its pose.
+
+    The platform's pose ``(x, y, theta)`` at ``t`` comes from ``pose(t)`` (for a robot of a
+    scenario its :class:`~dfusion.geometry.WaypointPath`: the robot knows where it is). The
+    camera sits ``mount_height`` metres above the ground, looks along the platform's heading
+    turned by ``yaw_offset`` and tilted down by ``pitch`` (radians)::
+
+        C(t) = (x, y, mount_height)
+        forward(t) = (cos(pitch) cos(psi), cos(pitch) sin(psi), -sin(pitch)),   psi = theta + yaw_offset
+
+    and :meth:`at` builds ``SceneCamera.looking_at(C, C + forward, up = z)``. Measurement
+    models need the time: the simulated world, the front end and the centralized reference
+    take ``at(t)`` of the measurement's time ``t``.
+    """
+
+    dim_z = 2
+    is_linear = False
+
+    def __init__(self, pose: Callable[[float], Array], *, mount_height: float, pitch: float, yaw_offset: float = 0.0,
+                 fx: float, fy: float, cx: float, cy: float, width: int, height: int, pixel_std: float = 1.0,
+                 point_height: float = 0.0, clutter_rate: float = 0.0) -> None:
+        self.pose = pose
+        self.mount_height = as_finite(mount_height, "mount_height")
+        if self.mount_height <= point_height:
+            raise ValidationError(f"mount_height must be above point_height, got {mount_height!r}")
+        self.pitch = as_finite(pitch, "pitch")
+        if not 0.0 < self.pitch < math.pi / 2:
+            raise ValidationError(f"pitch must be in (0, 90) degrees down, got {math.degrees(self.pitch)!r}")
+        self.yaw_offset = as_finite(yaw_offset, "yaw_offset")
+        self._kw = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, pixel_std=pixel_std,
+                        point_height=point_height)
+        self.clutter_rate = float(clutter_rate)
+        self.pixel_std = as_positive(pixel_std, "pixel_std")
+        self._cache: OrderedDict[float, SceneCamera] = OrderedDict()
+        self.at(0.0)    # checks the intrinsics once
+
+    def __repr__(self) -> str:
+        return (f"MountedCamera(mount_height={self.mount_height}, pitch={math.degrees(self.pitch):.1f} deg, "
+                f"{self._kw})")
+
+    @property
+    def R(self) -> Array:
+        return self.pixel_std**2 * np.eye(2)
+
+    def at(self, t: float) -> SceneCamera:
+        """The camera at time ``t`` (the last 64 are kept)."""
+        t = float(t)
+        cam = self._cache.get(t)
+        if cam is not None:
+            return cam
+        x, y, theta = (float(v) for v in self.pose(t))
+        psi = theta + self.yaw_offset
+        c = np.array([x, y, self.mount_height])
+        fwd = np.array([math.cos(self.pitch) * math.cos(psi), math.cos(self.pitch) * math.sin(psi),
+                        -math.sin(self.pitch)])
+        base = PinholeCamera.looking_at(c, c + fwd, (0.0, 0.0, 1.0), **self._kw)
+        cam = SceneCamera(base.position, base.R_wc, **self._kw, clutter_rate=self.clutter_rate)
+        self._cache[t] = cam
+        if len(self._cache) > 64:
+            self._cache.popitem(last=False)
+        return cam
+

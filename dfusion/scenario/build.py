@@ -5,20 +5,30 @@
 :class:`~dfusion.fusion.FusionNode` (common prior, window, policy) and the same front end
 (seeded from the scenario's seed and the node's rank), so that the two runs fuse the
 same measurements the same way.
+
+With links that change at run time (``Scenario.dynamic``: ``[[events]]``, radio ranges) the
+nodes carry the tree rule (:class:`~dfusion.fusion.tree.SpanningTree`): those present at the
+start begin on the tree :func:`~dfusion.fusion.tree.initial_parents` picks among the links
+that exist then, a node that joins later begins alone (:func:`build_joining_node`).
 """
 from __future__ import annotations
 
 import copy
 
+from collections.abc import Collection
+
+from dfusion.errors import ScenarioError
 from dfusion.frontends.base import EIFFrontEnd, FrontEnd
 from dfusion.fusion.node import FusionNode
+from dfusion.fusion.tree import SpanningTree, TreeEpoch, initial_parents
 from dfusion.scenario.spec import Scenario
 
-__all__ = ["build_node", "build_nodes", "build_front_end", "build_front_ends"]
+__all__ = ["build_node", "build_nodes", "build_joining_node", "build_front_end", "build_front_ends"]
 
 
 def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epoch: int | None = None,
-               network: str = "", run: str = "") -> FusionNode:
+               network: str = "", run: str = "", links: Collection[str] | None = None,
+               tree_start: dict[str, tuple[TreeEpoch, str | None]] | None = None) -> FusionNode:
     """The :class:`FusionNode` of scenario node ``name``.
 
     Its neighbours are its tree neighbours, its prior the scenario's common prior at
@@ -27,11 +37,26 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
     :mod:`dfusion.fusion.guard`). ``epoch`` identifies the incarnation (random when ``None``:
     a node process gets a new one each time it starts). ``network`` and ``run`` name the
     network and the run the message key is derived for (``docs/security.md``).
+
+    Links that change (``sc.dynamic``): ``links`` are the node's links now and
+    ``tree_start`` the tree it starts on (:func:`~dfusion.fusion.tree.initial_parents`; ``None``:
+    it joins, alone in its own epoch).
     """
     spec = sc.nodes[name]
+    tree = None
+    if sc.dynamic:
+        if links is None:
+            raise ScenarioError(f"{sc.path}: links change at run time ([[events]], radio ranges): run it with "
+                                "dfusion simulate (dfusion run does not drive changing links yet)")
+        links = sorted(links)
+        if tree_start is None:
+            tree = SpanningTree(name, links)
+        else:
+            epoch0, parent = tree_start[name]
+            tree = SpanningTree(name, links, epoch=epoch0, parent=parent, known={j: tree_start[j] for j in links})
     return FusionNode(
         name,
-        sc.neighbors(name),
+        sc.neighbors(name) if tree is None else links,
         sc.target.motion,
         window=sc.window,
         horizon=sc.horizon,
@@ -42,14 +67,36 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
         network=network,
         run=run,
         epoch=epoch,
+        tree=tree,
         guard=sc.protection.node_guard() if sc.fusion == "channel" else None,
     )
 
 
-def build_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, FusionNode]:
-    """Every node of the scenario, with epochs 1, 2, ... in name order (deterministic runs)."""
-    return {name: build_node(sc, name, network_key=network_key, epoch=i + 1)
-            for i, name in enumerate(sorted(sc.nodes))}
+def build_nodes(sc: Scenario, *, network_key: bytes | None = None,
+                links: Collection[tuple[str, str]] | None = None) -> dict[str, FusionNode]:
+    """Every node of the scenario, with epochs 1, 2, ... in name order (deterministic runs).
+
+    Links that change: the nodes present at the start, on ``links`` (the links that exist
+    then), starting on the tree :func:`~dfusion.fusion.tree.initial_parents` picks.
+    """
+    if not sc.dynamic:
+        return {name: build_node(sc, name, network_key=network_key, epoch=i + 1)
+                for i, name in enumerate(sorted(sc.nodes))}
+    present = [n for n in sorted(sc.nodes) if sc.nodes[n].is_present(0.0)]
+    links = list(links or ())
+    start = initial_parents(present, links)
+    return {name: build_node(sc, name, network_key=network_key, epoch=sorted(sc.nodes).index(name) + 1,
+                             links=[b if a == name else a for a, b in links if name in (a, b)], tree_start=start)
+            for name in present}
+
+
+def build_joining_node(sc: Scenario, name: str, *, network_key: bytes | None = None,
+                       epoch: int | None = None) -> FusionNode:
+    """The node ``name`` of a scenario whose links change, joining the running network: no links
+    yet, alone in the lowest epoch, the common prior at time 0 (it predicts to the current time
+    and gets what its neighbours' windows still hold)."""
+    return build_node(sc, name, network_key=network_key,
+                      epoch=epoch if epoch is not None else sorted(sc.nodes).index(name) + 1, links=())
 
 
 def build_front_end(sc: Scenario, name: str) -> FrontEnd | None:

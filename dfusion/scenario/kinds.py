@@ -8,6 +8,7 @@ sensor kind               what
 ========================  =====================================================
 ``position``              a position sensor ``z = [I 0] x + v`` (``std``, metres)
 ``camera``                :mod:`dfusion.scenario.camera_kind`
+``robot_camera``          :mod:`dfusion.scenario.camera_kind` (a camera on a robot that moves)
 ``wsn_rssi``              :mod:`dfusion.scenario.wsn_kind`
 ``robot_mcl``             :mod:`dfusion.scenario.robot_kinds`
 ``robot_icp``             :mod:`dfusion.scenario.robot_kinds`
@@ -56,6 +57,7 @@ def _fusion_policy(params: Mapping[str, Any]) -> InformationFusionPolicy:
 SENSOR_KINDS: dict[str, SensorKind | str] = {
     "position": POSITION,
     "camera": "dfusion.scenario.camera_kind:CAMERA",
+    "robot_camera": "dfusion.scenario.camera_kind:ROBOT_CAMERA",
     "wsn_rssi": "dfusion.scenario.wsn_kind:WSN_RSSI",
     "robot_mcl": "dfusion.scenario.robot_kinds:ROBOT_MCL",
     "robot_icp": "dfusion.scenario.robot_kinds:ROBOT_ICP",

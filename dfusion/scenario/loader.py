@@ -33,36 +33,41 @@ from dfusion.scenario.security import security_options
 from dfusion.scenario.spec import (
     CLUTTER_MODELS,
     COMMON_NODE_KEYS,
+    EVENT_KINDS,
     FUSION_MODES,
     Kinds,
+    LinkEvent,
     NodeSpec,
     Protection,
     Scenario,
     TargetSpec,
 )
-from dfusion.scenario.values import intervals, suggest
+from dfusion.scenario.values import intervals, suggest, vector, waypoint_path
 from dfusion.topology import load_tree, minimum_window
 from dfusion.transport.simulated import LinkSpec
 
 __all__ = ["load_scenario", "build_policy", "node_policies", "TOP_LEVEL_KEYS", "TARGET_KEYS", "LINK_KEYS",
-           "PROTECTION_KEYS"]
+           "PROTECTION_KEYS", "RADIO_KEYS"]
 
 log = logging.getLogger(__name__)
 
 #: Keys of the top level of a scenario file.
 TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "spanning_tree", "plugins",
-                            "target", "nodes", "links", "security", "protection"})
+                            "target", "nodes", "links", "security", "protection", "events", "radio"})
 #: Keys of ``[target]`` every motion model takes (each motion adds its own, e.g. ``q``).
 TARGET_KEYS = frozenset({"motion", "initial_mean", "initial_cov_diag"})
 #: Keys of a ``[[links]]`` table.
 LINK_KEYS = frozenset({"between", "quality", "latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay",
                        "outages"})
+#: Keys of the ``[radio]`` table: the behaviour of links that are not in ``[[links]]``, and ranges per kind.
+RADIO_KEYS = frozenset({"latency", "jitter", "drop", "duplicate", "reorder", "reorder_delay", "ranges"})
 #: Keys of ``[protection]`` (``docs/scenarios.md``, ``docs/clutter.md``).
 PROTECTION_KEYS = frozenset({"enabled", "clutter_model", "network_check", "false_alarm", "quarantine", "release"})
 _TABLES = {"target": "a table [target]", "nodes": "an array of tables [[nodes]]",
            "links": "an array of tables [[links]]", "security": "a table [security]",
-           "protection": "a table [protection]"}
-_TABLE_LIST = "tables are [target], [[nodes]], [[links]], [security] and [protection]"
+           "protection": "a table [protection]", "events": "an array of tables [[events]]",
+           "radio": "a table [radio]"}
+_TABLE_LIST = "tables are [target], [[nodes]], [[links]], [[events]], [radio], [security] and [protection]"
 
 
 def _fail(src: str, where: str, msg: str) -> ScenarioError:
@@ -111,7 +116,7 @@ def _check_top_level(src: str, raw: Mapping[str, Any]) -> None:
         value = raw.get(key)
         if value is None:
             continue
-        ok = isinstance(value, dict) if key in ("target", "security", "protection") else (
+        ok = isinstance(value, dict) if key in ("target", "security", "protection", "radio") else (
             isinstance(value, list) and all(isinstance(v, dict) for v in value))
         if not ok:
             raise _fail(src, key, f"must be {what}, got {type(value).__name__}")
@@ -251,6 +256,20 @@ def _node(src: str, i: int, tbl: Mapping[str, Any], sc: Scenario, kinds: Kinds) 
     )
     if spec.detection > 1:
         raise _fail(src, f"{where}.detection", "must be a probability in [0, 1]")
+    try:
+        if "position" in tbl:
+            spec.position = vector(tbl, "position", (2, 3))
+        spec.path = waypoint_path(tbl)
+    except DfusionError as exc:
+        raise _fail(src, where, str(exc)) from None
+    if spec.path is not None and "position" in tbl and kind != "camera":
+        raise _fail(src, f"{where}.position", "a node with a path moves: give a position or a path, not both")
+    ranges = sc.raw.get("radio", {}).get("ranges", {})
+    if "radio_range" in tbl or kind in ranges:
+        spec.radio_range = _num(src, f"{where}.radio_range" if "radio_range" in tbl else f"radio.ranges.{kind}",
+                                tbl.get("radio_range", ranges.get(kind)), positive=True)
+        if spec.position is None and spec.path is None:
+            raise _fail(src, f"{where}.radio_range", "a node with a radio range needs a position or a path")
     if sk is not None:
         try:
             spec.sensor = sk.sensor(tbl, sc)
@@ -309,11 +328,15 @@ def load_scenario(
     spanning = raw.get("spanning_tree", False)
     if not isinstance(spanning, bool):
         raise _fail(src, "spanning_tree", f"must be true or false, got {spanning!r}")
+    dynamic = _links_change(src, raw)
+    if dynamic and spanning:
+        raise _fail(src, "spanning_tree", "has no meaning when links change at run time ([[events]], radio "
+                                          "ranges): the tree rule picks the tree (docs/dynamic-topology.md)")
     for i, tbl in enumerate(raw.get("links", [])):
         _check_table_keys(src, f"links[{i}]", tbl, LINK_KEYS, "[[links]]")
     undeclared = _undeclared_link_end(src, raw)
     try:
-        graph = load_tree(raw, source=src, spanning_tree=spanning)
+        graph = load_tree(raw, source=src, spanning_tree=spanning, require_tree=not dynamic)
     except TopologyError as exc:
         # a misspelt node name in a link usually shows as a disconnected graph: name the cause
         if undeclared is not None and "cycle" not in str(exc):
@@ -361,15 +384,99 @@ def load_scenario(
         except DfusionError as exc:
             raise _fail(src, f"links[{i}] ({a} - {b})", str(exc)) from None
         sc.links[(a, b)] = spec
+    sc.radio = _radio(src, raw.get("radio", {}), kinds)
+    sc.events = _events(src, raw.get("events", []), sc)
     _warn_degenerate(sc)
     return sc
+
+
+def _links_change(src: str, raw: Mapping[str, Any]) -> bool:
+    """Whether the scenario's links change at run time: events or radio ranges."""
+    radio = raw.get("radio", {})
+    nodes = raw.get("nodes", [])
+    return bool(raw.get("events")) or bool(isinstance(radio, dict) and radio.get("ranges")) or any(
+        isinstance(t, dict) and "radio_range" in t for t in nodes)
+
+
+def _radio(src: str, table: Mapping[str, Any], kinds: Kinds) -> LinkSpec:
+    """The ``[radio]`` table: the spec of links that are not in ``[[links]]``; checks ``ranges``."""
+    _check_table_keys(src, "radio", table, RADIO_KEYS, "[radio]")
+    ranges = table.get("ranges", {})
+    if not isinstance(ranges, dict):
+        raise _fail(src, "radio.ranges", "must be a table of sensor kind = range in metres")
+    for kind, value in ranges.items():
+        if kind != "none" and kind not in kinds.sensors:
+            raise _fail(src, f"radio.ranges.{kind}", f"unknown sensor kind{suggest(kind, kinds.sensors)}; known: "
+                                                     f"{', '.join(sorted(kinds.sensors))} or 'none'")
+        _num(src, f"radio.ranges.{kind}", value, positive=True)
+    try:
+        return LinkSpec.from_dict({k: v for k, v in table.items() if k != "ranges"})
+    except DfusionError as exc:
+        raise _fail(src, "radio", str(exc)) from None
+
+
+def _events(src: str, tables: list[Mapping[str, Any]], sc: Scenario) -> list[LinkEvent]:
+    """The ``[[events]]`` in time order, checked: each one action at a time within the run, on
+    declared nodes; a link comes up only when it is down and goes down only when it is up; a
+    node joins at most once (after the start) and leaves at most once (after it joined)."""
+    events = []
+    for i, tbl in enumerate(tables):
+        where = f"events[{i}]"
+        _check_table_keys(src, where, tbl, {"t", *EVENT_KINDS}, "[[events]]")
+        if "t" not in tbl:
+            raise _fail(src, f"{where}.t", "missing: the time of the event (s)")
+        t = _num(src, f"{where}.t", tbl["t"], nonneg=True)
+        if t > sc.duration:
+            raise _fail(src, f"{where}.t", f"{t:g} s is after the end of the run ({sc.duration:g} s)")
+        actions = [k for k in EVENT_KINDS if k in tbl]
+        if len(actions) != 1:
+            raise _fail(src, where, f"needs exactly one of {', '.join(EVENT_KINDS)}, got {len(actions)}")
+        kind = actions[0]
+        value = tbl[kind]
+        if kind in ("link_up", "link_down"):
+            if not (isinstance(value, list) and len(value) == 2 and all(isinstance(v, str) for v in value)
+                    and value[0] != value[1]):
+                raise _fail(src, f"{where}.{kind}", f"must name two different nodes, got {value!r}")
+            names = tuple(sorted(value))
+        else:
+            if not isinstance(value, str):
+                raise _fail(src, f"{where}.{kind}", f"must name a node, got {value!r}")
+            names = (value,)
+        for name in names:
+            if name not in sc.nodes:
+                raise _fail(src, f"{where}.{kind}", f"names node {name!r}, which has no [[nodes]] table"
+                                                    f"{suggest(name, sc.nodes)}")
+        events.append((t, i, LinkEvent(t, kind, names)))
+    events.sort(key=lambda e: (e[0], e[1]))
+    up = {tuple(sorted(pair)) for pair in sc.links}
+    for t, i, ev in events:
+        where = f"events[{i}].{ev.kind}"
+        if ev.kind == "link_up":
+            if ev.nodes in up:
+                raise _fail(src, where, f"{ev.nodes[0]} - {ev.nodes[1]} is already up at t = {t:g} s")
+            up.add(ev.nodes)
+        elif ev.kind == "link_down":
+            if ev.nodes not in up:
+                raise _fail(src, where, f"{ev.nodes[0]} - {ev.nodes[1]} is not up at t = {t:g} s")
+            up.discard(ev.nodes)
+        else:
+            spec = sc.nodes[ev.nodes[0]]
+            if ev.kind == "join":
+                if spec.joins is not None or spec.leaves is not None or t <= 0:
+                    raise _fail(src, where, f"{spec.name} joins once, after the start and before it leaves")
+                spec.joins = t
+            else:
+                if spec.leaves is not None:
+                    raise _fail(src, where, f"{spec.name} leaves once")
+                spec.leaves = t
+    return [ev for _, _, ev in events]
 
 
 def _warn_degenerate(sc: Scenario) -> None:
     """Log (and keep in ``sc.warnings``) settings that are valid but probably not meant."""
     if not any(spec.sensor is not None and spec.rate > 0 for spec in sc.nodes.values()):
         sc.warnings.append("no node has a sensor that measures: every estimate is the prior predicted forward")
-    if sc.window is not None and sc.fusion == "channel":
+    if sc.window is not None and sc.fusion == "channel" and not sc.dynamic:
         latency = max((spec.latency + spec.jitter + spec.reorder_delay for spec in sc.links.values()), default=0.0)
         period = max(spec.send_period for spec in sc.nodes.values())
         delay = max(spec.delay for spec in sc.nodes.values())

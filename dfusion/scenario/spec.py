@@ -22,10 +22,11 @@ if TYPE_CHECKING:   # type names only: no import at run time
     import networkx as nx
 
     from dfusion.frontends.base import FrontEnd
+    from dfusion.geometry import WaypointPath
     from dfusion.policies.base import Policy
 
 __all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "Protection",
-           "FUSION_MODES", "COMMON_NODE_KEYS", "CLUTTER_MODELS"]
+           "FUSION_MODES", "COMMON_NODE_KEYS", "CLUTTER_MODELS", "LinkEvent", "EVENT_KINDS"]
 
 #: Values of the top-level key ``fusion``.
 FUSION_MODES = ("channel", "naive")
@@ -35,7 +36,9 @@ CLUTTER_MODELS = ("pda", "gate")
 
 #: Keys every ``[[nodes]]`` table may have, whatever its sensor kind.
 COMMON_NODE_KEYS = frozenset({"name", "sensor", "rate", "send_period", "delay", "phase", "active", "detection",
-                              "policy"})
+                              "policy", "position", "path", "speed", "loop", "path_start", "radio_range"})
+#: What an ``[[events]]`` table can do (its one key besides ``t``).
+EVENT_KINDS = ("link_up", "link_down", "join", "leave")
 
 
 @dataclass(frozen=True)
@@ -180,6 +183,14 @@ class NodeSpec:
         Probability that a measurement is produced when active.
     params : dict
         The node table's kind-specific keys.
+    position : array or None
+        Where a fixed node is (``(x, y)`` or ``(x, y, z)``, m): the key ``position``.
+    path : WaypointPath or None
+        The path of a moving node (keys ``path``, ``speed``, ``loop``, ``path_start``).
+    radio_range : float or None
+        Metres within which it links to other nodes with a range (``docs/dynamic-topology.md``).
+    joins, leaves : float or None
+        When the node joins the running network and leaves it for good (``[[events]]``).
     """
 
     name: str
@@ -193,9 +204,39 @@ class NodeSpec:
     active: list[tuple[float, float]] = field(default_factory=list)
     detection: float = 1.0
     params: dict[str, Any] = field(default_factory=dict)
+    position: np.ndarray | None = None
+    path: "WaypointPath | None" = None
+    radio_range: float | None = None
+    joins: float | None = None
+    leaves: float | None = None
+
+    def is_present(self, t: float) -> bool:
+        """Whether the node is in the network at ``t`` (joined and not left)."""
+        return (self.joins is None or t >= self.joins) and (self.leaves is None or t < self.leaves)
 
     def is_active(self, t: float) -> bool:
-        return not self.active or any(a <= t <= b for a, b in self.active)
+        return self.is_present(t) and (not self.active or any(a <= t <= b for a, b in self.active))
+
+    def position_at(self, t: float) -> np.ndarray | None:
+        """``(x, y)`` at ``t``: on its path when it moves, its ``position`` otherwise (None: unknown)."""
+        if self.path is not None:
+            return self.path.position(t)
+        return None if self.position is None else self.position[:2]
+
+
+@dataclass(frozen=True)
+class LinkEvent:
+    """One ``[[events]]`` entry: at ``t`` a link comes up or goes down (``nodes`` the pair), or a
+    node joins or leaves (``nodes`` the node)."""
+
+    t: float
+    kind: str
+    nodes: tuple[str, ...]
+
+    def __str__(self) -> str:
+        if self.kind in ("join", "leave"):
+            return f"{self.nodes[0]} {self.kind}s"
+        return f"{self.nodes[0]} - {self.nodes[1]} {'up' if self.kind == 'link_up' else 'down'}"
 
 
 @dataclass(frozen=True)
@@ -264,8 +305,15 @@ class Scenario:
     protection : Protection
         The ``[protection]`` table (default: every protection on).
     tree : Tree
-        The communication tree (:class:`dfusion.topology.Tree`, plain data);
-        :attr:`graph` is the same tree as a networkx graph, built on first use.
+        The ``[[links]]`` as plain data (:class:`dfusion.topology.Tree`): the communication
+        tree, unless the scenario's links change (:attr:`dynamic`), when they are only the
+        links that exist at the start (cycles allowed); :attr:`graph` is the same as a
+        networkx graph, built on first use.
+    events : list of LinkEvent
+        The ``[[events]]``, in time order.
+    radio : LinkSpec
+        The ``[radio]`` table: how links that are not in ``[[links]]`` behave (made by a
+        radio range or by an event).
     """
 
     path: str
@@ -284,6 +332,13 @@ class Scenario:
     warnings: list[str] = field(default_factory=list)
     security: SecurityOptions = field(default_factory=SecurityOptions)
     protection: Protection = field(default_factory=Protection)
+    events: list[LinkEvent] = field(default_factory=list)
+    radio: LinkSpec = field(default_factory=LinkSpec)
+
+    @property
+    def dynamic(self) -> bool:
+        """Whether the links change at run time: events, or radio ranges (``docs/dynamic-topology.md``)."""
+        return bool(self.events) or any(n.radio_range is not None for n in self.nodes.values())
 
     @property
     def graph(self) -> nx.Graph:
@@ -294,7 +349,7 @@ class Scenario:
         return graph
 
     def neighbors(self, name: str) -> tuple[str, ...]:
-        """The tree neighbours of node ``name``, sorted."""
+        """The tree neighbours of node ``name``, sorted (the links at the start when links change)."""
         return tuple(sorted(self.tree.neighbors(name)))
 
     @property
@@ -305,6 +360,10 @@ class Scenario:
     def base_dir(self) -> str | None:
         """Directory of the scenario file (relative paths in it start there); None for a mapping."""
         return None if self.path.startswith("<") else str(Path(self.path).parent)
+
+    def link_spec(self, a: str, b: str) -> LinkSpec:
+        """How the link ``a - b`` behaves: its ``[[links]]`` entry, else ``[radio]``."""
+        return self.links.get((a, b)) or self.links.get((b, a)) or self.radio
 
     def outages(self) -> list[tuple[str, str, float, float]]:
         """Every outage interval as ``(a, b, start, end)``."""

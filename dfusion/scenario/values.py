@@ -14,9 +14,10 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from dfusion.errors import ValidationError
+from dfusion.geometry import WaypointPath
 from dfusion.linalg import Array
 
-__all__ = ["number", "integer", "vector", "intervals", "check_keys", "suggest"]
+__all__ = ["number", "integer", "vector", "intervals", "check_keys", "suggest", "waypoint_path"]
 
 _REQUIRED = object()
 
@@ -84,3 +85,21 @@ def intervals(value: Any, key: str) -> list[tuple[float, float]]:
             raise ValidationError(f"{key}[{i}]: end {b} before start {a}")
         out.append((a, b))
     return out
+
+
+def waypoint_path(table: Mapping[str, Any]) -> WaypointPath | None:
+    """The path of a moving node (keys ``path``, ``speed``, ``loop``, ``path_start``), or None without ``path``."""
+    if "path" not in table:
+        for key in ("speed", "loop", "path_start"):
+            if key in table:
+                raise ValidationError(f"{key} needs a path = [[x, y], ...]")
+        return None
+    pts = table["path"]
+    if not (isinstance(pts, list) and len(pts) >= 2 and all(
+            isinstance(p, list) and len(p) == 2 and all(
+                isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in p) for p in pts)):
+        raise ValidationError(f"path must be a list of at least two [x, y] waypoints, got {pts!r}")
+    loop = table.get("loop", False)
+    if not isinstance(loop, bool):
+        raise ValidationError(f"loop must be true or false, got {loop!r}")
+    return WaypointPath(pts, number(table, "speed", positive=True), number(table, "path_start", 0.0, nonneg=True), loop)

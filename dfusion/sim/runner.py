@@ -38,6 +38,16 @@ nodes that were lost at some step or are inconsistent.
 The world is simulated from the scenario (:func:`dfusion.sim.world.simulate_world`)
 unless one is given: :mod:`dfusion.sim.replay` reads it from a ROS bag.
 
+**Links that change** (``Scenario.dynamic``: ``[[events]]``, radio ranges;
+:mod:`dfusion.sim.links`): before step 1 of every time step the links that exist then are
+applied to the nodes and the network (nodes join and leave); nodes send over every link
+(fusion messages on tree links, beacons on the others), and a node whose tree links changed
+sends at once instead of waiting for its send period (:attr:`FusionNode.urgent`). The end
+runs lossless rounds until the tree rule has settled, then ``diameter + 2`` more. Nodes
+absent from the network have no estimate (NaN) for those steps; their figures are over the
+steps they were present. ``metrics["links"]`` lists every change of the links with the
+send periods the tree and the information took to settle after it.
+
 Message counts add up (``metrics["traffic"]``, checked by the tests): the messages
 sent over the network plus the copies the links duplicated equal those delivered
 plus those dropped plus those still in flight (none at the end); every delivered
@@ -59,9 +69,12 @@ from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
 from dfusion.metrics import chi2_interval, nees, rmse
+from dfusion.models.base import model_at
 from dfusion.policies.base import records_output as policy_records_output
 from dfusion.scenario.build import build_front_ends, build_nodes
 from dfusion.scenario.spec import Scenario
+from dfusion.fusion.tree import forest_settled, tree_components
+from dfusion.sim.links import DynamicLinks, agreed_edges
 from dfusion.sim.world import World, simulate_world
 from dfusion.transport.simulated import SimulatedNetwork
 from dfusion.topology import Tree, settling_rounds
@@ -138,6 +151,9 @@ class SimulationResult:
     oracle_cov: Array | None = None
     oracle_final: Array | None = None
     health: dict[str, list[str]] = field(default_factory=dict)
+    #: Links that change: the :class:`~dfusion.sim.links.DynamicLinks` of the run (its
+    #: schedule, its changes, the tree at every step); None for a fixed tree.
+    links: DynamicLinks | None = None
 
     def to_json(self, series: bool = False) -> str:
         """The metrics as JSON; with ``series`` also the per-step time series
@@ -156,10 +172,12 @@ class SimulationResult:
             ["mean gap pos [m]"] + (["mean gap vel [m/s]"] if vel else []) + ["sent [msgs]", "sent [bytes]"] + \
             (["NIS [-]", "gated", "quar.", "health"] if diag else [])
         rows = [head]
+        def gap(x):
+            return "left" if x is None else f"{x:.2e}"
         for name, v in m["nodes"].items():
-            row = [name, f"{v['rmse']:.4f}", f"{v['anees']:.3f}", f"{v['final_gap_position']:.2e}"]
+            row = [name, f"{v['rmse']:.4f}", f"{v['anees']:.3f}", gap(v['final_gap_position'])]
             if vel:
-                row.append(f"{v['final_gap_velocity']:.2e}")
+                row.append(gap(v['final_gap_velocity']))
             row.append(f"{v['mean_gap_position']:.2e}")
             if vel:
                 row.append(f"{v['mean_gap_velocity']:.2e}")
@@ -192,6 +210,8 @@ class SimulationResult:
                          "(expected 1); gated: own detections outside the gate; quar.: quarantined neighbours "
                          f"at the end; protection: {m.get('protection', '-')}; centralized: the same detections "
                          "through the same association (fair), central oracle: false detections skipped")
+        if "links" in m:
+            lines.extend(link_lines(m["links"]))
         lines.extend(warning_lines(m))
         outs = {name: v["output"] for name, v in m["nodes"].items() if "output" in v}
         if outs:
@@ -202,6 +222,33 @@ class SimulationResult:
                 lines.append(f"  {name}: policy {o['policy']}, RMSE {o['rmse']:.4f} m, ANEES {o['anees']:.3f}, "
                              f"switches {o['switches']}; {share}")
         return "\n".join(lines)
+
+
+def link_lines(lk: dict[str, Any]) -> list[str]:
+    """The changes of the links and the tree, with their settling times, as table lines."""
+    period = lk["send_period"]
+    st = lk["settling_tree_changes"]
+
+    def fmt(v):
+        return "-" if v is None else f"{v:.1f}"
+    lines = ["", f"links that change: {lk['link_changes']} changes of the links, {lk['tree_changes']} of them changed "
+             f"the fusion tree ({lk['epochs_started']} new tree epochs started); settling in send periods of "
+             f"{period:g} s after a change of the tree: tree median {fmt(st['tree']['median'])}, max "
+             f"{fmt(st['tree']['max'])}; information median {fmt(st['information']['median'])}, max "
+             f"{fmt(st['information']['max'])} (over {st['count']} changes that settled before the next one)"]
+    rows = [["t [s]", "what changed", "tree changed", "tree settled [send periods]", "information settled [send periods]"]]
+    for c in lk["changes"]:
+        info = fmt(c["info_settled_send_periods"])
+        if c["overlapped"]:
+            info += " (next change first)" if c["info_settled_send_periods"] is None else " (overlapped)"
+        rows.append([f"{c['t']:.1f}", "; ".join(c["what"]), "yes" if c["tree_changed"] else "no",
+                     fmt(c["tree_settled_send_periods"]), info])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines += ["  " + "  ".join(cell.ljust(w) if i == 1 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+              for r in rows]
+    lines.append("  (tree settled: one epoch and an agreed spanning tree in every component; information settled: "
+                 "every node holds everything its component measured up to the change, once)")
+    return lines
 
 
 def traffic_lines(m: dict[str, Any]) -> list[str]:
@@ -273,23 +320,35 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     call: a live view (:class:`dfusion.viz.foxglove.LiveView`).
     """
     world = simulate_world(sc) if world is None else world
-    nodes = build_nodes(sc)
-    net = SimulatedNetwork(((a, b, spec) for (a, b), spec in sc.links.items()), seed=sc.seed)
+    dyn = DynamicLinks(sc) if sc.dynamic else None
+    if dyn is None:
+        nodes = build_nodes(sc)
+        net = SimulatedNetwork(((a, b, spec) for (a, b), spec in sc.links.items()), seed=sc.seed)
+    else:
+        nodes, net = dyn.start()
     motion = sc.target.motion
     front = build_front_ends(sc)
     refs = References(sc, front)
-    names = sorted(nodes)
+    names = sorted(sc.nodes)
     K = sc.steps + 1
     n = motion.dim
     times = np.round(sc.dt * np.arange(K), 9)
     truth = np.array([world.truth(t) for t in times])
-    node_mean = {nm: np.empty((K, n)) for nm in names}
-    node_cov = {nm: np.empty((K, n, n)) for nm in names}
+    node_mean = {nm: np.full((K, n), np.nan) for nm in names}
+    node_cov = {nm: np.full((K, n, n), np.nan) for nm in names}
     c_mean, c_cov = np.empty((K, n)), np.empty((K, n, n))
-    o_mean, o_cov = np.empty((K, n)), np.empty((K, n, n))
+    o_mean, o_cov = np.full((K, n), np.nan), np.full((K, n, n), np.nan)
     health = {nm: [""] * K for nm in names}
-    outputs = {nm: NodeOutput(nodes[nm].policy.name, np.empty((K, n)), np.empty((K, n, n)), [""] * K)
-               for nm in names if records_output(nodes[nm])}
+    outputs: dict[str, NodeOutput] = {}
+
+    def add_output(nm: str) -> None:
+        if records_output(nodes[nm]):
+            outputs[nm] = NodeOutput(nodes[nm].policy.name, np.full((K, n), np.nan), np.full((K, n, n), np.nan),
+                                     [""] * K)
+
+    for nm in names:
+        if nm in nodes:
+            add_output(nm)
     by_arrival = frames(sorted(world.measurements, key=lambda m: (m.arrival, m.t, m.node)))
     by_time = frames(world.measurements)  # already in time order
     next_send = {nm: sc.nodes[nm].send_period for nm in names}
@@ -302,6 +361,11 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         """Fuse one frame (the measurements of one node at one time) at its node."""
         nonlocal refused
         m0 = frame[0]
+        if m0.node not in nodes:   # the node left before the measurement reached it
+            refused += len(frame)
+            events.extend({"t": t_step, "node": m.node, "t_meas": m.t, "z": m.z, "outcome": ["refused"]}
+                          for m in frame)
+            return
         fe = front[m0.node]
         before = fe.health()
         try:
@@ -331,15 +395,17 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
 
     def record(k: int) -> None:
         for nm in names:
-            node_mean[nm][k], node_cov[nm][k] = nodes[nm].estimate()
+            if nm in nodes:
+                node_mean[nm][k], node_cov[nm][k] = nodes[nm].estimate()
         for nm, o in outputs.items():
             chosen = nodes[nm].output()
             o.mean[k], o.cov[k], o.source[k] = chosen.mean, chosen.cov, chosen.name
         for nm in names:
-            health[nm][k] = node_health(nodes[nm], front.get(nm))
+            if nm in nodes:
+                health[nm][k] = node_health(nodes[nm], front.get(nm))
         (c_mean[k], c_cov[k]), (o_mean[k], o_cov[k]) = refs.estimate(times[k])
         if on_step is not None:
-            est = {nm: (node_mean[nm][k], node_cov[nm][k]) for nm in names}
+            est = {nm: (node_mean[nm][k], node_cov[nm][k]) for nm in names if nm in nodes}
             est["centralized"] = (c_mean[k], c_cov[k])
             on_step(float(times[k]), est, truth[k], events[seen[0]:])
             seen[0] = len(events)
@@ -347,8 +413,11 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
     record(0)
     for k in _progress(range(1, K), progress, K - 1):
         t = float(times[k])
+        if dyn is not None:
+            dyn.step(t, on_join=add_output)
         for nm in names:
-            nodes[nm].predict(t)
+            if nm in nodes:
+                nodes[nm].predict(t)
         while ia < len(by_arrival) and by_arrival[ia][0].arrival <= t + 1e-9:
             process(by_arrival[ia], t)
             ia += 1
@@ -356,14 +425,20 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
             refs.add(by_time[ic], seq=ic)
             ic += 1
         for nm in names:
-            for d in net.receive(nm, t + 1e-9):
-                deliver(nm, d.data)
+            if nm in nodes:
+                for d in net.receive(nm, t + 1e-9):
+                    deliver(nm, d.data)
         for nm in names:
-            if t + 1e-9 >= next_send[nm]:
-                for nb in nodes[nm].neighbors:
-                    net.send(nm, nb, nodes[nm].message_to(nb, sent_at=t), t)
+            node = nodes.get(nm)
+            if node is None:
+                continue
+            if t + 1e-9 >= next_send[nm] or node.urgent:
+                for nb, data in node.outgoing(sent_at=t):
+                    net.send(nm, nb, data, t)
                 while next_send[nm] <= t + 1e-9:
                     next_send[nm] += sc.nodes[nm].send_period
+        if dyn is not None:
+            dyn.observe(t)
         record(k)
 
     # the end: every message in flight, every late measurement, then lossless rounds
@@ -376,15 +451,23 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         refs.add(frame, seq=ic)
         ic += 1
     for nm, fe in front.items():
-        fe.finish(nodes[nm])
-    counts["final_rounds"] = final_rounds(nodes, sc.tree)
+        if nm in nodes:
+            fe.finish(nodes[nm])
+    if dyn is None:
+        counts["final_rounds"] = final_rounds(nodes, sc.tree)
+    else:
+        counts["final_rounds"] = final_rounds_changing(nodes, dyn.links)
+        dyn.end(T)
     (c_final, _), (o_final, _) = refs.estimate(T)
 
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
                               events=events, oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final,
-                              health=health)
-    result.metrics = compute_metrics(sc, result, nodes, c_final, net, len(world.measurements), refused,
-                                     front_ends=front)
+                              health=health, links=dyn)
+    everyone = nodes if dyn is None else dyn.all_nodes()
+    result.metrics = compute_metrics(sc, result, everyone, c_final, net, len(world.measurements), refused,
+                                     front_ends=front, present=set(nodes))
+    if dyn is not None:
+        result.metrics["links"] = dyn.metrics()
     total = net.stats.total
     result.metrics["traffic"] = {
         "network": {"sent": int(total.sent), "duplicated": int(total.duplicated), "delivered": int(total.delivered),
@@ -429,14 +512,14 @@ class References:
         sensor = self.sensors[m0.node]
         for m in frame:
             if not m.clutter:   # the oracle knows which detections are false
-                self.oracle.add(m.t, m.z, sensor, seq=seq)
+                self.oracle.add(m.t, m.z, model_at(sensor, m.t), seq=seq)
         fe = self.front.get(m0.node)
         update = fe.reference_frame(m0.t, np.array([m.z for m in frame])) if fe is not None else None
         if update is not None:
             self.fair.add_frame(m0.t, update, seq=seq)
         else:
             for m in frame:
-                self.fair.add(m.t, m.z, sensor, seq=seq)
+                self.fair.add(m.t, m.z, model_at(sensor, m.t), seq=seq)
 
     def estimate(self, t: float) -> tuple[tuple[Array, Array], tuple[Array, Array]]:
         """``((fair mean, cov), (oracle mean, cov))`` at ``t``."""
@@ -455,14 +538,45 @@ def final_rounds(nodes: dict[str, FusionNode], graph: Tree | nx.Graph) -> int:
     return n
 
 
+def final_rounds_changing(nodes: dict[str, FusionNode], links: set[tuple[str, str]]) -> int:
+    """Links that change: lossless rounds over every link (fusion messages and beacons) until the
+    tree rule has settled (at most one per node), then :func:`dfusion.topology.settling_rounds`
+    of the largest tree; returns the number of messages."""
+    n = 0
+
+    def one_round() -> int:
+        msgs = [(nb, data) for nm in sorted(nodes) for nb, data in nodes[nm].outgoing()]
+        for nb, data in msgs:
+            nodes[nb].receive(data)
+        return len(msgs)
+
+    for _ in range(len(nodes) + 2):
+        if forest_settled({nm: x.tree.state() for nm, x in nodes.items()}, links)[0]:
+            break
+        n += one_round()
+    edges = agreed_edges(nodes)
+    rounds = 2
+    for comp in tree_components(edges, nodes):
+        if len(comp) > 1:
+            tree = Tree()
+            for a, b in (e for e in edges if e[0] in comp):
+                tree.add_edge(a, b)
+            rounds = max(rounds, settling_rounds(tree))
+    for _ in range(rounds):
+        n += one_round()
+    return n
+
+
 def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refused,
-                    front_ends: dict[str, Any] | None = None) -> dict[str, Any]:
+                    front_ends: dict[str, Any] | None = None, present: set[str] | None = None) -> dict[str, Any]:
     """The figures of a run (the JSON keys of docs/scenarios.md).
 
     ``nodes`` maps names to objects with ``estimate()`` and ``stats`` (and, for the
     diagnostics, ``guard`` and ``health()``); ``c_final`` is the fair centralized mean at the
     end; ``net`` has ``stats.total`` (delivered, dropped); ``front_ends`` (optional) gives the
-    camera counters. Shared by ``dfusion simulate`` and ``dfusion run``.
+    camera counters. Shared by ``dfusion simulate`` and ``dfusion run``. With links that
+    change a node's figures are over the steps it was present (its rows are NaN otherwise),
+    and a node not ``present`` at the end has no final gap (None).
     """
     axes = sc.target.axes
     motion = sc.target.motion
@@ -495,24 +609,30 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
     pos, vel = state_parts(motion.dim, axes)
     for nm, node in nodes.items():
         final_mean, _ = node.estimate()
-        diff = res.node_mean[nm] - res.central_mean
+        ok = np.isfinite(res.node_mean[nm]).all(axis=1)
+        mean_k, cov_k, truth_k = res.node_mean[nm][ok], res.node_cov[nm][ok], res.truth[ok]
+        diff = mean_k - res.central_mean[ok]
         gap = np.abs(diff).max(axis=1)
         fd = np.asarray(final_mean) - np.asarray(c_final)
+        here = present is None or nm in present
         out["nodes"][nm] = {
-            "rmse": rmse(res.node_mean[nm], res.truth, axes),
-            "anees": float(np.mean(nees(res.node_mean[nm], res.node_cov[nm], res.truth, resid))),
-            "final_gap": float(np.max(np.abs(final_mean - c_final))),
-            "final_gap_oracle": float(np.max(np.abs(final_mean - o_final))) if o_final is not None else None,
+            "rmse": rmse(mean_k, truth_k, axes),
+            "anees": float(np.mean(nees(mean_k, cov_k, truth_k, resid))),
+            "final_gap": float(np.max(np.abs(final_mean - c_final))) if here else None,
+            "final_gap_oracle": (float(np.max(np.abs(final_mean - o_final)))
+                                 if o_final is not None and here else None),
             "mean_gap": float(np.mean(gap)),
-            "final_gap_position": float(np.linalg.norm(fd[pos])),
+            "final_gap_position": float(np.linalg.norm(fd[pos])) if here else None,
             "mean_gap_position": float(np.mean(np.linalg.norm(diff[:, pos], axis=1))),
             "messages": node.stats.messages_sent,
             "bytes": node.stats.bytes_sent,
             "rejected": node.stats.messages_rejected,
             "received": int(getattr(node.stats, "messages_received", 0)),
         }
+        if not ok.all():
+            out["nodes"][nm]["present_steps"] = int(ok.sum())
         if vel:
-            out["nodes"][nm]["final_gap_velocity"] = float(np.linalg.norm(fd[vel]))
+            out["nodes"][nm]["final_gap_velocity"] = float(np.linalg.norm(fd[vel])) if here else None
             out["nodes"][nm]["mean_gap_velocity"] = float(np.mean(np.linalg.norm(diff[:, vel], axis=1)))
         out["nodes"][nm].update(node_diagnostics(node, (front_ends or {}).get(nm), health.get(nm)))
         o = res.outputs.get(nm)

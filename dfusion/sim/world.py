@@ -6,8 +6,10 @@ The target moves by its motion model: ``x(t_{i+1}) = f(x(t_i), dt_i) + w_i``,
 (the filters' prior, so that consistency tests are meaningful). Each node
 measures at ``phase + k / rate`` while active, with probability ``detection``,
 ``z = h(x(t)) + v``, ``v ~ N(0, R)``; a sensor with an ``in_view(x)`` method
-(a camera) only measures when the target is in view. Measurements reach the
-node ``U[0, delay]`` seconds late.
+(a camera) only measures when the target is in view; a sensor that moves (a camera on a
+robot, :func:`dfusion.models.base.model_at`) measures from where it is at ``t``. A node
+measures only while it is in the network (it may join late or leave early). Measurements
+reach the node ``U[0, delay]`` seconds late.
 
 False detections (clutter): a sensor with a positive ``clutter_rate`` attribute
 (a camera with ``false_detection_rate``) also produces, at every measurement
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dfusion.linalg import Array
+from dfusion.models.base import model_at
 from dfusion.scenario.spec import Scenario
 
 TIME_DECIMALS = 9
@@ -94,7 +97,7 @@ def simulate_world(sc: Scenario) -> World:
     rng_clutter = None   # spawned only when needed (does not disturb the other two streams)
     for t, name in sorted(planned):
         spec = sc.nodes[name]
-        sensor = spec.sensor
+        sensor = model_at(spec.sensor, t)
         draw = rng_meas.random()
         noise = rng_meas.standard_normal(sensor.dim_z)
         delay = rng_meas.uniform(0.0, spec.delay) if spec.delay > 0 else 0.0

@@ -20,6 +20,11 @@ whatever happens on other links, whether links are added, and whatever the
 link's parameters are (changing ``drop`` changes which messages are dropped
 but not the delays of the others).
 
+**Links that come and go.** :meth:`SimulatedNetwork.connect` adds a link (or brings one
+back) and :meth:`SimulatedNetwork.disconnect` takes it away: the copies in flight on it are
+lost (counted as dropped), and so is anything sent over it until it is connected again
+(a simulator of robots moving in and out of radio range, ``docs/dynamic-topology.md``).
+
 See ``docs/simulated-network.md``.
 """
 from __future__ import annotations
@@ -188,6 +193,8 @@ class SimulatedNetwork(Transport):
     seed :
         Non-negative integer; the same seed and the same calls give the same
         deliveries.
+    nodes :
+        Nodes that have no link yet (links may be connected later).
 
     Raises
     ------
@@ -195,7 +202,8 @@ class SimulatedNetwork(Transport):
         Bad seed, node names, specs, self-loops or a link given twice.
     """
 
-    def __init__(self, links: Mapping[LinkKey, LinkSpec] | Iterable[tuple[str, str, LinkSpec]], seed: int) -> None:
+    def __init__(self, links: Mapping[LinkKey, LinkSpec] | Iterable[tuple[str, str, LinkSpec]], seed: int,
+                 nodes: Iterable[str] = ()) -> None:
         if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
             raise ValidationError(f"seed must be a non-negative integer, got {seed!r}")
         self._seed = int(seed)
@@ -223,8 +231,9 @@ class SimulatedNetwork(Transport):
             if (src, dst) in self._links:
                 raise ValidationError(f"link ({src!r}, {dst!r}) is given twice")
             self._links[(src, dst)] = _Link(spec, link_generator(self._seed, src, dst))
-        nodes = {n for key in self._links for n in key}
+        nodes = {n for key in self._links for n in key} | set(nodes)
         self._queues: dict[str, list[_Entry]] = {n: [] for n in sorted(nodes)}
+        self._down: set[LinkKey] = set()
         self._seq = itertools.count()
         _log.debug("simulated network: %d nodes, %d directed links, seed %d", len(nodes), len(self._links), seed)
 
@@ -246,8 +255,37 @@ class SimulatedNetwork(Transport):
         return tuple(sorted(dst for src, dst in self._links if src == node))
 
     def link_up(self, a: str, b: str, t: float) -> bool:
-        """Whether the directed link ``a -> b`` is outside its outages at time ``t``."""
-        return not self._link(a, b).spec.is_down(_real("t", t))
+        """Whether the directed link ``a -> b`` is connected and outside its outages at time ``t``."""
+        return (a, b) not in self._down and not self._link(a, b).spec.is_down(_real("t", t))
+
+    def connect(self, a: str, b: str, spec: LinkSpec) -> None:
+        """Connect ``a - b`` (both directions): a new link with ``spec``, or one that was
+        disconnected (it keeps its spec and its random generator)."""
+        if a == b or not all(isinstance(n, str) and n for n in (a, b)):
+            raise ValidationError(f"a link needs two different node names, got ({a!r}, {b!r})")
+        for src, dst in ((a, b), (b, a)):
+            if (src, dst) not in self._links:
+                if not isinstance(spec, LinkSpec):
+                    raise ValidationError(f"link ({src!r}, {dst!r}) needs a LinkSpec, got {type(spec).__name__}")
+                self._links[(src, dst)] = _Link(spec, link_generator(self._seed, src, dst))
+            self._down.discard((src, dst))
+            self._queues.setdefault(dst, [])
+            self._queues.setdefault(src, [])
+
+    def disconnect(self, a: str, b: str) -> int:
+        """Take the link ``a - b`` away (both directions); returns the copies in flight it lost."""
+        lost = 0
+        for src, dst in ((a, b), (b, a)):
+            link = self._link(src, dst)
+            self._down.add((src, dst))
+            queue = self._queues[dst]
+            keep = [e for e in queue if e[2].src != src]
+            if len(keep) != len(queue):
+                link.stats.dropped += len(queue) - len(keep)
+                lost += len(queue) - len(keep)
+                heapq.heapify(keep)
+                self._queues[dst] = keep
+        return lost
 
     # ------------------------------------------------------------------ transport
 
@@ -266,7 +304,7 @@ class SimulatedNetwork(Transport):
         spec, stats = link.spec, link.stats
         stats.sent += 1
         stats.bytes_sent += len(payload)
-        if spec.is_down(t) or u[0] < spec.drop:
+        if (src, dst) in self._down or spec.is_down(t) or u[0] < spec.drop:
             stats.dropped += 1
             return
         copies = 1

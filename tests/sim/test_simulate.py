@@ -53,7 +53,8 @@ def test_at_least_three_shipped_scenarios_load():
     scenarios = {path.name: load_scenario(path) for path in SHIPPED}
     for sc in scenarios.values():
         assert sc.graph.number_of_nodes() == len(sc.nodes)
-        assert nx.is_tree(sc.graph)
+        # a fixed tree, or the links that exist at the start when links change (no tree needed)
+        assert nx.is_tree(sc.graph) or sc.dynamic
     # the three shapes: a chain, a star, a deeper tree with an outage
     assert any(is_chain(sc.graph) for sc in scenarios.values())
     assert any(is_star(sc.graph) for sc in scenarios.values())
