@@ -199,9 +199,46 @@ def _unpack_index(n: int) -> Array:
     return idx.reshape(-1)
 
 
+_LAYOUTS: dict[tuple[bytes, int], tuple[int, np.ndarray, np.ndarray]] = {}
+#: Masks up to this many bytes have their layout cached (a node's messages repeat a few masks).
+_LAYOUT_CACHE_BYTES = 64
+
+
+def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """Where the numbers of a ``mask`` go: ``(count, gather_info, gather_vec)``.
+
+    ``count`` is the number of set bits (of values carried); ``gather_info`` ``(m, n, n)`` and
+    ``gather_vec`` ``(m, n)`` index the values followed by one zero (index ``count``), so that
+    ``padded[gather_info]`` is every block's full symmetric matrix. Small masks (a steady-state
+    message's) are cached by their bytes: a node's messages repeat the same few layouts.
+    """
+    cacheable = len(mask_raw) <= _LAYOUT_CACHE_BYTES
+    if cacheable:
+        hit = _LAYOUTS.get((mask_raw, n))
+        if hit is not None:
+            return hit
+    k = n * (n + 1) // 2
+    width = k + n
+    row_bytes = (width + 7) // 8
+    mask = np.unpackbits(np.frombuffer(mask_raw, dtype=np.uint8).reshape(m, row_bytes), axis=1,
+                         count=width, bitorder="little").astype(bool)
+    count = int(mask.sum())
+    slots = np.full((m, width), count, dtype=np.intp)
+    slots[mask] = np.arange(count)
+    gather_info = slots[:, :k][:, _unpack_index(n)].reshape(m, n, n)
+    gather_vec = np.ascontiguousarray(slots[:, k:])
+    out = (count, gather_info, gather_vec)
+    if cacheable:
+        gather_info.flags.writeable = gather_vec.flags.writeable = False
+        if len(_LAYOUTS) >= 256:
+            _LAYOUTS.clear()
+        _LAYOUTS[mask_raw, n] = out
+    return out
+
+
 def _encode_times(keys: np.ndarray) -> tuple[bytes, bool]:
-    if keys.size == 0:
-        return b"", False
+    if keys.size <= 1:   # no gap (a steady-state message: one block)
+        return keys.astype(_I8).tobytes(), False
     gaps = np.diff(keys)
     wide = bool(gaps.size and gaps.max() >= 2**32)
     head = keys[:1].astype(_I8).tobytes()
@@ -221,7 +258,7 @@ def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
          float(msg.start), float(msg.sent_at), times,
          np.packbits(mask, axis=1, bitorder="little").tobytes(),
          np.ascontiguousarray(rows[mask], dtype=_F8).tobytes(),
-         time_keys(msg.cleared).astype(_I8).tobytes()],
+         time_keys(msg.cleared).astype(_I8).tobytes() if len(msg.cleared) else b""],
         use_bin_type=True,
     )
     flags = (KEYED if key is not None else 0) | (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) \
@@ -248,6 +285,12 @@ def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = Non
     A few microseconds for a valid frame of a few kilobytes: a transport may call it in
     its receive callback and drop garbage before it takes queue space.
     """
+    return _check_frame(data, key, max_bytes)[0]
+
+
+def _check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None,
+                 max_bytes: int) -> tuple[memoryview, int]:
+    """:func:`check_frame`; returns the body and the flags."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise _reject("malformed", f"message must be bytes, got {type(data).__name__}")
     size = len(data)
@@ -277,7 +320,7 @@ def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = Non
             raise _reject("unauthenticated", "message authentication failed (wrong key, network or run)")
     elif keyed:
         raise _reject("unauthenticated", "message is authenticated (keyed network) but this node has no key")
-    return view[_HEAD:end - _CRC]
+    return view[_HEAD:end - _CRC], flags
 
 
 def _int(v: object, name: str, lo: int, hi: int) -> int:
@@ -346,8 +389,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     integer's range, times, finiteness and magnitudes, symmetry (by construction: only the
     upper triangle travels) and positive semi-definiteness of every block.
     """
-    body = check_frame(data, key, max_bytes)
-    flags = memoryview(data)[3] if not isinstance(data, memoryview) else data[3]
+    body, flags = _check_frame(data, key, max_bytes)
     try:
         fields = msgpack.unpackb(body, raw=False, use_list=True, strict_map_key=True, max_bin_len=max_bytes,
                                  max_array_len=32, max_map_len=0, max_str_len=256)
@@ -389,24 +431,25 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     mask_raw = _bin(mask_b, "mask")
     if len(mask_raw) != m * row_bytes:
         raise _reject("malformed", f"field 'mask' has {len(mask_raw)} bytes, expected {m * row_bytes}")
-    mask = np.unpackbits(np.frombuffer(mask_raw, dtype=np.uint8).reshape(m, row_bytes), axis=1,
-                         count=width, bitorder="little").astype(bool)
+    count, gather_info, gather_vec = _layout(mask_raw, m, n)
     values_raw = _bin(values_b, "values")
-    count = int(mask.sum())
     if len(values_raw) != 8 * count:
         raise _reject("malformed", f"field 'values' has {len(values_raw)} bytes, expected {8 * count}")
     values = np.frombuffer(values_raw, dtype=_F8)
     vmax = float(np.abs(values).max()) if count else 0.0
     if not math.isfinite(vmax):
         raise _reject("malformed", "field 'values' contains NaN or inf")
-    rows = np.zeros((m, width))
-    rows[mask] = values
-    if m and np.abs(rows[:, :k]).max() > MAX_ABS_INFO:
-        raise _reject("malformed", f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
-    if m and np.abs(rows[:, k:]).max() > MAX_ABS_VEC:
-        raise _reject("malformed", f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
-    info = rows[:, :k][:, _unpack_index(n)].reshape(m, n, n)
-    vec = np.ascontiguousarray(rows[:, k:])
+    # every number in place: the values, then a zero for the entries the mask leaves out
+    padded = np.empty(count + 1)
+    padded[:count] = values
+    padded[count] = 0.0
+    info = padded[gather_info]
+    vec = padded[gather_vec]
+    if vmax > MAX_ABS_INFO:   # (MAX_ABS_INFO < MAX_ABS_VEC: below it both bounds hold)
+        if m and np.abs(info).max() > MAX_ABS_INFO:
+            raise _reject("malformed", f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
+        if m and np.abs(vec).max() > MAX_ABS_VEC:
+            raise _reject("malformed", f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
     times = keys / 1e9
     if not naive:
         bad = _not_psd(info)
