@@ -199,18 +199,20 @@ def _unpack_index(n: int) -> Array:
     return idx.reshape(-1)
 
 
-_LAYOUTS: dict[tuple[bytes, int], tuple[int, np.ndarray, np.ndarray]] = {}
+_LAYOUTS: dict[tuple[bytes, int], tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = {}
 #: Masks up to this many bytes have their layout cached (a node's messages repeat a few masks).
 _LAYOUT_CACHE_BYTES = 64
 
 
-def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarray]:
-    """Where the numbers of a ``mask`` go: ``(count, gather_info, gather_vec)``.
+def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Where the numbers of a ``mask`` go: ``(count, gather_info, gather_vec, diagonal)``.
 
     ``count`` is the number of set bits (of values carried); ``gather_info`` ``(m, n, n)`` and
     ``gather_vec`` ``(m, n)`` index the values followed by one zero (index ``count``), so that
-    ``padded[gather_info]`` is every block's full symmetric matrix. Small masks (a steady-state
-    message's) are cached by their bytes: a node's messages repeat the same few layouts.
+    ``padded[gather_info]`` is every block's full symmetric matrix. ``diagonal``: when no
+    off-diagonal information entry is carried (every block is diagonal), the indices of the
+    values on the diagonals, else None. Small masks (a steady-state message's) are cached by
+    their bytes: a node's messages repeat the same few layouts.
     """
     cacheable = len(mask_raw) <= _LAYOUT_CACHE_BYTES
     if cacheable:
@@ -227,9 +229,16 @@ def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarra
     slots[mask] = np.arange(count)
     gather_info = slots[:, :k][:, _unpack_index(n)].reshape(m, n, n)
     gather_vec = np.ascontiguousarray(slots[:, k:])
-    out = (count, gather_info, gather_vec)
+    iu = _triu(n)
+    off = (iu[0] != iu[1])
+    diagonal = None
+    if not mask[:, :k][:, off].any():
+        diagonal = slots[:, :k][:, ~off][mask[:, :k][:, ~off]]
+    out = (count, gather_info, gather_vec, diagonal)
     if cacheable:
         gather_info.flags.writeable = gather_vec.flags.writeable = False
+        if diagonal is not None:
+            diagonal.flags.writeable = False
         if len(_LAYOUTS) >= 256:
             _LAYOUTS.clear()
         _LAYOUTS[mask_raw, n] = out
@@ -359,6 +368,11 @@ def _decode_keys(buf: bytes, name: str, wide: bool) -> np.ndarray:
     gap = 8 if wide else 4
     if len(buf) < 8 or (len(buf) - 8) % gap:
         raise _reject("malformed", f"field {name!r} has {len(buf)} bytes, not a first time and whole gaps")
+    if len(buf) == 8:   # one time (a steady-state message): no gaps
+        key = int.from_bytes(buf, "little", signed=True)
+        if abs(key) > _MAX_KEY:
+            raise _reject("malformed", f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
+        return np.array([key], dtype=np.int64)
     first = np.frombuffer(buf, dtype=_I8, count=1)
     gaps = np.frombuffer(buf, dtype=_I8 if wide else _U4, offset=8).astype(np.int64)
     if gaps.size + 1 > MAX_BLOCKS:
@@ -412,7 +426,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     cleared_raw = _bin(cleared_b, "cleared")
     if len(cleared_raw) % 8:
         raise _reject("malformed", "field 'cleared' is not a whole number of int64")
-    cleared = np.frombuffer(cleared_raw, dtype=_I8).astype(np.int64)
+    cleared = np.frombuffer(cleared_raw, dtype=_I8).astype(np.int64) if cleared_raw else np.zeros(0, dtype=np.int64)
     if cleared.size > MAX_BLOCKS:
         raise _reject("malformed", f"more than {MAX_BLOCKS} cleared times")
     if cleared.size:
@@ -431,7 +445,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     mask_raw = _bin(mask_b, "mask")
     if len(mask_raw) != m * row_bytes:
         raise _reject("malformed", f"field 'mask' has {len(mask_raw)} bytes, expected {m * row_bytes}")
-    count, gather_info, gather_vec = _layout(mask_raw, m, n)
+    count, gather_info, gather_vec, diagonal = _layout(mask_raw, m, n)
     values_raw = _bin(values_b, "values")
     if len(values_raw) != 8 * count:
         raise _reject("malformed", f"field 'values' has {len(values_raw)} bytes, expected {8 * count}")
@@ -452,15 +466,20 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
             raise _reject("malformed", f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
     times = keys / 1e9
     if not naive:
-        bad = _not_psd(info)
+        bad = _not_psd(info, None if diagonal is None else values[diagonal])
         if bad is not None:
             raise _reject("malformed", f"information block at t={times[bad]} is not positive semi-definite")
     return InfoMessage(src, dst, epoch, seq, start, sent_at, times, info, vec, dst_epoch, ack, ack_mask,
-                       cleared / 1e9, full, naive)
+                       cleared / 1e9 if cleared.size else np.zeros(0), full, naive)
 
 
-def _not_psd(info: Array) -> int | None:
+def _not_psd(info: Array, diagonal: Array | None = None) -> int | None:
     """Index of the first block that is not positive semi-definite, or None.
+
+    ``diagonal``: when every block of ``info`` is diagonal, the values on the diagonals (a
+    message's, from its mask): if none is negative, every block passes the dominance test
+    below (its row sums are ``|d_i|`` and ``2 d_i - (1 + rtol) d_i >= 0``), which is then
+    decided without computing it.
 
     The test is on the diagonally scaled block ``S L S``, ``S = diag(1/sqrt(d_i + f))``
     with ``d_i`` the (non-negative part of the) diagonal and the floor
@@ -477,7 +496,7 @@ def _not_psd(info: Array) -> int | None:
     it (diagonal blocks, such as position measurements, are the common case).
     The decision is the same as testing every block.
     """
-    if not len(info):
+    if not len(info) or (diagonal is not None and not (diagonal < 0).any()):
         return None
     rows = np.abs(info).sum(axis=2)
     d = np.diagonal(info, axis1=1, axis2=2)
