@@ -139,6 +139,10 @@ def nonzero_blocks(info: Array, vec: Array) -> np.ndarray:
     return info.any(axis=(1, 2)) | vec.any(axis=1)
 
 
+_NO_KEYS = np.zeros(0, dtype=np.int64)
+_NO_KEYS.flags.writeable = False
+
+
 def _unique(keys: np.ndarray) -> np.ndarray:
     """The sorted distinct values of an int64 array (``np.unique`` without its Python-level
     overhead, which costs more than the work on a few dozen keys)."""
@@ -284,9 +288,11 @@ class ChannelFilter:
             held &= self.keys >= time_key(oldest) - 1
             absent = np.setdiff1d(self.keys[held], mkeys, assume_unique=True)
             ckeys = absent
-        else:
+        elif msg.cleared.size:
             ckeys = time_keys(msg.cleared)
             ckeys = ckeys[ckeys >= time_key(oldest) - 1]
+        else:
+            ckeys = _NO_KEYS
         # candidates: the message's blocks, then the times it clears (value zero)
         if ckeys.size:
             all_keys = np.concatenate([mkeys, ckeys])
@@ -302,13 +308,14 @@ class ChannelFilter:
         if not newer.any():
             return Plan([], self.keys, self.times, seqs_now, self.info, self.vec, np.zeros(0, dtype=np.int64),
                         outside)
-        idx = np.flatnonzero(newer)
+        # the candidates that are newer than what is stored (usually all of them: a slice, no copies)
+        idx = slice(None) if newer.all() else np.flatnonzero(newer)
         f = found[idx]
-        replaced = pos[idx][f]
-        new_info, new_vec = all_info[idx], all_vec[idx]   # copies
+        replaced = pos[idx][f] if f.any() else _NO_KEYS
+        new_info, new_vec, new_keys = all_info[idx], all_vec[idx], all_keys[idx]
         if replaced.size:
-            old_info = np.zeros((idx.size, self.n, self.n))
-            old_vec = np.zeros((idx.size, self.n))
+            old_info = np.zeros((new_keys.size, self.n, self.n))
+            old_vec = np.zeros((new_keys.size, self.n))
             old_info[f] = self.info[replaced]
             old_vec[f] = self.vec[replaced]
             d_info = new_info - old_info
@@ -316,17 +323,17 @@ class ChannelFilter:
         else:   # nothing stored is replaced: the differences are the blocks (x - 0 is x, bit for bit)
             d_info, d_vec = new_info, new_vec   # the plan's arrays below are concatenated copies
         moved = nonzero_blocks(d_info, d_vec)
-        deltas = [(float(all_times[idx[j]]), d_info[j], d_vec[j]) for j in np.flatnonzero(moved).tolist()]
+        new_times = all_times[idx]
+        deltas = [(float(new_times[j]), d_info[j], d_vec[j]) for j in np.flatnonzero(moved).tolist()]
         # the new arrays: stored entries not touched, plus the message's newer ones
-        new_keys = all_keys[idx]
-        seq_col = np.full(idx.size, msg.seq, dtype=np.int64)
+        seq_col = np.full(new_keys.size, msg.seq, dtype=np.int64)
         if replaced.size:
             keep = np.ones(self.keys.size, dtype=bool)
             keep[replaced] = False
             old = (self.keys[keep], self.times[keep], seqs_now[keep], self.info[keep], self.vec[keep])
         else:
             old = (self.keys, self.times, seqs_now, self.info, self.vec)
-        cols = [np.concatenate([o, n]) for o, n in zip(old, (new_keys, all_times[idx], seq_col, new_info, new_vec))]
+        cols = [np.concatenate([o, n]) for o, n in zip(old, (new_keys, new_times, seq_col, new_info, new_vec))]
         # new entries after every stored one (the newest state's block) are in order already
         # (candidates are sorted when nothing is cleared; keys are distinct)
         if ckeys.size or (old[0].size and new_keys[0] <= old[0][-1]):
