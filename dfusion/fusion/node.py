@@ -273,7 +273,8 @@ class _Blocks:
 
     def prune(self, cutoff: int) -> None:
         """Forget the entries whose key is below ``cutoff``."""
-        self._lo += int(self.keys.searchsorted(cutoff))
+        if self._lo < self._hi and self._keys[self._lo] < cutoff:
+            self._lo += int(self.keys.searchsorted(cutoff))
 
     def values_at(self, keys: np.ndarray) -> tuple[Array, Array]:
         """The information at ``keys`` (zero where nothing is stored)."""
@@ -798,6 +799,9 @@ class FusionNode:
         channel while the store keeps the old value, which is double counted later).
         """
         f = self.filter
+        latest = f.latest_time + f.time_tol
+        if all(d[0] <= latest for d in deltas):   # (the usual case: nothing ahead of the newest state)
+            return list(deltas), []
         horizon = f.latest_time + self.max_ahead + f.time_tol
         room = self.max_held - self._total.count_after(time_key(f.latest_time + f.time_tol))
         held = self._total.keys
@@ -824,6 +828,8 @@ class FusionNode:
         """
         f = self.filter
         latest = time_key(f.latest_time + f.time_tol)
+        if not plan.keys.size or plan.keys[-1] <= latest:   # (sorted keys: nothing ahead)
+            return []
         ahead = plan.keys[plan.keys > latest]
         if not ahead.size:
             return []
