@@ -422,9 +422,12 @@ def main() -> int:
                          f"{hop['sender']['median']:.0f}", f"{hop['transit']['median']:.0f}",
                          f"{hop['receiver']['median']:.0f}", f"{ratio:.2f}", "PASS" if ok else "FAIL",
                          f"{t_ratio:.2f}", f"{low['total']['median']:.0f}",
-                         f"{low['total']['median'] / raw['median']:.2f}"])
+                         f"{low['total']['median'] / raw['median']:.2f}",
+                         f"{low['sender']['median']:.0f}", f"{low['receiver']['median']:.0f}",
+                         f"{hop['total']['median'] / low['total']['median']:.2f}"])
     print(table(rows, ["pace", "window", "bytes", "raw 1-way us", "hop us", "hop p90", "sender", "transit",
-                       "receiver", "hop/raw", f"<= {GOAL:g}x", "transit/raw", "minimal hop us", "minimal/raw"]))
+                       "receiver", "hop/raw", f"<= {GOAL:g}x", "transit/raw", "minimal hop us", "minimal/raw",
+                       "min. sender", "min. receiver", "hop/minimal"]))
     print("sender = predict + update + message_to (FusionNode); transit = put to the receiver's subscriber callback\n"
           "(ZenohTransport); receiver = callback to estimate: wake-up, predict, decode + receive (FusionNode);\n"
           "minimal hop = about 10 numpy calls per side, no validation, channel join, window or filter (3b.):\n"
