@@ -25,8 +25,9 @@ processes use ``time.monotonic``, i.e. Linux's system-wide CLOCK_MONOTONIC):
    work (callback to estimate). Then, as the protocol does, ``b`` answers with its
    own message (its acknowledgement of what it fused; outside the timed hop) and
    ``a`` fuses it before its next measurement, so ``a`` sends only what ``b`` has
-   not acknowledged: the new block. Goal: within 3 times the raw one-way time at
-   the same payload.
+   not acknowledged: the new block. Goal (issue 15): within 1.5 times the minimal hop
+   (column ``hop/minimal``; the minimal hop's own sender and receiver work beside it);
+   the earlier goal, within 3 times the raw one-way time at the same payload, is kept.
 4. **End to end along a 5-node chain** (5 processes): a measurement at ``n1``
    until ``n5``'s estimate has it; each node forwards at once when a message
    changed its belief (event-driven relay), then acknowledges to the sender.
@@ -422,9 +423,12 @@ def main() -> int:
                          f"{hop['sender']['median']:.0f}", f"{hop['transit']['median']:.0f}",
                          f"{hop['receiver']['median']:.0f}", f"{ratio:.2f}", "PASS" if ok else "FAIL",
                          f"{t_ratio:.2f}", f"{low['total']['median']:.0f}",
-                         f"{low['total']['median'] / raw['median']:.2f}"])
+                         f"{low['total']['median'] / raw['median']:.2f}",
+                         f"{low['sender']['median']:.0f}", f"{low['receiver']['median']:.0f}",
+                         f"{hop['total']['median'] / low['total']['median']:.2f}"])
     print(table(rows, ["pace", "window", "bytes", "raw 1-way us", "hop us", "hop p90", "sender", "transit",
-                       "receiver", "hop/raw", f"<= {GOAL:g}x", "transit/raw", "minimal hop us", "minimal/raw"]))
+                       "receiver", "hop/raw", f"<= {GOAL:g}x", "transit/raw", "minimal hop us", "minimal/raw",
+                       "min. sender", "min. receiver", "hop/minimal"]))
     print("sender = predict + update + message_to (FusionNode); transit = put to the receiver's subscriber callback\n"
           "(ZenohTransport); receiver = callback to estimate: wake-up, predict, decode + receive (FusionNode);\n"
           "minimal hop = about 10 numpy calls per side, no validation, channel join, window or filter (3b.):\n"

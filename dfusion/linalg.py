@@ -43,7 +43,7 @@ def as_vector(x: ArrayLike, n: int | None = None, name: str = "vector") -> Array
         raise ShapeError(f"{name} must be a vector, got shape {np.shape(x)}")
     if n is not None and a.shape[0] != n:
         raise ShapeError(f"{name} must have length {n}, got {a.shape[0]}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise NonFiniteError(f"{name} contains NaN or inf")
     return a
 
@@ -60,7 +60,7 @@ def as_matrix(m: ArrayLike, shape: tuple[int, int] | None = None, name: str = "m
         raise ShapeError(f"{name} must be a matrix, got shape {a.shape}")
     if shape is not None and a.shape != shape:
         raise ShapeError(f"{name} must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise NonFiniteError(f"{name} contains NaN or inf")
     return a
 

@@ -40,6 +40,7 @@ import math
 import struct
 import zlib
 from dataclasses import dataclass, field
+from dataclasses import fields as _dataclass_fields
 from functools import lru_cache
 
 import msgpack
@@ -201,6 +202,20 @@ class InfoMessage:
         return self.times.shape[0]
 
 
+_MESSAGE_FIELDS = tuple(f.name for f in _dataclass_fields(InfoMessage))
+
+
+def _message(*values: object) -> InfoMessage:
+    """``InfoMessage(*values)`` for values already validated, without the frozen dataclass's
+    ``object.__setattr__`` per field (a few microseconds of a message's decoding). Falls back
+    to the constructor unless every field is given."""
+    if len(values) != len(_MESSAGE_FIELDS):
+        return InfoMessage(*values)
+    msg = object.__new__(InfoMessage)
+    msg.__dict__.update(zip(_MESSAGE_FIELDS, values))
+    return msg
+
+
 @lru_cache(maxsize=16)
 def _triu(n: int) -> tuple[Array, Array]:
     return np.triu_indices(n)
@@ -216,9 +231,55 @@ def _unpack_index(n: int) -> Array:
     return idx.reshape(-1)
 
 
+_LAYOUTS: dict[tuple[bytes, int], tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = {}
+#: Masks up to this many bytes have their layout cached (a node's messages repeat a few masks).
+_LAYOUT_CACHE_BYTES = 64
+
+
+def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Where the numbers of a ``mask`` go: ``(count, gather_info, gather_vec, diagonal)``.
+
+    ``count`` is the number of set bits (of values carried); ``gather_info`` ``(m, n, n)`` and
+    ``gather_vec`` ``(m, n)`` index the values followed by one zero (index ``count``), so that
+    ``padded[gather_info]`` is every block's full symmetric matrix. ``diagonal``: when no
+    off-diagonal information entry is carried (every block is diagonal), the indices of the
+    values on the diagonals, else None. Small masks (a steady-state message's) are cached by
+    their bytes: a node's messages repeat the same few layouts.
+    """
+    cacheable = len(mask_raw) <= _LAYOUT_CACHE_BYTES
+    if cacheable:
+        hit = _LAYOUTS.get((mask_raw, n))
+        if hit is not None:
+            return hit
+    k = n * (n + 1) // 2
+    width = k + n
+    row_bytes = (width + 7) // 8
+    mask = np.unpackbits(np.frombuffer(mask_raw, dtype=np.uint8).reshape(m, row_bytes), axis=1,
+                         count=width, bitorder="little").astype(bool)
+    count = int(mask.sum())
+    slots = np.full((m, width), count, dtype=np.intp)
+    slots[mask] = np.arange(count)
+    gather_info = slots[:, :k][:, _unpack_index(n)].reshape(m, n, n)
+    gather_vec = np.ascontiguousarray(slots[:, k:])
+    iu = _triu(n)
+    off = (iu[0] != iu[1])
+    diagonal = None
+    if not mask[:, :k][:, off].any():
+        diagonal = slots[:, :k][:, ~off][mask[:, :k][:, ~off]]
+    out = (count, gather_info, gather_vec, diagonal)
+    if cacheable:
+        gather_info.flags.writeable = gather_vec.flags.writeable = False
+        if diagonal is not None:
+            diagonal.flags.writeable = False
+        if len(_LAYOUTS) >= 256:
+            _LAYOUTS.clear()
+        _LAYOUTS[mask_raw, n] = out
+    return out
+
+
 def _encode_times(keys: np.ndarray) -> tuple[bytes, bool]:
-    if keys.size == 0:
-        return b"", False
+    if keys.size <= 1:   # no gap (a steady-state message: one block)
+        return keys.astype(_I8).tobytes(), False
     gaps = np.diff(keys)
     wide = bool(gaps.size and gaps.max() >= 2**32)
     head = keys[:1].astype(_I8).tobytes()
@@ -238,7 +299,8 @@ def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
          float(msg.start), float(msg.sent_at), times,
          np.packbits(mask, axis=1, bitorder="little").tobytes(),
          np.ascontiguousarray(rows[mask], dtype=_F8).tobytes(),
-         time_keys(msg.cleared).astype(_I8).tobytes(), int(msg.tree_term), msg.tree_root, msg.parent],
+         time_keys(msg.cleared).astype(_I8).tobytes() if len(msg.cleared) else b"",
+         int(msg.tree_term), msg.tree_root, msg.parent],
         use_bin_type=True,
     )
     flags = (KEYED if key is not None else 0) | (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) \
@@ -265,6 +327,12 @@ def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = Non
     A few microseconds for a valid frame of a few kilobytes: a transport may call it in
     its receive callback and drop garbage before it takes queue space.
     """
+    return _check_frame(data, key, max_bytes)[0]
+
+
+def _check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None,
+                 max_bytes: int) -> tuple[memoryview, int]:
+    """:func:`check_frame`; returns the body and the flags."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise _reject("malformed", f"message must be bytes, got {type(data).__name__}")
     size = len(data)
@@ -294,7 +362,7 @@ def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = Non
             raise _reject("unauthenticated", "message authentication failed (wrong key, network or run)")
     elif keyed:
         raise _reject("unauthenticated", "message is authenticated (keyed network) but this node has no key")
-    return view[_HEAD:end - _CRC]
+    return view[_HEAD:end - _CRC], flags
 
 
 def _int(v: object, name: str, lo: int, hi: int) -> int:
@@ -353,6 +421,11 @@ def _decode_keys(buf: bytes, name: str, wide: bool) -> np.ndarray:
     gap = 8 if wide else 4
     if len(buf) < 8 or (len(buf) - 8) % gap:
         raise _reject("malformed", f"field {name!r} has {len(buf)} bytes, not a first time and whole gaps")
+    if len(buf) == 8:   # one time (a steady-state message): no gaps
+        key = int.from_bytes(buf, "little", signed=True)
+        if abs(key) > _MAX_KEY:
+            raise _reject("malformed", f"a time exceeds {MAX_ABS_TIME:g} s in magnitude")
+        return np.array([key], dtype=np.int64)
     first = np.frombuffer(buf, dtype=_I8, count=1)
     gaps = np.frombuffer(buf, dtype=_I8 if wide else _U4, offset=8).astype(np.int64)
     if gaps.size + 1 > MAX_BLOCKS:
@@ -383,8 +456,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     integer's range, times, finiteness and magnitudes, symmetry (by construction: only the
     upper triangle travels) and positive semi-definiteness of every block.
     """
-    body = check_frame(data, key, max_bytes)
-    flags = memoryview(data)[3] if not isinstance(data, memoryview) else data[3]
+    body, flags = _check_frame(data, key, max_bytes)
     try:
         fields = msgpack.unpackb(body, raw=False, use_list=True, strict_map_key=True, max_bin_len=max_bytes,
                                  max_array_len=32, max_map_len=0, max_str_len=256)
@@ -411,7 +483,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     cleared_raw = _bin(cleared_b, "cleared")
     if len(cleared_raw) % 8:
         raise _reject("malformed", "field 'cleared' is not a whole number of int64")
-    cleared = np.frombuffer(cleared_raw, dtype=_I8).astype(np.int64)
+    cleared = np.frombuffer(cleared_raw, dtype=_I8).astype(np.int64) if cleared_raw else np.zeros(0, dtype=np.int64)
     if cleared.size > MAX_BLOCKS:
         raise _reject("malformed", f"more than {MAX_BLOCKS} cleared times")
     if cleared.size:
@@ -431,35 +503,42 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     mask_raw = _bin(mask_b, "mask")
     if len(mask_raw) != m * row_bytes:
         raise _reject("malformed", f"field 'mask' has {len(mask_raw)} bytes, expected {m * row_bytes}")
-    mask = np.unpackbits(np.frombuffer(mask_raw, dtype=np.uint8).reshape(m, row_bytes), axis=1,
-                         count=width, bitorder="little").astype(bool)
+    count, gather_info, gather_vec, diagonal = _layout(mask_raw, m, n)
     values_raw = _bin(values_b, "values")
-    count = int(mask.sum())
     if len(values_raw) != 8 * count:
         raise _reject("malformed", f"field 'values' has {len(values_raw)} bytes, expected {8 * count}")
     values = np.frombuffer(values_raw, dtype=_F8)
     vmax = float(np.abs(values).max()) if count else 0.0
     if not math.isfinite(vmax):
         raise _reject("malformed", "field 'values' contains NaN or inf")
-    rows = np.zeros((m, width))
-    rows[mask] = values
-    if m and np.abs(rows[:, :k]).max() > MAX_ABS_INFO:
-        raise _reject("malformed", f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
-    if m and np.abs(rows[:, k:]).max() > MAX_ABS_VEC:
-        raise _reject("malformed", f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
-    info = rows[:, :k][:, _unpack_index(n)].reshape(m, n, n)
-    vec = np.ascontiguousarray(rows[:, k:])
+    # every number in place: the values, then a zero for the entries the mask leaves out
+    padded = np.empty(count + 1)
+    padded[:count] = values
+    padded[count] = 0.0
+    info = padded[gather_info]
+    vec = padded[gather_vec]
+    if vmax > MAX_ABS_INFO:   # (MAX_ABS_INFO < MAX_ABS_VEC: below it both bounds hold)
+        if m and np.abs(info).max() > MAX_ABS_INFO:
+            raise _reject("malformed", f"an information entry exceeds {MAX_ABS_INFO:g} in magnitude")
+        if m and np.abs(vec).max() > MAX_ABS_VEC:
+            raise _reject("malformed", f"an information-vector entry exceeds {MAX_ABS_VEC:g} in magnitude")
     times = keys / 1e9
     if not naive:
-        bad = _not_psd(info)
+        bad = _not_psd(info, None if diagonal is None else values[diagonal])
         if bad is not None:
             raise _reject("malformed", f"information block at t={times[bad]} is not positive semi-definite")
-    return InfoMessage(src, dst, epoch, seq, start, sent_at, times, info, vec, dst_epoch, ack, ack_mask,
-                       cleared / 1e9, full, naive, tree_term, tree_root, parent, bool(flags & BEACON))
+    return _message(src, dst, epoch, seq, start, sent_at, times, info, vec, dst_epoch, ack, ack_mask,
+                    cleared / 1e9 if cleared.size else np.zeros(0), full, naive, tree_term, tree_root, parent,
+                    bool(flags & BEACON))
 
 
-def _not_psd(info: Array) -> int | None:
+def _not_psd(info: Array, diagonal: Array | None = None) -> int | None:
     """Index of the first block that is not positive semi-definite, or None.
+
+    ``diagonal``: when every block of ``info`` is diagonal, the values on the diagonals (a
+    message's, from its mask): if none is negative, every block passes the dominance test
+    below (its row sums are ``|d_i|`` and ``2 d_i - (1 + rtol) d_i >= 0``), which is then
+    decided without computing it.
 
     The test is on the diagonally scaled block ``S L S``, ``S = diag(1/sqrt(d_i + f))``
     with ``d_i`` the (non-negative part of the) diagonal and the floor
@@ -476,7 +555,7 @@ def _not_psd(info: Array) -> int | None:
     it (diagonal blocks, such as position measurements, are the common case).
     The decision is the same as testing every block.
     """
-    if not len(info):
+    if not len(info) or (diagonal is not None and not (diagonal < 0).any()):
         return None
     rows = np.abs(info).sum(axis=2)
     d = np.diagonal(info, axis1=1, axis2=2)

@@ -919,6 +919,36 @@ def test_psd_shortcut_decides_like_the_full_test() -> None:
     assert decisions == {True, False}
 
 
+def test_decode_of_diagonal_blocks_decides_like_the_full_test() -> None:
+    """decode accepts blocks whose mask carries only diagonal information entries without the
+    dominance test when no diagonal value is negative: it must decide exactly like the scaled
+    eigenvalue test on every block (negative, -0.0, subnormal and zero diagonals; repeated
+    masks, whose layouts decode caches), and decode the same numbers as were sent."""
+    rng = np.random.default_rng(11)
+    decisions = set()
+    choices = [0.0, -0.0, 4.0, 1e12, 5e-324, -5e-324, -1e-7, -1e-5, 1e-12, 3.5]
+    for _ in range(2000):
+        n, m = int(rng.integers(1, 6)), int(rng.integers(1, 4))
+        info = np.zeros((m, n, n))
+        for b in range(m):
+            info[b][np.diag_indices(n)] = rng.choice(choices, n)
+        vec = rng.choice([0.0, 1.0, -2.0], (m, n))
+        times = 1.0 + 0.1 * np.arange(m)
+        msg = InfoMessage("a", "b", 1, 0, 1.0, 1.0, times, info, vec, full=False)
+        expected = _not_psd_reference(info)
+        try:
+            got = decode(encode(msg))
+        except MessageError as exc:
+            assert expected is not None and "positive semi-definite" in str(exc)
+            decisions.add(False)
+            continue
+        assert expected is None
+        decisions.add(True)
+        # (a zero, -0.0 included, is not carried and arrives as +0.0)
+        assert got.info.tobytes() == (info + 0.0).tobytes() and got.vec.tobytes() == (vec + 0.0).tobytes()
+    assert decisions == {True, False}
+
+
 def _scaled_min_eig(L: np.ndarray) -> float:
     d = np.maximum(np.diag(L), 0.0)
     f = PSD_RTOL * np.abs(L).max() or 1.0

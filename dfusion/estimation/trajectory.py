@@ -260,20 +260,26 @@ class TrajectoryInformation:
             return _Filtered(mp, Pp, mp, Pp)
         n = self.n
         M = Pp @ Lk
-        M[self._diag] += 1.0   # I + P^- L
+        M.reshape(-1)[::n + 1] += 1.0   # I + P^- L (the diagonal of the new, contiguous M)
         rhs = np.empty((n, n + 1))
         rhs[:, :n] = Pp
         rhs[:, n] = mp + Pp @ yk
-        try:
-            with np.errstate(invalid="ignore", divide="ignore"):
+        # one error-state context for the solve and the factorization (each costs a few us)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            try:
                 X = _solve(M, rhs)
-        except np.linalg.LinAlgError:
-            X = np.full_like(rhs, np.nan)
-        if not np.isfinite(X).all():
-            raise NotPositiveDefiniteError(f"the information of window state {k} is singular")
-        P = symmetrize(X[:, :n])
-        # the information must stay positive definite
-        _chol(P, f"the covariance of window state {k}")
+            except np.linalg.LinAlgError:
+                X = np.full_like(rhs, np.nan)
+            if not np.isfinite(X).all():
+                raise NotPositiveDefiniteError(f"the information of window state {k} is singular")
+            P = symmetrize(X[:, :n])
+            # the information must stay positive definite
+            try:
+                C = _cholesky(P)
+            except np.linalg.LinAlgError:
+                C = None
+        if C is None or not np.isfinite(C).all():
+            raise NotPositiveDefiniteError(f"the covariance of window state {k} is not positive definite")
         return _Filtered(X[:, n].copy(), P, mp, Pp)
 
     def latest(self) -> tuple[Array, Array]:

@@ -139,6 +139,19 @@ def nonzero_blocks(info: Array, vec: Array) -> np.ndarray:
     return info.any(axis=(1, 2)) | vec.any(axis=1)
 
 
+_NO_KEYS = np.zeros(0, dtype=np.int64)
+_NO_KEYS.flags.writeable = False
+
+
+def _unique(keys: np.ndarray) -> np.ndarray:
+    """The sorted distinct values of an int64 array (``np.unique`` without its Python-level
+    overhead, which costs more than the work on a few dozen keys)."""
+    keys = np.sort(keys)
+    if keys.size > 1:
+        keys = keys[np.concatenate(([True], keys[1:] != keys[:-1]))]
+    return keys
+
+
 def find_keys(stored: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Join ``keys`` (any order) against the increasing array ``stored``.
 
@@ -275,14 +288,19 @@ class ChannelFilter:
             held &= self.keys >= time_key(oldest) - 1
             absent = np.setdiff1d(self.keys[held], mkeys, assume_unique=True)
             ckeys = absent
-        else:
+        elif msg.cleared.size:
             ckeys = time_keys(msg.cleared)
             ckeys = ckeys[ckeys >= time_key(oldest) - 1]
+        else:
+            ckeys = _NO_KEYS
         # candidates: the message's blocks, then the times it clears (value zero)
-        all_keys = np.concatenate([mkeys, ckeys])
-        all_info = np.concatenate([info, np.zeros((ckeys.size, self.n, self.n))])
-        all_vec = np.concatenate([vec, np.zeros((ckeys.size, self.n))])
-        all_times = np.concatenate([times, ckeys / 1e9]) if ckeys.size else times
+        if ckeys.size:
+            all_keys = np.concatenate([mkeys, ckeys])
+            all_info = np.concatenate([info, np.zeros((ckeys.size, self.n, self.n))])
+            all_vec = np.concatenate([vec, np.zeros((ckeys.size, self.n))])
+            all_times = np.concatenate([times, ckeys / 1e9])
+        else:   # the usual partial message: no concatenation (the candidates are sorted then)
+            all_keys, all_info, all_vec, all_times = mkeys, info, vec, times
         found, pos = self.lookup(all_keys)
         newer = ~found
         if self.keys.size:
@@ -290,32 +308,38 @@ class ChannelFilter:
         if not newer.any():
             return Plan([], self.keys, self.times, seqs_now, self.info, self.vec, np.zeros(0, dtype=np.int64),
                         outside)
-        idx = np.flatnonzero(newer)
-        old_info = np.zeros((idx.size, self.n, self.n))
-        old_vec = np.zeros((idx.size, self.n))
+        # the candidates that are newer than what is stored (usually all of them: a slice, no copies)
+        idx = slice(None) if newer.all() else np.flatnonzero(newer)
         f = found[idx]
-        old_info[f] = self.info[pos[idx][f]]
-        old_vec[f] = self.vec[pos[idx][f]]
-        d_info = all_info[idx] - old_info
-        d_vec = all_vec[idx] - old_vec
+        replaced = pos[idx][f] if f.any() else _NO_KEYS
+        new_info, new_vec, new_keys = all_info[idx], all_vec[idx], all_keys[idx]
+        if replaced.size:
+            old_info = np.zeros((new_keys.size, self.n, self.n))
+            old_vec = np.zeros((new_keys.size, self.n))
+            old_info[f] = self.info[replaced]
+            old_vec[f] = self.vec[replaced]
+            d_info = new_info - old_info
+            d_vec = new_vec - old_vec
+        else:   # nothing stored is replaced: the differences are the blocks (x - 0 is x, bit for bit)
+            d_info, d_vec = new_info, new_vec   # the plan's arrays below are concatenated copies
         moved = nonzero_blocks(d_info, d_vec)
-        deltas = [(float(all_times[idx[j]]), d_info[j], d_vec[j]) for j in np.flatnonzero(moved).tolist()]
+        new_times = all_times[idx]
+        deltas = [(float(new_times[j]), d_info[j], d_vec[j]) for j in np.flatnonzero(moved).tolist()]
         # the new arrays: stored entries not touched, plus the message's newer ones
-        keep = np.ones(self.keys.size, dtype=bool)
-        keep[pos[idx][f]] = False
-        keys = np.concatenate([self.keys[keep], all_keys[idx]])
-        order = np.argsort(keys, kind="stable")
-        seq_col = np.full(idx.size, msg.seq, dtype=np.int64)
-        return Plan(
-            deltas,
-            keys[order],
-            np.concatenate([self.times[keep], all_times[idx]])[order],
-            np.concatenate([seqs_now[keep], seq_col])[order],
-            np.concatenate([self.info[keep], all_info[idx]])[order],
-            np.concatenate([self.vec[keep], all_vec[idx]])[order],
-            all_keys[idx][moved],
-            outside,
-        )
+        seq_col = np.full(new_keys.size, msg.seq, dtype=np.int64)
+        if replaced.size:
+            keep = np.ones(self.keys.size, dtype=bool)
+            keep[replaced] = False
+            old = (self.keys[keep], self.times[keep], seqs_now[keep], self.info[keep], self.vec[keep])
+        else:
+            old = (self.keys, self.times, seqs_now, self.info, self.vec)
+        cols = [np.concatenate([o, n]) for o, n in zip(old, (new_keys, new_times, seq_col, new_info, new_vec))]
+        # new entries after every stored one (the newest state's block) are in order already
+        # (candidates are sorted when nothing is cleared; keys are distinct)
+        if ckeys.size or (old[0].size and new_keys[0] <= old[0][-1]):
+            order = np.argsort(cols[0], kind="stable")
+            cols = [c[order] for c in cols]
+        return Plan(deltas, *cols, new_keys[moved], outside)
 
     def commit(self, msg: InfoMessage, plan: Plan | None, complete: bool = True) -> None:
         """Store what :meth:`plan` decided (``None``: only note that ``msg`` arrived).
@@ -337,10 +361,11 @@ class ChannelFilter:
     def prune(self, oldest_key: int) -> None:
         """Forget entries of states older than the window (already in the base)."""
         if self.keys.size and self.keys[0] < oldest_key:
-            keep = self.keys >= oldest_key
-            self.keys, self.times, self.seqs = self.keys[keep], self.times[keep], self.seqs[keep]
-            self.info, self.vec = self.info[keep], self.vec[keep]
-        if self.dirty:
+            # the keys are sorted: the entries kept are a tail (views; the arrays are only ever replaced)
+            i = int(self.keys.searchsorted(oldest_key))
+            self.keys, self.times, self.seqs = self.keys[i:], self.times[i:], self.seqs[i:]
+            self.info, self.vec = self.info[i:], self.vec[i:]
+        if self.dirty and min(self.dirty) < oldest_key:
             self.dirty = {k for k in self.dirty if k >= oldest_key}
 
     # ------------------------------------------------------------------ outbound
@@ -394,18 +419,22 @@ class ChannelFilter:
         acknowledgements have stalled (the newest acknowledged message is more than
         :data:`ACK_LAG` messages old: a link outage, say), every time carried since the
         newest acknowledged message (sorted keys from ``oldest_key`` on)."""
-        parts = [np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty)), self._resend]
+        parts = [self._resend]
         if self.acked < 0 or self.seq_out - 1 - self.acked > ACK_LAG:
             parts += [keys for keys, _ in self._sent.values()]
-        keys = np.unique(np.concatenate(parts))
+        parts = [p for p in parts if p.size]
+        if not parts:   # the steady state: what changed since the last message only
+            keys = sorted(k for k in self.dirty if k >= oldest_key)
+            return np.array(keys, dtype=np.int64) if keys else np.zeros(0, dtype=np.int64)
+        keys = _unique(np.concatenate(parts + [np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty))]))
         return keys[keys >= oldest_key]
 
     def record_sent(self, seq: int, keys: np.ndarray, full: bool) -> None:
         """Remember the times message ``seq`` may have changed at ``remote`` (what it carried or
         cleared, and the times that changed since the previous message); reset the dirty and
         resend sets."""
-        if self.dirty:
-            keys = np.union1d(keys, np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty)))
+        if self.dirty and not self.dirty.issubset(keys.tolist()):
+            keys = _unique(np.concatenate([keys, np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty))]))
         if full:
             self._sent.clear()
             self.need_full = False

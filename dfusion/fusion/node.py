@@ -200,6 +200,14 @@ class _Blocks:
         self._vec = np.zeros((cap,) + vec.shape[1:])
         self._keys[:size], self._times[:size], self._info[:size], self._vec[:size] = keys, times, info, vec
         self._lo, self._hi = 0, size
+        self._shared = False   # a mark() holds these buffers: copy them before writing into them
+
+    def _writable(self) -> None:
+        """Copy the buffers if a :meth:`mark` still refers to them (copy on write)."""
+        if self._shared:
+            self._keys, self._times = self._keys.copy(), self._times.copy()
+            self._info, self._vec = self._info.copy(), self._vec.copy()
+            self._shared = False
 
     @property
     def keys(self) -> np.ndarray:
@@ -233,9 +241,12 @@ class _Blocks:
         i = int(keys.searchsorted(key))
         j = self._lo + i
         if i < keys.size and keys[i] == key:
+            self._writable()
             self._info[j] += info
             self._vec[j] += vec
         elif j == self._hi and j < self._keys.size:
+            # a new newest entry goes into the spare room after the entries: a mark's entries
+            # (up to its own end) are not written, so nothing needs copying
             self._keys[j], self._times[j], self._info[j], self._vec[j] = key, t, info, vec
             self._hi += 1
         else:
@@ -254,6 +265,7 @@ class _Blocks:
         vec = np.array([e[2] for e in entries], dtype=float)
         found, pos = find_keys(self.keys, keys)
         if found.any():
+            self._writable()
             self._info[self._lo + pos[found]] += info[found]
             self._vec[self._lo + pos[found]] += vec[found]
         new = ~found
@@ -273,6 +285,7 @@ class _Blocks:
         found, pos = find_keys(self.keys, keys)
         if not found.any():
             return np.zeros(0, dtype=np.int64)
+        self._writable()
         rows = self._lo + pos[found]
         info = np.array([e[1] for e in entries], dtype=float)[found]
         vec = np.array([e[2] for e in entries], dtype=float)[found]
@@ -286,18 +299,22 @@ class _Blocks:
 
     def prune(self, cutoff: int) -> None:
         """Forget the entries whose key is below ``cutoff``."""
-        self._lo += int(self.keys.searchsorted(cutoff))
+        if self._lo < self._hi and self._keys[self._lo] < cutoff:
+            self._lo += int(self.keys.searchsorted(cutoff))
 
     def values_at(self, keys: np.ndarray) -> tuple[Array, Array]:
         """The information at ``keys`` (zero where nothing is stored)."""
         n = self._info.shape[1]
-        info = np.zeros((keys.size, n, n))
-        vec = np.zeros((keys.size, n))
         if len(self) and keys.size:
             found, pos = find_keys(self.keys, keys)
+            if found.all():   # (the usual case: a message's times are stored times)
+                return self.info[pos], self.vec[pos]
+            info = np.zeros((keys.size, n, n))
+            vec = np.zeros((keys.size, n))
             info[found] = self.info[pos[found]]
             vec[found] = self.vec[pos[found]]
-        return info, vec
+            return info, vec
+        return np.zeros((keys.size, n, n)), np.zeros((keys.size, n))
 
     def count_after(self, key: int) -> int:
         """Entries with a key above ``key``."""
@@ -309,6 +326,21 @@ class _Blocks:
 
     def restore(self, cp: tuple[np.ndarray, Array, Array, Array]) -> None:
         self._set(*cp)
+
+    def mark(self) -> tuple:
+        """A checkpoint without copies (for :meth:`rollback`): the buffers are copied when
+        they are next written instead, which a receive that leaves the store alone never does."""
+        self._shared = True
+        return self._keys, self._times, self._info, self._vec, self._lo, self._hi
+
+    def rollback(self, mark: tuple) -> None:
+        """Go back to a :meth:`mark`."""
+        self._keys, self._times, self._info, self._vec, self._lo, self._hi = mark
+        self._shared = True
+
+    def release(self) -> None:
+        """The :meth:`mark` is no longer needed (the transaction succeeded): write in place again."""
+        self._shared = False
 
     def between(self, lo: float, hi: float) -> list[tuple[float, Array, Array]]:
         """Entries with ``lo < t <= hi``, oldest first (copies)."""
@@ -724,12 +756,18 @@ class FusionNode:
         infos, vecs = self._total.values_at(keys)
         if self.is_quarantined(ch.remote):
             return infos, vecs
-        m_info, m_vec = ch.values_at(keys)
-        held = m_info.any(axis=(1, 2)) | m_vec.any(axis=1)
+        if not len(ch) or not keys.size:
+            return infos, vecs
+        found, pos = ch.lookup(keys)
+        if not found.any():   # the neighbour sent nothing for these times (a new block)
+            return infos, vecs
+        held = np.zeros(keys.size, dtype=bool)
+        held[found] = nonzero_blocks(ch.info[pos[found]], ch.vec[pos[found]])
         if held.any():
+            m_info, m_vec = ch.info[pos[held]], ch.vec[pos[held]]
             scale = np.abs(infos[held]).max(axis=(1, 2))
-            infos[held] = _clean_difference(infos[held] - m_info[held], scale)
-            vecs[held] -= m_vec[held]
+            infos[held] = _clean_difference(infos[held] - m_info, scale)
+            vecs[held] -= m_vec
         return infos, vecs
 
     def message_to(self, neighbor: str, sent_at: float | None = None) -> bytes:
@@ -759,8 +797,10 @@ class FusionNode:
             infos, vecs = self._values_for(ch, keys)
         times = keys / 1e9
         keep = nonzero_blocks(infos, vecs)
-        cleared = times[~keep] if not full else np.zeros(0)
-        if not keep.all():
+        if keep.all():
+            cleared = np.zeros(0)
+        else:
+            cleared = times[~keep] if not full else np.zeros(0)
             times, infos, vecs = times[keep], infos[keep], vecs[keep]
         msg = InfoMessage(
             src=self.name,
@@ -884,6 +924,9 @@ class FusionNode:
         channel while the store keeps the old value, which is double counted later).
         """
         f = self.filter
+        latest = f.latest_time + f.time_tol
+        if all(d[0] <= latest for d in deltas):   # (the usual case: nothing ahead of the newest state)
+            return list(deltas), []
         horizon = f.latest_time + self.max_ahead + f.time_tol
         room = self.max_held - self._total.count_after(time_key(f.latest_time + f.time_tol))
         held = self._total.keys
@@ -910,6 +953,8 @@ class FusionNode:
         """
         f = self.filter
         latest = time_key(f.latest_time + f.time_tol)
+        if not plan.keys.size or plan.keys[-1] <= latest:   # (sorted keys: nothing ahead)
+            return []
         ahead = plan.keys[plan.keys > latest]
         if not ahead.size:
             return []
@@ -940,9 +985,9 @@ class FusionNode:
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
         cp_filter = f.checkpoint()
-        cp_total = self._total.checkpoint()
-        cp_own = self._own.checkpoint()
-        cp_held = self._held.checkpoint()
+        cp_total = self._total.mark()
+        cp_own = self._own.mark()
+        cp_held = self._held.mark()
         cp_tree_held = dict(self._tree_held)
         cp_channels = {j: c.state() for j, c in self.channels.items()}
         pruned_at = self._pruned_at
@@ -985,9 +1030,9 @@ class FusionNode:
             self._prune()   # an inserted state may have pushed the oldest one out
         except BaseException as exc:
             f.restore(cp_filter)
-            self._total.restore(cp_total)
-            self._own.restore(cp_own)
-            self._held.restore(cp_held)
+            self._total.rollback(cp_total)
+            self._own.rollback(cp_own)
+            self._held.rollback(cp_held)
             self._tree_held = cp_tree_held
             for j, c in self.channels.items():
                 c.restore(cp_channels[j])
@@ -999,6 +1044,9 @@ class FusionNode:
             if isinstance(exc, Exception):
                 raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
             raise
+        self._total.release()
+        self._own.release()
+        self._held.release()
         self.stats.messages_received += 1
         if not too_far and not duplicate:
             self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
