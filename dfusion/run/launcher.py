@@ -218,6 +218,8 @@ class Launcher:
         self.host_endpoints = dict(zip(self.hosts, free_tcp_endpoints(len(self.hosts), scheme=scheme)))
         #: node name -> the endpoint of its host's session
         self.endpoints = {n: self.host_endpoints[h] for n, h in sorted(self.host_of.items())}
+        #: where the launcher's monitor listens (in run.json): a tool may connect to it directly
+        self.monitor_endpoint = free_tcp_endpoints(1, scheme=scheme)[0]
         self.procs = {h: _Proc(h, self._command(h), list(nodes)) for h, nodes in self.hosts.items()}
         self.world = None
         self.monitor: Monitor | None = None
@@ -548,6 +550,7 @@ class Launcher:
         (self.run_dir / "run.json").write_text(json.dumps({
             "run_id": self.run_id, "network": self.network, "scenario": str(Path(self.opts.scenario).resolve()),
             "launcher_pid": os.getpid(), "speed": self.opts.speed, "endpoints": self.endpoints,
+            "monitor_endpoint": self.monitor_endpoint,
             "hosts": self.hosts, "tls": self.tls is not None, "links_emulated": self.opts.emulate_links,
             "plugins": [_absolute_plugin(x) for x in self.opts.plugins],
         }, indent=1))
@@ -573,7 +576,8 @@ class Launcher:
         try:
             self._prepare_run_dir()
             self.monitor = Monitor(self.sc, self.network,
-                                   ZenohConfig(connect=tuple(self.host_endpoints.values()), tls=self.tls),
+                                   ZenohConfig(listen=(self.monitor_endpoint,),
+                                               connect=tuple(self.host_endpoints.values()), tls=self.tls),
                                    network_key=self.key, run=self.run_id)
             if self.opts.foxglove is not None:
                 from dfusion.viz.foxglove import LiveView
