@@ -141,6 +141,12 @@ class RejectionLog:
         if now - self._last >= self.interval:
             self.flush(now)
 
+    def tick(self) -> None:
+        """Write the pending summary if ``interval`` seconds have passed since the last line (call it
+        now and then: after a flood ends no further rejection comes to trigger it)."""
+        if self._pending and self._last is not None and time.monotonic() - self._last >= self.interval:
+            self.flush()
+
     def flush(self, now: float | None = None) -> None:
         if self._pending:
             total = sum(self._pending.values())

@@ -162,6 +162,7 @@ class Monitor:
                 log.info("monitor: node %s is back", name)
             rec.alive = up
         count = 0
+        self._rejection_log.tick()
         if self._dropped:
             dropped, self._dropped = self._dropped, 0
             self._reject("queue-full", f"{dropped} publications dropped: more than {MAX_PENDING} waiting", dropped)
@@ -224,6 +225,7 @@ class Monitor:
         return {n for n, r in self.records.items() if r.alive}
 
     def close(self) -> None:
+        self._rejection_log.flush()
         close_session(self._session)
 
     def __enter__(self) -> Monitor:

@@ -277,6 +277,8 @@ class NodeProcess:
     def stopped(self) -> None:
         """The loop was stopped before its end (a signal, the launcher gone): say so to the monitor."""
         log.info("%s: stopping: %s", self.name, self.stop_reason)
+        self._count_rejected_on_arrival()
+        self.node.flush_log()
         if self.links is not None and self.links.pending():
             log.info("%s: %d delayed messages not sent", self.name, self.links.discard())
         self._publish("stopped", -1)
@@ -444,6 +446,7 @@ class NodeProcess:
                             self.round_timeout)
         self.receive()
         status = self._publish("final", len(self.times) - 1)
+        self.node.flush_log()
         if self.result is not None:
             self.result.parent.mkdir(parents=True, exist_ok=True)
             tmp = self.result.with_suffix(".tmp")
@@ -455,6 +458,7 @@ class NodeProcess:
     def stats(self) -> dict[str, int]:
         """The node's counters (messages, measurements, CPU, link emulation) as the monitor records them."""
         self._count_rejected_on_arrival()
+        self.node.rejection_log.tick()
         s = self.node.stats
         tot = self.tr.node_totals(self.name) if self.tr is not None else None
         out = {

@@ -24,6 +24,7 @@ import json
 import logging
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -369,7 +370,10 @@ def test_a_flood_of_garbage_costs_a_node_little(tmp_path):
     a = m["run"]["nodes"]["a"]
     during = [s for s in samples if t0 <= s[0] <= t_end]
     received_during = (during[-1][2] - during[0][2]) if len(during) >= 2 else 0
-    log_lines = len((run_dir / "logs" / "a.log").read_text().splitlines())
+    a_log = (run_dir / "logs" / "a.log").read_text()
+    log_lines = len(a_log.splitlines())
+    # the first rejection on a line of its own, then summary lines with the counts (rate-limited)
+    summarized = sum(int(x.replace(",", "")) for x in re.findall(r"([\d,]+) messages rejected since", a_log))
     rate = FLOOD / (t1 - t0)
     worst_lag = max((s[1] for s in during), default=float("nan"))
     text = (f"flood: {FLOOD:,} garbage frames at node a, published in {t1 - t0:.2f} s ({rate:,.0f}/s, one "
@@ -388,6 +392,7 @@ def test_a_flood_of_garbage_costs_a_node_little(tmp_path):
     assert received_during > 0
     assert lag_end < send_period and lag_after < send_period
     assert log_lines < 100
+    assert a_log.count("rejected a message (malformed)") == 1 and summarized == FLOOD - 1, a_log
     assert m["traffic"]["rejected_on_arrival"] == FLOOD
     # forged traffic is not counted as delivered: every delivered copy is a genuine one
     delivered = m["traffic"]["network"]["delivered"]
