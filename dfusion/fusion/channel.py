@@ -70,7 +70,7 @@ from dfusion.linalg import Array
 from dfusion.wire import InfoMessage, time_keys
 
 __all__ = ["ChannelFilter", "Plan", "Entry", "time_key", "time_keys", "nonzero_blocks", "find_keys",
-           "MAX_SEQ_JUMP", "MAX_UNACKED"]
+           "MAX_SEQ_JUMP", "MAX_UNACKED", "REPLAY_WINDOW"]
 
 _MASK64 = (1 << 64) - 1
 #: Messages an acknowledgement may lag behind before partial messages also carry everything
@@ -87,6 +87,9 @@ MAX_SEQ_JUMP = 1_000_000
 #: Messages remembered while unacknowledged: beyond this many the sender sends a full
 #: message instead (and forgets the records).
 MAX_UNACKED = 64
+#: Messages before the newest applied one that the receiver remembers (the selective
+#: acknowledgement's 64 bits): an applied one, or an older one, is discarded as a duplicate.
+REPLAY_WINDOW = 64
 
 
 def time_key(t: float) -> int:
@@ -373,6 +376,23 @@ class ChannelFilter:
         """The selective acknowledgement to send: bit ``k`` set when message ``applied_seq - 1 - k``
         was applied completely."""
         return self._applied_mask
+
+    def was_applied(self, seq: int) -> bool:
+        """Whether message ``seq`` of the current incarnation cannot be new: it was applied
+        completely already (``applied_seq``, or a set bit of the mask of the
+        :data:`REPLAY_WINDOW` before it), or it is older than that window. The receiver discards
+        it before any work (counted in ``NodeStats.duplicates``): a replay, or a network
+        duplicate, would change nothing anyway (every block stored is newer). The sender
+        takes a message of the current incarnation that falls out of the window unacknowledged as
+        lost and sends its times again (:meth:`acknowledged`), so rejecting it loses nothing.
+        (The sliding window of IPsec, RFC 4303 section 3.4.3, and DTLS, RFC 6347 section 4.1.2.6.)
+        """
+        top = self.applied_seq
+        if top < 0 or seq > top:
+            return False
+        if seq == top or top - seq > REPLAY_WINDOW:
+            return True
+        return bool((self._applied_mask >> (top - seq - 1)) & 1)
 
     def note_applied(self, seq: int) -> None:
         """Message ``seq`` of the current incarnation was applied completely."""

@@ -83,7 +83,7 @@ from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.policies.base import InformationFusionPolicy, Policy
-from dfusion.wire import MAX_MESSAGE_BYTES, FrameKey, InfoMessage, decode, encode
+from dfusion.wire import MAX_MESSAGE_BYTES, FrameKey, InfoMessage, check_frame, decode, encode
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,10 @@ class NodeStats:
     ``rejections`` counts rejected messages by reason: ``malformed``, ``corrupt``,
     ``unauthenticated``, ``version``, ``oversized`` (the frame), ``misaddressed``,
     ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``sequence-jump``,
-    ``numerical`` (the filter would not stay proper), ``internal``.
+    ``numerical`` (the filter would not stay proper), ``internal``. ``duplicates`` counts
+    copies of messages the node had applied already (network duplicates, replays inside the
+    run, or messages older than the replay window, :meth:`ChannelFilter.was_applied`):
+    discarded without an error, they change nothing.
 
     With links that change (``FusionNode(tree=...)``): ``not_fused`` counts messages used
     by the tree rule only (beacons, messages of another tree epoch or over a link that is
@@ -131,6 +134,9 @@ class NodeStats:
     tree_changes: int = 0
     new_epochs: int = 0
     withdrawn_blocks: int = 0
+    #: of ``messages_rejected``: copies rejected by the cheap checks as they arrived, before they
+    #: were queued (:meth:`FusionNode.check_frame` run by the transport), so never delivered
+    rejected_on_arrival: int = 0
 
 
 class RejectionLog:
@@ -147,16 +153,25 @@ class RejectionLog:
         self._last: float | None = None
         self._example = ""
 
-    def add(self, reason: str, detail: str) -> None:
+    def add(self, reason: str, detail: str, count: int = 1) -> None:
+        """Count ``count`` rejected messages of one ``reason`` (``detail``: the last one's)."""
         now = time.monotonic()
         if self._last is None:
             self._last = now
             self.logger.warning("%s: rejected a message (%s): %s", self.name, reason, detail)
-            return
-        self._pending[reason] = self._pending.get(reason, 0) + 1
+            count -= 1
+            if count <= 0:
+                return
+        self._pending[reason] = self._pending.get(reason, 0) + count
         self._example = f"{reason}: {detail}"
         if now - self._last >= self.interval:
             self.flush(now)
+
+    def tick(self) -> None:
+        """Write the pending summary if ``interval`` seconds have passed since the last line (call it
+        now and then: after a flood ends no further rejection comes to trigger it)."""
+        if self._pending and self._last is not None and time.monotonic() - self._last >= self.interval:
+            self.flush()
 
     def flush(self, now: float | None = None) -> None:
         if self._pending:
@@ -839,6 +854,30 @@ class FusionNode:
                 vecs[i] -= prev[1]
         return infos, vecs
 
+    def check_frame(self, data: bytes | bytearray | memoryview) -> None:
+        """The cheap checks of a frame for this node (size, header, checksum, MAC: a few
+        microseconds, :func:`dfusion.wire.check_frame`), without counting anything.
+
+        Raises :class:`MessageError` with a ``reason``. It reads nothing the node changes, so a
+        transport may run it in its own threads on every copy as it arrives and drop the
+        failing ones before they take queue space
+        (:meth:`dfusion.transport.zenoh.ZenohTransport.set_check`); count
+        them with :meth:`count_rejections`. :meth:`receive` runs the same checks again.
+        """
+        check_frame(data, self.frame_key, self.max_message_bytes)
+
+    def count_rejections(self, counts: dict[str, int], detail: str = "") -> None:
+        """Count copies a transport rejected on arrival with :meth:`check_frame` (``{reason: count}``):
+        in ``stats.messages_rejected``, ``stats.rejections``, ``stats.rejected_on_arrival`` and the
+        rate-limited rejection log."""
+        for reason, count in counts.items():
+            if count <= 0:
+                continue
+            self.stats.messages_rejected += count
+            self.stats.rejected_on_arrival += count
+            self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + count
+            self.rejection_log.add(reason, detail or reason, count)
+
     def _reject(self, reason: str, detail: str) -> MessageError:
         if self._tree_undo is not None:   # the tree rule took the message in before it was refused: undo that
             undo, self._tree_undo = self._tree_undo, None
@@ -890,6 +929,12 @@ class FusionNode:
             if self.tree is not None and not self._tree_heard(msg):
                 return 0     # used by the tree rule only (a beacon, another epoch, not a tree link)
             ch = self._check(msg)
+            if msg.epoch == ch.epoch and not msg.naive and ch.was_applied(msg.seq):
+                # a network duplicate or a replay: discarded before any work, counted (not an error:
+                # links may duplicate); it could change nothing anyway (every stored block is newer)
+                self.stats.messages_received += 1   # as before: a duplicate is delivered, and fuses nothing
+                self.stats.duplicates += 1
+                return 0
             f = self.filter
             if msg.naive:
                 plan = None

@@ -5,7 +5,8 @@
   per run (:func:`generate_network_key`, a file of mode 0600);
 * the security options of a run from the command line (:func:`add_tls_arguments`;
   a scenario's ``[security]`` table is :mod:`dfusion.scenario.security`);
-* the monitor message (msgpack; authenticated like fusion messages when a key is set);
+* the monitor message (msgpack; authenticated like fusion messages when a key is set, with
+  the key of the network and the run, :class:`Status`);
 * the number of rounds of the final phase.
 """
 from __future__ import annotations
@@ -14,6 +15,7 @@ import argparse
 import hashlib
 import hmac
 import logging
+import math
 import os
 import secrets
 from dataclasses import dataclass, field
@@ -27,6 +29,7 @@ from dfusion.errors import MessageError, ValidationError
 from dfusion.scenario.security import SecurityOptions
 from dfusion.scenario.spec import Scenario
 from dfusion.topology import settling_rounds
+from dfusion.wire import FrameKey
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +37,13 @@ log = logging.getLogger(__name__)
 ENV_KEY_FILE = "DFUSION_NETWORK_KEY_FILE"
 #: Environment variable holding the network key itself (UTF-8 text).
 ENV_KEY = "DFUSION_NETWORK_KEY"
-MONITOR_VERSION = 1
+#: Version 2: the MAC is keyed for the network and the run (version 1 used the network key itself).
+MONITOR_VERSION = 2
+#: Longest monitor publication accepted (bytes): a step's estimate and counters take a few hundred.
+MAX_STATUS_BYTES = 1 << 20
+#: Domain of a monitor publication's MAC (fusion frames start with b"DF": the two never collide).
+_STATUS_DOMAIN = b"dfusion-monitor/2\0"
+PHASES = ("ready", "run", "final", "stopped")
 #: Default wall-clock seconds a node waits for a neighbour's message of a final-phase round.
 ROUND_TIMEOUT = 10.0
 
@@ -92,6 +101,18 @@ def new_run_id() -> str:
 
 
 
+def _status_mac(key: FrameKey, body: bytes) -> bytes:
+    if not isinstance(key, FrameKey):
+        raise ValidationError(f"a monitor message key is a dfusion.wire.FrameKey, got {type(key).__name__}")
+    return hmac.new(key.derived, _STATUS_DOMAIN + body, hashlib.sha256).digest()
+
+
+def _status_reject(reason: str, detail: str) -> MessageError:
+    err = MessageError(detail)
+    err.reason = reason
+    return err
+
+
 def add_tls_arguments(parser: argparse.ArgumentParser, *, directory: bool = True) -> None:
     """``--tls-ca``, ``--tls-cert``, ``--tls-key`` (and ``--tls-dir``) on a command line."""
     g = parser.add_argument_group("mutual TLS (every endpoint tls/..., every peer needs a certificate of the CA)")
@@ -139,7 +160,11 @@ class Status:
     lost: list[float] = field(default_factory=list)
     output: tuple[str, np.ndarray, np.ndarray] | None = None
 
-    def encode(self, key: bytes | None = None) -> bytes:
+    def encode(self, key: FrameKey | None = None) -> bytes:
+        """The publication; with ``key`` it carries ``HMAC-SHA256(K, "dfusion-monitor/2" 0x00 body)``,
+        ``K`` the key derived for the network and the run (:class:`dfusion.wire.FrameKey`), so a
+        publication of another run or network fails authentication although the network key is
+        the same."""
         body = msgpack.packb(
             {
                 "node": self.node, "epoch": int(self.epoch), "phase": self.phase, "k": int(self.k),
@@ -154,19 +179,38 @@ class Status:
             },
             use_bin_type=True,
         )
-        mac = hmac.new(key, body, hashlib.sha256).digest() if key else None
+        mac = _status_mac(key, body) if key is not None else None
         return msgpack.packb({"v": MONITOR_VERSION, "body": body, "mac": mac}, use_bin_type=True)
 
     @classmethod
-    def decode(cls, data: bytes, key: bytes | None = None) -> Status:
+    def decode(cls, data: bytes, key: FrameKey | None = None, dim: int | None = None) -> Status:
+        """Read and validate a publication; raises :class:`MessageError` with a ``reason``
+        (``oversized``, ``malformed``, ``version``, ``unauthenticated``, ``dimension``).
+
+        With ``key`` the MAC must match; ``dim``: the state dimension every estimate must have.
+        Every field is checked for type and range (an epoch in ``(0, 2^63)``, a known phase,
+        finite numbers, a symmetric covariance of the right shape).
+        """
+        if not isinstance(data, (bytes, bytearray)) or len(data) > MAX_STATUS_BYTES:
+            raise _status_reject("oversized" if isinstance(data, (bytes, bytearray)) else "malformed",
+                                 f"monitor message of {len(data) if isinstance(data, (bytes, bytearray)) else '?'} "
+                                 f"bytes exceeds {MAX_STATUS_BYTES}")
         try:
             env = msgpack.unpackb(data, raw=False)
+            if not isinstance(env, dict):
+                raise _status_reject("malformed", "monitor message is not a map")
             if env.get("v") != MONITOR_VERSION:
-                raise MessageError(f"unknown monitor message version {env.get('v')!r}")
+                raise _status_reject("version", f"unknown monitor message version {env.get('v')!r}")
             body = env["body"]
-            if key and not (isinstance(env.get("mac"), bytes)
-                            and hmac.compare_digest(env["mac"], hmac.new(key, body, hashlib.sha256).digest())):
-                raise MessageError("monitor message not authenticated")
+            if not isinstance(body, bytes):
+                raise _status_reject("malformed", "monitor message body is not bytes")
+            mac = env.get("mac")
+            if key is not None:
+                if not (isinstance(mac, bytes) and hmac.compare_digest(mac, _status_mac(key, body))):
+                    raise _status_reject("unauthenticated",
+                                         "monitor message not authenticated (no MAC, or a wrong key, network or run)")
+            elif mac is not None:
+                raise _status_reject("unauthenticated", "monitor message is authenticated but the monitor has no key")
             d = msgpack.unpackb(body, raw=False)
             mean = None if d["mean"] is None else np.frombuffer(d["mean"], "<f8").copy()
             cov = None
@@ -177,12 +221,47 @@ class Status:
                 name, om, oc = d["output"]
                 om = np.frombuffer(om, "<f8").copy()
                 output = (str(name), om, np.frombuffer(oc, "<f8").copy().reshape(len(om), len(om)))
-            return cls(str(d["node"]), int(d["epoch"]), str(d["phase"]), int(d["k"]), float(d["t"]), mean, cov,
-                       float(d["started"]), dict(d["stats"]), list(d["lost"]), output)
+            st = cls(str(d["node"]), int(d["epoch"]), str(d["phase"]), int(d["k"]), float(d["t"]), mean, cov,
+                     float(d["started"]), dict(d["stats"]), list(d["lost"]), output)
         except MessageError:
             raise
         except Exception as exc:
-            raise MessageError(f"malformed monitor message: {type(exc).__name__}: {exc}") from None
+            raise _status_reject("malformed", f"malformed monitor message: {type(exc).__name__}: {exc}") from None
+        st._validate(d, dim)
+        return st
+
+    def _validate(self, d: dict, dim: int | None) -> None:
+        """The ranges and shapes of a decoded publication (see :meth:`decode`)."""
+        def bad(what: str, reason: str = "malformed") -> MessageError:
+            return _status_reject(reason, f"monitor message of {self.node!r}: {what}")
+
+        if not isinstance(d["node"], str) or not 0 < len(d["node"]) <= 256:
+            raise bad("invalid node name")
+        if isinstance(d["epoch"], bool) or not isinstance(d["epoch"], int) or not 0 < d["epoch"] < 2**63:
+            raise bad(f"epoch {d['epoch']!r} out of range")
+        if self.phase not in PHASES:
+            raise bad(f"unknown phase {self.phase!r}")
+        if isinstance(d["k"], bool) or not isinstance(d["k"], int) or not -1 <= d["k"] < 2**31:
+            raise bad(f"step {d['k']!r} out of range")
+        if not (math.isfinite(self.t) and math.isfinite(self.started)):
+            raise bad("non-finite time")
+        if not all(isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
+                   for k, v in self.stats.items()):
+            raise bad("counters must be str: int")
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in self.lost):
+            raise bad("lost times must be finite numbers")
+        for what, mean, cov in (("estimate", self.mean, self.cov),
+                                ("output", *(self.output[1:] if self.output is not None else (None, None)))):
+            if mean is None:
+                continue
+            n = mean.shape[0]
+            if dim is not None and n != dim:
+                raise bad(f"{what} of dimension {n}, expected {dim}", "dimension")
+            if cov is None or cov.shape != (n, n) or not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+                raise bad(f"{what}: a finite mean and an n x n covariance are needed")
+            if not np.allclose(cov, cov.T, rtol=1e-9, atol=0.0):
+                raise bad(f"{what}: covariance not symmetric")
+
 
     def to_json(self) -> dict[str, Any]:
         return {

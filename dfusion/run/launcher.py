@@ -168,6 +168,7 @@ class _Proc:
     popen: subprocess.Popen | None = None
     incarnations: int = 0
     killed_by_us: bool = False
+    exit_seen: bool = False              # the exit of ``popen`` was handled by _check_exits
     exit_codes: list[int] = field(default_factory=list)
     started: float = 0.0                 # monotonic time of the last spawn
     restarts: int = 0                    # unplanned exits followed by a restart
@@ -217,6 +218,8 @@ class Launcher:
         self.host_endpoints = dict(zip(self.hosts, free_tcp_endpoints(len(self.hosts), scheme=scheme)))
         #: node name -> the endpoint of its host's session
         self.endpoints = {n: self.host_endpoints[h] for n, h in sorted(self.host_of.items())}
+        #: where the launcher's monitor listens (in run.json): a tool may connect to it directly
+        self.monitor_endpoint = free_tcp_endpoints(1, scheme=scheme)[0]
         self.procs = {h: _Proc(h, self._command(h), list(nodes)) for h, nodes in self.hosts.items()}
         self.world = None
         self.monitor: Monitor | None = None
@@ -329,6 +332,7 @@ class Launcher:
                 self.spawned.append(p.popen.pid)
         p.incarnations += 1
         p.killed_by_us = False
+        p.exit_seen = False
         p.started = time.monotonic()
         log.info("%s started (pid %d, incarnation %d%s)", _what(p), p.popen.pid, p.incarnations,
                  ", from the warm standby" if warm else "")
@@ -441,11 +445,14 @@ class Launcher:
     # ------------------------------------------------------------------ supervision
     def _check_exits(self) -> None:
         for name, p in self.procs.items():
-            if p.popen is None or p.popen.returncode is not None:
+            # not ``popen.returncode``: another look (``_running``, ``_supervise``, ``_kill``) may have
+            # reaped the process first, and its exit must still be handled here, once
+            if p.popen is None or p.exit_seen:
                 continue
             rc = p.popen.poll()
             if rc is None:
                 continue
+            p.exit_seen = True
             p.exit_codes.append(rc)
             finished = self._finished(name)
             if p.killed_by_us or (rc == 0 and finished):
@@ -522,8 +529,9 @@ class Launcher:
                                 ev["back_after_s"], self.now())
 
     def _running(self) -> list[str]:
+        """Hosts still running, or whose exit is not handled yet (it may be restarted), or due to restart."""
         return [n for n, p in self.procs.items()
-                if (p.popen is not None and p.popen.poll() is None) or p.external is not None
+                if (p.popen is not None and (p.popen.poll() is None or not p.exit_seen)) or p.external is not None
                 or p.restart_at is not None]
 
     # ------------------------------------------------------------------ the run
@@ -542,6 +550,7 @@ class Launcher:
         (self.run_dir / "run.json").write_text(json.dumps({
             "run_id": self.run_id, "network": self.network, "scenario": str(Path(self.opts.scenario).resolve()),
             "launcher_pid": os.getpid(), "speed": self.opts.speed, "endpoints": self.endpoints,
+            "monitor_endpoint": self.monitor_endpoint,
             "hosts": self.hosts, "tls": self.tls is not None, "links_emulated": self.opts.emulate_links,
             "plugins": [_absolute_plugin(x) for x in self.opts.plugins],
         }, indent=1))
@@ -567,8 +576,9 @@ class Launcher:
         try:
             self._prepare_run_dir()
             self.monitor = Monitor(self.sc, self.network,
-                                   ZenohConfig(connect=tuple(self.host_endpoints.values()), tls=self.tls),
-                                   network_key=self.key)
+                                   ZenohConfig(listen=(self.monitor_endpoint,),
+                                               connect=tuple(self.host_endpoints.values()), tls=self.tls),
+                                   network_key=self.key, run=self.run_id)
             if self.opts.foxglove is not None:
                 from dfusion.viz.foxglove import LiveView
 
@@ -601,6 +611,7 @@ class Launcher:
                 "wall_seconds": time.monotonic() - t_wall,
                 "restarts": [f"{r.node}@{r.at}+{r.down}" for r in self.opts.restarts],
                 "monitor_rejected": self.monitor.rejected,
+                "monitor_rejections": dict(self.monitor.rejections),
                 "failures": list(self.failures),
                 "links_emulated": self.opts.emulate_links,
                 "links": describe_links(self.opts.emulate_links, self.sc.links),

@@ -18,12 +18,17 @@ one line per measurement the node fused, written and flushed *before* the
 measurement is fused. A restarted node replays it (see ``docs/processes.md``).
 A log whose header names another run is started afresh; a torn last line (the
 process died while writing it) is ignored.
+
+The **incarnation epoch** of a node (:func:`claim_epoch`) is recorded next to it, in
+``<state-dir>/<node>.epoch``, so that a restarted node's epoch is strictly newer than
+every earlier one even if the wall clock went backwards meanwhile.
 """
 from __future__ import annotations
 
 import json
 import logging
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
@@ -125,6 +130,44 @@ def save_recording(path: str | Path, node: str, meas: Iterable[OwnMeasurement]) 
             for m in meas:
                 f.write(json.dumps({"node": node, **m.to_json()}) + "\n")
     return path
+
+
+#: The largest incarnation epoch (the wire format's bound, ``docs/wire-format.md``).
+MAX_EPOCH = 2**63 - 1
+
+
+def claim_epoch(state_dir: str | Path, node: str, now_ns: int | None = None, *, fsync: bool = True) -> int:
+    """A new incarnation epoch for ``node``: ``max(clock, last + 1)``, recorded before it is used.
+
+    ``clock`` is the wall clock in nanoseconds (``now_ns``, default :func:`time.time_ns`);
+    ``last`` is the epoch recorded in ``<state_dir>/<node>.epoch`` by the previous incarnation
+    (0 when there is none, or when the file is unreadable). The new epoch is written there
+    (a temporary file renamed over the old one, flushed to disk with ``fsync``) before it is
+    returned, so the neighbours, which reject messages of an epoch older than the newest they
+    have seen (reason ``previous-incarnation``), accept the restarted node even if the clock
+    was set back between two incarnations.
+    """
+    path = Path(state_dir) / f"{node}.epoch"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        last = int(path.read_text().strip())
+    except (OSError, ValueError):
+        last = 0
+    now = time.time_ns() if now_ns is None else int(now_ns)
+    epoch = max(now, last + 1, 1)
+    if epoch > MAX_EPOCH:
+        raise ValidationError(f"epoch of {node} would exceed 2^63 - 1 (last {last})")
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w") as f:
+        f.write(f"{epoch}\n")
+        f.flush()
+        if fsync:
+            os.fsync(f.fileno())
+    tmp.replace(path)
+    if now < last + 1:
+        log.warning("%s: the clock (%d ns) is behind the previous incarnation's epoch (%d): epoch %d", node, now,
+                    last, epoch)
+    return epoch
 
 
 class MeasurementLog:

@@ -32,12 +32,14 @@ import numpy as np
 from dfusion.errors import MessageError
 from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.channel import time_key
-from dfusion.run.common import Status, add_tls_arguments, load_network_key, security_from_args
+from dfusion.fusion.node import RejectionLog
+from dfusion.run.common import MAX_STATUS_BYTES, Status, add_tls_arguments, load_network_key, security_from_args
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
 from dfusion.sim.world import simulate_world
 from dfusion.transport.base import TransportStats
+from dfusion.wire import FrameKey
 from dfusion.transport.zenoh import (
     ZenohConfig,
     alive_key,
@@ -47,6 +49,9 @@ from dfusion.transport.zenoh import (
 )
 
 log = logging.getLogger(__name__)
+
+#: Publications waiting for :meth:`Monitor.poll` before the oldest are dropped (counted).
+MAX_PENDING = 10_000
 
 
 @dataclass
@@ -81,32 +86,64 @@ class Monitor:
     config : ZenohConfig
         Usually ``ZenohConfig(connect=<every node's endpoint>)``.
     network_key : bytes, optional
-        Monitor messages must carry its HMAC (unauthenticated ones are counted and ignored).
+        Monitor messages must carry its HMAC, keyed for ``network`` and ``run``
+        (:class:`dfusion.wire.FrameKey`); the others are rejected and counted.
+    run : str
+        The run identifier the nodes were given (``--run-id``; ``dfusion run`` makes one).
+
+    Every publication is validated (:meth:`Status.decode`: MAC, types, ranges, the state
+    dimension) and must come from the node it names (its key expression
+    ``dfusion/NET/monitor/NAME``); a bad one is counted by reason in :attr:`rejections`
+    (total :attr:`rejected`) and logged at most once per :data:`dfusion.fusion.node.LOG_INTERVAL`
+    seconds, never fatal. At most :data:`MAX_PENDING` publications wait between two polls
+    (the oldest are dropped, counted in ``rejections["queue-full"]``), and a publication longer
+    than :data:`~dfusion.run.common.MAX_STATUS_BYTES` is dropped as it arrives.
     """
 
     def __init__(self, sc: Scenario, network: str, config: ZenohConfig | None = None, *,
-                 network_key: bytes | None = None) -> None:
-        self.sc, self.network, self.key = sc, network, network_key
+                 network_key: bytes | None = None, run: str = "") -> None:
+        self.sc, self.network, self.run = sc, network, run
+        self.key = None if network_key is None else FrameKey(bytes(network_key), network, run)
         K, n = sc.steps + 1, sc.target.motion.dim
         self.records = {
             name: NodeRecord(name, np.full((K, n), np.nan), np.full((K, n, n), np.nan), np.zeros(K, bool))
             for name in sorted(sc.nodes)
         }
         self.rejected = 0
+        #: rejected publications by reason
+        self.rejections: dict[str, int] = {}
+        self._rejection_log = RejectionLog("monitor", logger=log)
         #: Called as ``f(node, t, mean, cov)`` for every estimate a node publishes (a live
         #: view: :meth:`dfusion.viz.foxglove.LiveView.node_estimate`).
         self.listeners: list = []
         self._queue: deque = deque()
+        self._dropped = 0
         self._alive_events: deque = deque()
         self._session = open_session(config or ZenohConfig())
         try:
-            self._session.declare_subscriber(monitor_key(network), lambda s: self._queue.append(s.payload.to_bytes()))
+            self._session.declare_subscriber(monitor_key(network), self._on_sample)
             self._session.liveliness().declare_subscriber(
                 alive_key(network), lambda s: self._alive_events.append((str(s.key_expr).rsplit("/", 1)[-1], s.kind)),
                 history=True)
         except BaseException:
             self.close()
             raise
+
+    def _on_sample(self, sample) -> None:
+        """Zenoh's callback (its thread): queue the publication, bounded, never blocking."""
+        size = len(sample.payload)
+        if size > MAX_STATUS_BYTES:
+            self._queue.append((None, f"oversized: {size} bytes"))
+            return
+        if len(self._queue) >= MAX_PENDING:
+            self._queue.popleft()
+            self._dropped += 1
+        self._queue.append((str(sample.key_expr).rsplit("/", 1)[-1], sample.payload.to_bytes()))
+
+    def _reject(self, reason: str, detail: str, count: int = 1) -> None:
+        self.rejected += count
+        self.rejections[reason] = self.rejections.get(reason, 0) + count
+        self._rejection_log.add(reason, detail, count)
 
     def poll(self) -> int:
         """Apply everything received so far; returns the number of publications applied."""
@@ -125,17 +162,30 @@ class Monitor:
                 log.info("monitor: node %s is back", name)
             rec.alive = up
         count = 0
+        self._rejection_log.tick()
+        if self._dropped:
+            dropped, self._dropped = self._dropped, 0
+            self._reject("queue-full", f"{dropped} publications dropped: more than {MAX_PENDING} waiting", dropped)
+        dim = self.sc.target.motion.dim
         while self._queue:
-            data = self._queue.popleft()
+            chunk, data = self._queue.popleft()
+            if chunk is None:
+                self._reject("oversized", data)
+                continue
             try:
-                st = Status.decode(data, self.key)
+                st = Status.decode(data, self.key, dim)
             except MessageError as exc:
-                self.rejected += 1
-                log.warning("monitor: rejected a publication: %s", exc)
+                self._reject(getattr(exc, "reason", "malformed"), str(exc))
                 continue
             rec = self.records.get(st.node)
             if rec is None:
-                self.rejected += 1
+                self._reject("not-a-node", f"publication of {st.node!r}, not a node of the scenario")
+                continue
+            if st.node != chunk:
+                self._reject("forged-sender", f"publication of {st.node!r} on the key of {chunk!r}")
+                continue
+            if 0 <= st.k and st.k >= len(rec.have) or (st.phase in ("run", "final") and st.k < 0):
+                self._reject("malformed", f"step {st.k} of {st.node!r} outside the scenario (0..{len(rec.have) - 1})")
                 continue
             self.apply(rec, st)
             count += 1
@@ -175,6 +225,7 @@ class Monitor:
         return {n for n, r in self.records.items() if r.alive}
 
     def close(self) -> None:
+        self._rejection_log.flush()
         close_session(self._session)
 
     def __enter__(self) -> Monitor:
@@ -275,7 +326,8 @@ def build_result(
     truth = np.array([world.truth(t) for t in times])
     node_mean, node_cov, views, run_nodes, outputs = {}, {}, {}, {}, {}
     delivered = sent = refused = 0
-    tsum = {"published": 0, "dropped_emulated": 0, "messages_received": 0, "messages_rejected": 0}
+    tsum = {"published": 0, "dropped_emulated": 0, "messages_received": 0, "messages_rejected": 0,
+            "rejected_on_arrival": 0}
     for name in sorted(records):
         rec = records[name]
         node_mean[name], node_cov[name], gaps = _filled(rec, sc)
@@ -304,6 +356,11 @@ def build_result(
             "messages_received": total.get("messages_received", 0),
             "messages_rejected": total.get("messages_rejected", 0),
             "blocks_outside_window": total.get("blocks_outside_window", 0),
+            # of those, dropped by the cheap checks as they arrived (never queued, never delivered)
+            "rejected_on_arrival": total.get("rejected_on_arrival", 0),
+            "rejections": {key[len("rejected_"):]: v for key, v in sorted(total.items())
+                           if key.startswith("rejected_") and key != "rejected_on_arrival" and v},
+            "duplicates": total.get("duplicates", 0),
             "sends_skipped_not_alive": total.get("skipped_not_alive", 0),
             "dropped_emulated": total.get("dropped_emulated", 0),
             "measurements_fused": total.get("measurements_fused", 0),
@@ -320,14 +377,19 @@ def build_result(
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)
     # the counts of traffic_lines: built = published + dropped by link emulation; published =
     # delivered + not received (lost by the transport, or the receiver was down); delivered =
-    # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers)
+    # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers).
+    # Copies rejected on arrival (garbage, forged or foreign traffic dropped by the cheap checks in
+    # the transport's callback) were never delivered: they are counted apart, not as delivered.
     pub, emu = tsum["published"], tsum["dropped_emulated"]
-    ignored = max(0, delivered - tsum["messages_received"] - tsum["messages_rejected"])
+    on_arrival = tsum["rejected_on_arrival"]
+    rejected = tsum["messages_rejected"] - on_arrival
+    ignored = max(0, delivered - tsum["messages_received"] - rejected)
     result.metrics["traffic"] = {
         "network": {"sent": pub + emu, "duplicated": 0, "delivered": delivered,
                     "dropped": emu + max(0, pub - delivered), "in_flight": 0},
-        "fused": delivered - tsum["messages_rejected"] - ignored, "rejected": tsum["messages_rejected"],
+        "fused": delivered - rejected - ignored, "rejected": rejected,
         "ignored": ignored, "final_rounds": 0, "final_rounds_over_network": True,
+        "rejected_on_arrival": on_arrival,
     }
     speed = (extra or {}).get("speed", 1.0)
     wall = sc.duration / speed   # wall seconds of the run proper (start to the scenario's end)
@@ -354,7 +416,8 @@ def run_table(result) -> str:
         if v["measurements_lost"]:
             bits.append(f"{v['measurements_lost']} measurements lost while down")
         if v["messages_rejected"]:
-            bits.append(f"{v['messages_rejected']} messages rejected")
+            why = ", ".join(f"{r} {c}" for r, c in sorted(v.get("rejections", {}).items(), key=lambda x: -x[1]))
+            bits.append(f"{v['messages_rejected']} messages rejected" + (f" ({why})" if why else ""))
         if v["liveliness_losses"]:
             bits.append(f"lost {v['liveliness_losses']}x")
         if not v["finished"]:
@@ -379,6 +442,9 @@ def run_table(result) -> str:
         bits.append(f"speed x{run['speed']:g}, wall {run.get('wall_seconds', math.nan):.1f} s")
     bits.append(f"largest lag behind the clock {lag:.2f} s wall")
     bits.append(f"network {run.get('network', '?')}")
+    if run.get("monitor_rejected"):
+        why = ", ".join(f"{r} {c}" for r, c in sorted(run.get("monitor_rejections", {}).items(), key=lambda x: -x[1]))
+        lines.append(f"  monitor: {run['monitor_rejected']} publications rejected" + (f" ({why})" if why else ""))
     head = "processes: " + ", ".join(bits)
     return "\n".join([head] + cpu_lines + lines)
 
@@ -405,6 +471,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="a node's or router's endpoint")
     p.add_argument("--mode", choices=("peer", "client"), default="peer")
     p.add_argument("--network-key-file", default=None)
+    p.add_argument("--run-id", default="", help="the run identifier the nodes were given (their --run-id): "
+                                                "monitor messages are authenticated for it")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds to wait for every final estimate")
     p.add_argument("--plugin", action="append", default=[], metavar="MODULE", help="plug-in module or .py file")
     p.add_argument("--json", default=None)
@@ -419,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
                        plugins=args.plugin)
     cfg = ZenohConfig(mode=args.mode, connect=tuple(args.connect), listen=() if args.mode == "client" else (),
                       tls=security_from_args(args).tls_files("monitor"))
-    with Monitor(sc, args.network, cfg, network_key=load_network_key(args.network_key_file)) as mon:
+    with Monitor(sc, args.network, cfg, network_key=load_network_key(args.network_key_file), run=args.run_id) as mon:
         deadline = time.monotonic() + args.timeout
         names = sorted(sc.nodes)
         while not stop and time.monotonic() < deadline:

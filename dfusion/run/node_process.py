@@ -63,6 +63,7 @@ from dfusion.run.common import (
 from dfusion.run.links import EmulatedLinks, node_links
 from dfusion.run.measurements import (
     MeasurementLog,
+    claim_epoch,
     OwnMeasurement,
     load_recording,
     nodes_measurements,
@@ -216,8 +217,9 @@ class NodeProcess:
         # the same front end as in `dfusion simulate` (EIF update, camera gate, WSN particle filter...)
         self.front = build_front_end(sc, name)
         self.send_period = spec.send_period
-        # a random epoch: a new one per incarnation
-        self.node = build_node(sc, name, network_key=network_key, network=network, run=run_id or "")
+        # a new epoch per incarnation: the clock, strictly newer than the last one recorded in the state dir
+        epoch = claim_epoch(state_dir, name) if state_dir is not None else None
+        self.node = build_node(sc, name, network_key=network_key, network=network, run=run_id or "", epoch=epoch)
         self._records_output = records_output(self.node.policy)
         self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
@@ -267,12 +269,16 @@ class NodeProcess:
         if self.emulate_links:
             self.links = EmulatedLinks(self.name, node_links(self.sc.links, self.name), self.sc.seed, tr.send,
                                        speed=self.speed)
+        # garbage and forged copies are dropped in Zenoh's callback, before they take queue space
+        tr.set_check(self.name, self.node.check_frame, self.node.max_message_bytes)
         self._monitor_key = monitor_key(self.network, self.name)
         self._pub = tr.session.declare_publisher(self._monitor_key)
 
     def stopped(self) -> None:
         """The loop was stopped before its end (a signal, the launcher gone): say so to the monitor."""
         log.info("%s: stopping: %s", self.name, self.stop_reason)
+        self._count_rejected_on_arrival()
+        self.node.flush_log()
         if self.links is not None and self.links.pending():
             log.info("%s: %d delayed messages not sent", self.name, self.links.discard())
         self._publish("stopped", -1)
@@ -380,6 +386,7 @@ class NodeProcess:
         """Fuse every message that has arrived for this node; returns the blocks changed."""
         changed = 0
         T = float(self.times[-1])
+        self._count_rejected_on_arrival()
         for d in self.tr.receive(self.name):
             if d.t_sent > T + EPS:   # a final-phase round: sent at scenario time T + r dt
                 r = int(round((d.t_sent - T) / self.sc.dt))
@@ -389,6 +396,13 @@ class NodeProcess:
             except MessageError:
                 pass   # counted in node.stats.messages_rejected and logged by the node
         return changed
+
+    def _count_rejected_on_arrival(self) -> None:
+        """Count the copies the transport's check dropped as they arrived (in the node's stats and log)."""
+        if self.tr is not None:
+            counts, detail = self.tr.take_rejections(self.name)
+            if counts:
+                self.node.count_rejections(counts, detail)
 
     def _send_all(self, t: float, *, final: bool = False) -> None:
         emulate = self.links is not None and not final   # the final phase is lossless, as in simulate
@@ -432,6 +446,7 @@ class NodeProcess:
                             self.round_timeout)
         self.receive()
         status = self._publish("final", len(self.times) - 1)
+        self.node.flush_log()
         if self.result is not None:
             self.result.parent.mkdir(parents=True, exist_ok=True)
             tmp = self.result.with_suffix(".tmp")
@@ -442,11 +457,15 @@ class NodeProcess:
 
     def stats(self) -> dict[str, int]:
         """The node's counters (messages, measurements, CPU, link emulation) as the monitor records them."""
+        self._count_rejected_on_arrival()
+        self.node.rejection_log.tick()
         s = self.node.stats
         tot = self.tr.node_totals(self.name) if self.tr is not None else None
         out = {
             "messages_sent": s.messages_sent, "bytes_sent": s.bytes_sent, "messages_received": s.messages_received,
             "messages_rejected": s.messages_rejected, "duplicates": s.duplicates,
+            "rejected_on_arrival": s.rejected_on_arrival,
+            **{f"rejected_{reason}": count for reason, count in s.rejections.items()},
             "blocks_outside_window": s.blocks_outside_window,
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
@@ -481,10 +500,10 @@ class NodeProcess:
             if phase == "final":
                 import zenoh
 
-                self.tr.session.put(self._monitor_key, st.encode(self.key),
+                self.tr.session.put(self._monitor_key, st.encode(self.node.frame_key),
                                     congestion_control=zenoh.CongestionControl.BLOCK)
             else:
-                self._pub.put(st.encode(self.key))
+                self._pub.put(st.encode(self.node.frame_key))
         except Exception as exc:   # the monitor is optional
             log.debug("%s: monitor publication failed: %s", self.name, exc)
         return st

@@ -34,8 +34,9 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
     Its neighbours are its tree neighbours, its prior the scenario's common prior at
     time 0, its policy a copy of the node's (a policy keeps state, so every node built
     gets its own), its guard the consistency test of ``[protection]`` (channel fusion only,
-    :mod:`dfusion.fusion.guard`). ``epoch`` identifies the incarnation (random when ``None``:
-    a node process gets a new one each time it starts). ``network`` and ``run`` name the
+    :mod:`dfusion.fusion.guard`). ``epoch`` identifies the incarnation (the wall clock in nanoseconds
+    when ``None``; a node process takes :func:`dfusion.run.measurements.claim_epoch`, strictly
+    newer than its previous incarnation's). ``network`` and ``run`` name the
     network and the run the message key is derived for (``docs/security.md``).
 
     Links that change (``sc.dynamic``): ``links`` are the node's links now and

@@ -262,6 +262,9 @@ def traffic_lines(m: dict[str, Any]) -> list[str]:
                      f"of the delivered: {tr['fused']} fused + {tr['rejected']} rejected")
         if tr.get("ignored"):
             lines[-1] += f" + {tr['ignored']} ignored (already had)"
+        if tr.get("rejected_on_arrival"):
+            lines.append(f"not delivered: {tr['rejected_on_arrival']} copies rejected on arrival (garbage, forged or "
+                         f"foreign traffic dropped by the checks before the queue)")
         if tr.get("final_rounds_over_network"):
             lines.append(f"(the final rounds went over the network too); {m['messages']} messages "
                          f"({m['bytes']} bytes) built by the nodes in all")

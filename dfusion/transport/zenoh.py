@@ -20,6 +20,13 @@ Pitfalls handled here (measured in this project; ``docs/background.md#7-zenoh-wh
 
 * Subscribers are callback subscribers that only append to this object's
   deques (never block); :meth:`ZenohTransport.receive` drains them.
+* **Cheap checks before queueing.** A local node may register a check
+  (:meth:`ZenohTransport.set_check`, in practice :meth:`dfusion.fusion.FusionNode.check_frame`:
+  size, header, checksum and MAC, a few microseconds). The callback runs it on every copy
+  that arrives and drops a failing one at once, counted by reason
+  (:meth:`ZenohTransport.take_rejections`): garbage and forged traffic never take queue
+  space, never push genuine messages out of a full queue (:data:`MAX_QUEUE`, oldest dropped
+  first) and are never counted as delivered. The size is checked before the payload is copied.
 * The session is always closed: :meth:`ZenohTransport.close` (idempotent), the context
   manager, and every user of this class closes it in ``finally`` (an open
   session with callback subscribers keeps the process from exiting).
@@ -56,7 +63,7 @@ from typing import Any
 
 import zenoh
 
-from dfusion.errors import ValidationError
+from dfusion.errors import MessageError, ValidationError
 from dfusion.transport.base import (
     Delivery,
     LinkKey,
@@ -365,6 +372,10 @@ class ZenohTransport(Transport):
             for nb in nbrs:
                 self._stats[(name, nb)] = TransportStats()
                 self._stats[(nb, name)] = TransportStats()
+        self._checks: dict[str, Callable[[bytes], object]] = {}
+        self._max_bytes: dict[str, int] = {}
+        self._rejected: dict[str, dict[str, int]] = {n: {} for n in self.neighbors}
+        self._rejected_detail: dict[str, str] = {}
         self._alive: dict[str, bool] = {}
         self._alive_events: deque[tuple[str, bool]] = deque()
         self._callbacks: list[Callable[[str, bool], None]] = []
@@ -399,9 +410,26 @@ class ZenohTransport(Transport):
         queue = self._queues[dst]
         stats = self._stats[(src, dst)]
         clock, event = self.clock, self._event
+        checks, max_bytes, reject = self._checks, self._max_bytes, self._reject
 
         def on_sample(sample: zenoh.Sample) -> None:
-            data = sample.payload.to_bytes()
+            check = checks.get(dst)
+            if check is not None:
+                limit = max_bytes.get(dst)
+                if limit is not None and len(sample.payload) > limit:   # before copying it
+                    reject(dst, "oversized", f"message of {len(sample.payload)} bytes exceeds the limit of {limit}")
+                    return
+                data = sample.payload.to_bytes()
+                try:
+                    check(data)
+                except MessageError as exc:
+                    reject(dst, getattr(exc, "reason", "malformed"), str(exc))
+                    return
+                except Exception as exc:   # a defect of the check: the copy is still dropped, never fatal here
+                    reject(dst, "internal", f"check failed: {type(exc).__name__}: {exc}")
+                    return
+            else:
+                data = sample.payload.to_bytes()
             att = sample.attachment
             t_sent = math.nan
             if att is not None:
@@ -415,6 +443,43 @@ class ZenohTransport(Transport):
             event.set()
 
         return on_sample
+
+    def _reject(self, dst: str, reason: str, detail: str) -> None:
+        """Count a copy for ``dst`` that failed its check (called in Zenoh's threads)."""
+        with self._lock:
+            counts = self._rejected[dst]
+            counts[reason] = counts.get(reason, 0) + 1
+            self._rejected_detail[dst] = detail
+        # no wake-up: a flood must not spin the node's loop; the counts are taken at its next receive
+
+    def set_check(self, node: str, check: Callable[[bytes], object] | None, max_bytes: int | None = None) -> None:
+        """Run ``check(data)`` on every copy for local ``node`` as it arrives, in Zenoh's callback.
+
+        A copy for which it raises :class:`~dfusion.errors.MessageError` is dropped and counted
+        by the error's ``reason`` (:meth:`take_rejections`); it is not queued and not delivered.
+        A copy longer than ``max_bytes`` is rejected (``oversized``) before its payload is
+        copied. ``check`` must be cheap and thread-safe (it runs in Zenoh's threads, while the
+        node's thread works): :meth:`dfusion.fusion.FusionNode.check_frame` is. ``None`` removes it.
+        """
+        if node not in self._queues:
+            raise ValidationError(f"{node!r} is not a node of this transport")
+        if check is None:
+            self._checks.pop(node, None)
+            self._max_bytes.pop(node, None)
+            return
+        if max_bytes is not None:
+            self._max_bytes[node] = int(max_bytes)
+        self._checks[node] = check
+
+    def take_rejections(self, node: str) -> tuple[dict[str, int], str]:
+        """The copies for ``node`` rejected by its check since the last call: ``({reason: count},
+        the last one's detail)``; the counts are reset."""
+        with self._lock:
+            counts = self._rejected[node]
+            if not counts:
+                return {}, ""
+            self._rejected[node] = {}
+            return counts, self._rejected_detail.pop(node, "")
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import stat
+import time
 
 import pytest
 
@@ -60,3 +61,73 @@ def test_generated_network_key_is_private_and_random(tmp_path):
     generate_network_key(tmp_path / "k3")
     assert victim.read_bytes() == b"keep" and not (tmp_path / "k3").is_symlink()
     assert stat.S_IMODE((tmp_path / "k3").stat().st_mode) == 0o600
+
+
+def test_a_restarted_nodes_epoch_is_strictly_newer_even_if_the_clock_went_back(tmp_path, monkeypatch):
+    """claim_epoch: max(clock, last + 1), recorded in the state dir before it is used; and the node
+    program takes its epoch from it."""
+    from dfusion.run import measurements
+    from dfusion.run.measurements import claim_epoch
+
+    first = claim_epoch(tmp_path, "b", now_ns=5_000_000_000_000)
+    assert first == 5_000_000_000_000 and (tmp_path / "b.epoch").read_text().strip() == str(first)
+    assert claim_epoch(tmp_path, "b", now_ns=4_000_000_000_000) == first + 1          # the clock went back 1000 s
+    assert claim_epoch(tmp_path, "b", now_ns=first) == first + 2                       # the same clock reading
+    assert claim_epoch(tmp_path, "b", now_ns=6_000_000_000_000) == 6_000_000_000_000   # the clock is ahead again
+    assert claim_epoch(tmp_path, "c", now_ns=1) == 1                                   # per node
+    (tmp_path / "d.epoch").write_text("not a number")
+    assert claim_epoch(tmp_path, "d", now_ns=7) == 7                                   # unreadable: the clock
+    with pytest.raises(Exception):
+        claim_epoch(tmp_path, "e", now_ns=2**63)
+
+    # the node program: two incarnations of b with the wall clock set back 1 hour between them
+    from dfusion.run.node_process import NodeProcess
+    from dfusion.scenario import load_scenario
+    from tests.run.test_processes import chain3
+
+    sc = load_scenario(chain3(tmp_path))
+    state = tmp_path / "state"
+    real = time.time_ns()
+    monkeypatch.setattr(measurements.time, "time_ns", lambda: real)
+    one = NodeProcess(sc, "b", state_dir=state, run_id="r", measurements=[])
+    monkeypatch.setattr(measurements.time, "time_ns", lambda: real - 3600 * 10**9)
+    two = NodeProcess(sc, "b", state_dir=state, run_id="r", measurements=[])
+    assert one.node.epoch == real and two.node.epoch == real + 1
+
+
+def test_monitor_publications_are_keyed_for_the_network_and_the_run_and_validated():
+    """Status's MAC covers the run and the network (a publication of another run with the same
+    network key is rejected), and every field is validated (never an exception but MessageError)."""
+    import msgpack
+    import numpy as np
+
+    from dfusion.errors import MessageError
+    from dfusion.run.common import MAX_STATUS_BYTES, Status
+    from dfusion.wire import FrameKey
+
+    key = b"k" * 32
+    mine = FrameKey(key, "net", "run-1")
+    st = Status("a", 7, "run", 3, 0.3, np.arange(4.0), np.eye(4), stats={"messages_sent": 2})
+    back = Status.decode(st.encode(mine), mine, 4)
+    assert (back.node, back.epoch, back.k) == ("a", 7, 3) and np.array_equal(back.mean, st.mean)
+
+    def reason(data, key=mine, dim=4):
+        with pytest.raises(MessageError) as info:
+            Status.decode(data, key, dim)
+        return info.value.reason
+
+    assert reason(st.encode(FrameKey(key, "net", "run-2"))) == "unauthenticated"    # another run, same key
+    assert reason(st.encode(FrameKey(key, "other", "run-1"))) == "unauthenticated"  # another network
+    assert reason(st.encode(FrameKey(b"x" * 32, "net", "run-1"))) == "unauthenticated"
+    assert reason(st.encode(None)) == "unauthenticated"                              # no MAC
+    assert reason(st.encode(mine), None) == "unauthenticated"                       # a MAC but no key
+    assert reason(st.encode(mine), mine, 6) == "dimension"
+    assert reason(b"\x00" * 10) == "malformed" and reason(b"\x00" * (MAX_STATUS_BYTES + 1)) == "oversized"
+    old = msgpack.packb({"v": 1, "body": b"", "mac": None})
+    assert reason(old) == "version"
+    for bad in (Status("a", 0, "run", 3, 0.3, np.zeros(4), np.eye(4)),            # epoch 0
+                Status("a", 7, "dance", 3, 0.3),                                    # phase
+                Status("a", 7, "run", 3, float("nan"), np.zeros(4), np.eye(4)),     # time
+                Status("a", 7, "run", 3, 0.3, np.zeros(4), np.eye(4) + np.triu(np.ones((4, 4)), 1)),  # asymmetric
+                Status("a", 7, "run", 3, 0.3, np.full(4, np.inf), np.eye(4))):      # non-finite
+        assert reason(bad.encode(mine)) == "malformed", bad

@@ -323,3 +323,25 @@ def test_a_sigkilled_host_comes_back_with_all_its_nodes_and_the_network_reconver
     assert "processes: 2 host processes for 6 nodes (up to 3 per process)" in run_table(result)
     print(f"host1 (d, e, f) SIGKILLed at t={killed_at:.1f} s: back after {sup['host1']['back_after_s'][0]:.2f} s "
           f"wall; final gaps {max(v['final_gap'] for v in m['nodes'].values()):.1e}")
+
+
+def test_an_exit_seen_first_by_another_look_is_still_handled_and_restarted(tmp_path):
+    """The race behind a flaky five-kills run: a node dies between the launcher's exit check and
+    its look at what still runs (``_running``, ``_supervise`` call ``Popen.poll``, which reaps the
+    process and sets ``returncode``). The exit check used to skip a process whose returncode was
+    set, so that exit was never handled: no restart, and the run ended without the node's final
+    estimate. Here the process is reaped before the exit check runs."""
+    launcher = Launcher(RunOptions(scenario=str(scenario(tmp_path, 4.0)), run_dir=str(tmp_path / "run")))
+    p = launcher.procs["a"]
+    p.popen = subprocess.Popen([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"])
+    p.started = time.monotonic()
+    launcher.start = time.time()
+    p.popen.wait()                              # reaped by someone else's look: returncode is set
+    assert p.popen.returncode == -signal.SIGKILL
+    assert "a" in launcher._running()           # not handled yet: it still counts, so the run goes on
+    launcher._check_exits()
+    assert p.exit_codes == [-signal.SIGKILL] and p.restart_at is not None
+    assert launcher.events[-1]["reason"].startswith("killed by SIGKILL"), launcher.events
+    launcher._check_exits()                     # handled once only
+    assert p.exit_codes == [-signal.SIGKILL] and len(launcher.events) == 1
+    assert "a" in launcher._running()           # due to restart

@@ -197,7 +197,10 @@ def test_status_carries_the_policy_output_both_ways():
 
     out = ("camera", np.arange(4.0), np.diag([1.0, 2.0, 3.0, 4.0]))
     st = Status("cam", 7, "run", 3, 0.3, np.zeros(4), np.eye(4), output=out)
-    for back in (Status.decode(st.encode(b"key"), b"key"), Status.from_json(json.loads(json.dumps(st.to_json())))):
+    from dfusion.wire import FrameKey
+
+    key = FrameKey(b"k" * 16, "net", "run")
+    for back in (Status.decode(st.encode(key), key), Status.from_json(json.loads(json.dumps(st.to_json())))):
         assert back.output[0] == "camera"
         np.testing.assert_array_equal(back.output[1], out[1])
         np.testing.assert_array_equal(back.output[2], out[2])

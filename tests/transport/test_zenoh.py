@@ -221,6 +221,39 @@ def test_stranger_on_the_key_space_is_only_delivered_as_bytes(pair):
     assert d.t_sent != d.t_sent   # no attachment: NaN
 
 
+def test_a_check_drops_garbage_in_the_callback_before_the_queue(pair):
+    """With a node's cheap check registered (FusionNode.check_frame), garbage, forged and oversized
+    copies never reach the queue (so a flood cannot push genuine messages out of it) and are not
+    delivered: they are counted by reason; genuine messages pass."""
+    from dfusion.fusion import FusionNode
+    from dfusion.models import ConstantVelocity
+
+    a, b, (net, ea, _) = pair
+    key = b"k" * 32
+
+    def node(name, other, k=key):
+        return FusionNode(name, [other], ConstantVelocity(2, 0.1), window=20,
+                          prior=(0.0, [0.0] * 4, [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]),
+                          network_key=k, network=net, run="r")
+
+    na, nb, stranger = node("a", "b"), node("b", "a"), node("b", "a", b"x" * 32)
+    a.set_check("a", na.check_frame, max_bytes=1000)
+    with open_session(ZenohConfig(connect=[ea])) as z:
+        time.sleep(0.2)
+        for frame in [b"garbage"] * 5 + [stranger.message_to("a")] * 3 + [b"DF" + bytes(2000)]:
+            z.put(link_key(net, "b", "a"), frame)
+        b.send("b", "a", nb.message_to("a"), 0.0)
+        assert wait_for(lambda: a.pending("a") == 1 and sum(a._rejected["a"].values()) == 9)
+    counts, detail = a.take_rejections("a")
+    assert counts == {"malformed": 5, "unauthenticated": 3, "oversized": 1}, counts
+    assert a.take_rejections("a") == ({}, "")   # taken once
+    (d,) = a.receive("a")
+    assert na.receive(d.data) == 0 and na.stats.messages_received == 1   # the genuine one (no blocks yet)
+    na.count_rejections(counts, detail)
+    assert na.stats.rejections == counts and na.stats.rejected_on_arrival == na.stats.messages_rejected == 9
+    assert a.stats.total.delivered == 1
+
+
 @pytest.mark.parametrize("bad", ["", "a/b", "x*", "alive", "monitor", "has space"])
 def test_names_are_checked(bad):
     with pytest.raises(ValidationError):
