@@ -18,6 +18,7 @@ from dfusion.geometry import se2_between, se2_compose, se2_inverse
 from dfusion.maps import cast_rays
 from dfusion.geometry import wrap_angle
 from dfusion.maps.buildings import rooms
+from tests.helpers.rooms_world import drifting_odometry, wander_path
 
 LASER = LaserConfig.uniform(181, math.pi, 10.0)
 
@@ -27,24 +28,11 @@ def world():
     """A seeded rooms map, a robot path through it, noisy scans and drifting odometry."""
     g = rooms(12.0, 8.0, 3, 2, seed=3)
     rng = np.random.default_rng(0)
-    p = np.array([2.0, 2.0, 0.0])
-    path = [p.copy()]
-    while len(path) < 90:
-        look = cast_rays(g, p[None], [0.0, 0.5, -0.5], 10.0)[0]
-        if look[0] < 0.8:
-            p[2] = wrap_angle(p[2] + (0.5 if look[1] > look[2] else -0.5))
-        else:
-            p[2] = wrap_angle(p[2] + rng.normal(0, 0.05))
-            p[:2] += 0.15 * np.array([math.cos(p[2]), math.sin(p[2])])
-        path.append(p.copy())
-    path = np.array(path)
+    path = wander_path(g, 90, rng)
     assert g.is_free(path[:, :2]).all()
     scans = cast_rays(g, path, LASER.angles, LASER.max_range) + rng.normal(0, 0.02, (len(path), LASER.angles.size))
-    odo = [np.array([5.0, -3.0, 1.0])]  # odometry frame unrelated to the map frame
-    for k in range(1, len(path)):
-        d = se2_between(path[k - 1], path[k]) + rng.normal(0, [0.01, 0.005, 0.01])
-        odo.append(se2_compose(odo[-1], d))
-    return g, path, scans, np.array(odo)
+    odo = drifting_odometry(path, rng)  # odometry frame unrelated to the map frame
+    return g, path, scans, odo
 
 
 def _run(mcl, path, scans, odo, start=1, dt=0.1):
