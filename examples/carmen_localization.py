@@ -144,7 +144,8 @@ P0_SD = (0.1, 0.1, 0.05)
 #: occupancy-grid mapping options (grid_from_scans)
 MAP_SETTINGS: dict = {}
 #: MCL: particles, beams, Augmented-MCL rates (injection share on divergence alarms)
-MCL_SETTINGS = {"min_particles": 500, "max_particles": 5000, "max_beams": 60, "alpha_slow": 0.001, "alpha_fast": 0.1}
+MCL_SETTINGS = {"min_particles": 500, "max_particles": 5000, "max_beams": 120, "beam_selection": "valid",
+                "alpha_slow": 0.001, "alpha_fast": 0.1}
 #: divergence monitors (both localizers): NIS window, false-alarm rate of each test
 MONITOR_WINDOW = 10
 MONITOR_ALPHA = 1e-4
@@ -153,6 +154,8 @@ MONITOR_ALPHA = 1e-4
 MCL_RECOVERY_SAMPLER = "none"
 #: likelihood-field sensor model of MCL
 LIKELIHOOD_SETTINGS: dict = {}
+#: MCL's odometry motion noise: this factor times the simulated one (standard deviations)
+MCL_NOISE_FACTOR = 2.0
 #: ICP: point-to-line against the map's surface points
 ICP_SETTINGS = {"max_correspondence_distance": 0.5, "trim_fraction": 0.0, "tolerance": 1e-4, "max_iterations": 40,
                 "robust": "cauchy", "covariance": "hac"}
@@ -169,7 +172,7 @@ MATCH_COV_FLOOR_SD = (0.05, 0.05, 0.02)
 def settings() -> dict:
     """The settings of this family, as written to the JSON."""
     return {"skip_scans": SKIP_SCANS, "p0_sd": P0_SD, "map": MAP_SETTINGS, "mcl": MCL_SETTINGS,
-            "likelihood": LIKELIHOOD_SETTINGS, "mcl_recovery_sampler": MCL_RECOVERY_SAMPLER,
+            "likelihood": LIKELIHOOD_SETTINGS, "mcl_noise_factor": MCL_NOISE_FACTOR, "mcl_recovery_sampler": MCL_RECOVERY_SAMPLER,
             "monitor_window": MONITOR_WINDOW, "monitor_alpha": MONITOR_ALPHA, "icp": ICP_SETTINGS,
             "ekf_noise_factor": EKF_NOISE_FACTOR, "ekf_gate_probability": EKF_GATE_PROBABILITY,
             "match_cov_floor_sd": MATCH_COV_FLOOR_SD, "sm_seeds_from_mcl": SM_SEEDS_FROM_MCL}
@@ -220,9 +223,10 @@ def make_monitor(dof: int) -> LockoutDetector:
 def run_mcl(grid, laser, odom, ranges, times, loc_idx, x0, P0, seed, odom_noise) -> tuple[np.ndarray, np.ndarray, dict]:
     """MCL over the localization scans; estimates ``(L, 3)``, covariances ``(L, 3, 3)`` and counters."""
     k_s, k_r, k_rd = (odom_noise * a for a in ODOM_NOISE)
-    # MCL's (rot1, trans, rot2) model, about twice the simulated noise: a1 rot^2 -> rotation
-    # noise from rotation, a2 trans^2 -> from translation, a3 trans^2 -> translation scale
-    a1, a2, a3, a4 = (2 * k_r) ** 2, (2 * k_rd) ** 2, (2 * k_s) ** 2, 0.01
+    # MCL's (rot1, trans, rot2) model, MCL_NOISE_FACTOR times the simulated noise: a1 rot^2 ->
+    # rotation noise from rotation, a2 trans^2 -> from translation, a3 trans^2 -> translation scale
+    f = MCL_NOISE_FACTOR
+    a1, a2, a3, a4 = (f * k_r) ** 2, (f * k_rd) ** 2, (f * k_s) ** 2, 0.01
     mcl = MonteCarloLocalization(grid, laser, sensor=LikelihoodFieldModel(**LIKELIHOOD_SETTINGS),
                                  motion=OdometryMotionModel(a1, a2, a3, a4), rng=seed, monitor=make_monitor(1),
                                  recovery_sampler=MCL_RECOVERY_SAMPLER, **MCL_SETTINGS)

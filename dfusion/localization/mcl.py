@@ -224,6 +224,13 @@ class MonteCarloLocalization:
         Resample when ``N_eff < resample_threshold * N`` (1.0 = after every scan).
     max_beams : int
         Beams used per scan (evenly sub-sampled; ROS AMCL ``laser_max_beams``).
+    beam_selection : ``"all"`` or ``"valid"``
+        ``"all"`` (default, as AMCL): the ``max_beams`` are evenly spaced over all beams and
+        the ones without a usable reading (non-finite, below ``min_range``, at or beyond
+        ``max_range``) are then dropped. ``"valid"``: evenly spaced over the beams with a
+        usable reading, so that every scan contributes ``max_beams`` end points (or all it
+        has): in open areas, where most beams return nothing within range, ``"all"`` leaves
+        few end points exactly where the map is least complete.
     update_min_d, update_min_a : float
         Skip in-order scans until the odometry moved this far (m) or turned this much
         (rad) since the last integrated scan (ROS AMCL ``update_min_*``; 0 = never skip).
@@ -266,6 +273,7 @@ class MonteCarloLocalization:
         alpha_fast: float = 0.0,
         resample_threshold: float = 0.5,
         max_beams: int = 60,
+        beam_selection: Literal["all", "valid"] = "all",
         update_min_d: float = 0.0,
         update_min_a: float = 0.0,
         odom_window: float = 5.0,
@@ -319,6 +327,10 @@ class MonteCarloLocalization:
         self.last_beta = 1.0
         n = laser.angles.size
         self._beams = np.unique(np.round(np.linspace(0, n - 1, min(int(max_beams), n))).astype(int))
+        if beam_selection not in ("all", "valid"):
+            raise ValidationError(f"beam_selection must be 'all' or 'valid', got {beam_selection!r}")
+        self.beam_selection = beam_selection
+        self.max_beams = int(max_beams)
         self.update_min_d = float(update_min_d)
         self.update_min_a = float(update_min_a)
         self.odom_window = float(odom_window)
@@ -525,7 +537,12 @@ class MonteCarloLocalization:
                 logger.debug("late scan at %.3f s applied at its own time (filter time %.3f s)", t_eff, self._time)
         else:
             eval_poses = self._particles
-        b = self._beams
+        if self.beam_selection == "valid":
+            usable = np.flatnonzero(np.isfinite(z) & (z >= self.laser.min_range) & (z < self.laser.max_range))
+            b = usable[np.unique(np.round(np.linspace(0, usable.size - 1, min(self.max_beams, usable.size)))
+                                 .astype(int))] if usable.size else usable
+        else:
+            b = self._beams
         zb = z[b]
         ab = self.laser.angles[b]
         ok = np.isfinite(zb) & (zb >= self.laser.min_range)

@@ -9,7 +9,7 @@ import pytest
 from scipy.special import erfc
 from scipy.stats import chi2
 
-from dfusion.errors import NotInitializedError, OutsideWindowError, ShapeError, TimeError
+from dfusion.errors import NotInitializedError, OutsideWindowError, ShapeError, TimeError, ValidationError
 from dfusion.models import BeamErfcModel, LaserConfig, LikelihoodFieldModel, OdometryMotionModel
 from dfusion.localization import kld_sample_size, MonteCarloLocalization
 from dfusion.estimation import gaussian_summary
@@ -186,6 +186,77 @@ def test_likelihood_field_against_direct_computation(world):
             d = min(d, 2.0)
             total += math.log(0.9 * math.exp(-0.5 * (d / 0.2) ** 2) / (math.sqrt(2 * math.pi) * 0.2) + 0.1 / 10.0)
         assert ll[p] == pytest.approx(total, rel=1e-5, abs=1e-4)
+
+
+def test_likelihood_field_beam_skip_against_direct_computation(world):
+    """AMCL's beam skipping, written out here: per beam, the share of particles whose end
+    point lies within 0.5 m of the map's surface; beams at or below 0.3 are left out of
+    every particle's product, unless 90 % of the beams would be."""
+    g, path, _, _ = world
+    rng = np.random.default_rng(7)
+    true = path[30]
+    angles = LASER.angles[::6]
+    z = cast_rays(g, true[None], angles, 10.0)[0] + rng.normal(0, 0.01, angles.size)
+    sd = g.surface_distance_field()
+
+    def surface_distance(pose, ranges):
+        e = pose[:2] + ranges[:, None] * np.column_stack([np.cos(pose[2] + angles), np.sin(pose[2] + angles)])
+        i, j = g.world_to_cell(e)
+        inside = g.in_bounds(i, j)
+        return np.where(inside, sd[np.clip(i, 0, sd.shape[0] - 1), np.clip(j, 0, sd.shape[1] - 1)], 2.0)
+
+    # unmapped obstacles: some beams end half-way, more than 1 m from any mapped surface
+    occluded = np.flatnonzero(surface_distance(true, 0.5 * z) > 1.0)[:6]
+    assert occluded.size >= 3
+    z[occluded] *= 0.5
+    poses = true + rng.normal(0, [0.05, 0.05, 0.02], (200, 3))
+    plain = LikelihoodFieldModel()
+    plain.prepare(g, 10.0)
+    skip = LikelihoodFieldModel(beam_skip=True)
+    skip.prepare(g, 10.0)
+    lp = g.pose_to_grid(poses)
+    use = z < 10.0
+    near = np.array([surface_distance(p, z) <= 0.5 for p in poses])
+    keep = use & (near.mean(axis=0) > 0.3)
+    assert 0 < (use & ~keep).sum() < 0.9 * use.sum()
+    assert not keep[occluded].any()  # the occluded beams are among the skipped ones
+    ll, n = skip.log_likelihood(lp, z, angles)
+    ref, n_ref = plain.log_likelihood(lp, z[keep], angles[keep])
+    assert n == n_ref == keep.sum() and skip.skipped_beams == use.sum() - keep.sum()
+    np.testing.assert_allclose(ll, ref, rtol=1e-6)
+    # when at least beam_skip_error_threshold of the beams would be skipped, all are used
+    strict = LikelihoodFieldModel(beam_skip=True, beam_skip_error_threshold=0.5 * (use & ~keep).sum() / use.sum())
+    strict.prepare(g, 10.0)
+    ll_all, n_all = strict.log_likelihood(lp, z, angles)
+    assert n_all == use.sum() and strict.beam_skip_errors == 1 and skip.beam_skip_errors == 0
+    np.testing.assert_allclose(ll_all, plain.log_likelihood(lp, z, angles)[0], rtol=1e-6)
+
+
+def test_beam_selection_valid_spreads_the_budget_over_usable_beams(world):
+    """``beam_selection="valid"``: ``max_beams`` evenly spaced indices among the beams with a
+    reading below ``max_range`` (the others never reach the sensor model)."""
+    g, path, scans, odo = world
+    seen = {}
+    for mode in ("all", "valid"):
+        mcl = MonteCarloLocalization(g, LASER, max_particles=300, max_beams=20, beam_selection=mode, rng=0)
+        calls = []
+        orig = mcl.sensor.log_likelihood
+        mcl.sensor.log_likelihood = lambda lp, z, a, _o=orig, _c=calls: (_c.append(a.copy()), _o(lp, z, a))[1]
+        mcl.predict(0.0, odo[0])
+        mcl.initialize_gaussian(path[0], np.diag([0.05, 0.05, 0.02]) ** 2)
+        z = scans[1].copy()
+        z[::2] = np.inf  # every other beam: no return
+        z[100:] = LASER.max_range + 1.0  # and the left part beyond the range
+        mcl.predict(0.1, odo[1])
+        mcl.update(0.1, z)
+        seen[mode] = calls[0]
+    usable = np.flatnonzero(np.isfinite(z) & (z < LASER.max_range))
+    expect = usable[np.round(np.linspace(0, usable.size - 1, 20)).astype(int)]
+    np.testing.assert_array_equal(seen["valid"], LASER.angles[expect])
+    # of the evenly spaced beams most have no reading within range
+    assert np.isin(seen["all"], LASER.angles[usable]).sum() < 20 // 2
+    with pytest.raises(ValidationError):
+        MonteCarloLocalization(g, LASER, beam_selection="some")
 
 
 # ----------------------------------------------------------------------------------------
