@@ -283,11 +283,22 @@ def run_scan_matching(grid, angles, odom, ranges, times, loc_idx, x0, P0, odom_n
     return np.array(est), np.array(cov), stats
 
 
+def build_map(poses: np.ndarray, ranges: np.ndarray, angles: np.ndarray, resolution: float = 0.05,
+              map_range: float = 30.0):
+    """The occupancy grid of the even-numbered scans (step 1 of the protocol) and its build time (s)."""
+    t0 = time.perf_counter()
+    map_idx = np.arange(0, len(poses), 2)
+    grid = grid_from_scans(poses[map_idx], ranges[map_idx], angles, resolution=resolution, max_range=map_range,
+                           **MAP_SETTINGS)
+    return grid, time.perf_counter() - t0
+
+
 def run_log(log_path: Path | str | None, seed: int = 0, *, log=None, max_scans: int | None = None,
             resolution: float = 0.05, map_range: float = 30.0, laser_range: float = 30.0, odom_noise: float = 1.0,
-            keep_errors: bool = False, series: bool = True, keep_grid: bool = False) -> dict:
+            keep_errors: bool = False, series: bool = True, keep_grid: bool = False, grid=None) -> dict:
     """The protocol of the module docstring on one log (``log``: already read; default:
-    :func:`dfusion.datasets.read_carmen` of ``log_path`` in file order); the result dictionary."""
+    :func:`dfusion.datasets.read_carmen` of ``log_path`` in file order); the result dictionary.
+    ``grid``: the map from :func:`build_map` for these scans (it does not depend on the seed)."""
     t_wall = time.perf_counter()
     if log is None:
         log = read_carmen(log_path, sort=False)
@@ -295,11 +306,10 @@ def run_log(log_path: Path | str | None, seed: int = 0, *, log=None, max_scans: 
     times = np.arange(poses.shape[0], dtype=float)  # scan index as time stamp
     map_idx = np.arange(0, len(poses), 2)
     loc_idx = np.arange(1, len(poses), 2)
-
-    t0 = time.perf_counter()
-    grid = grid_from_scans(poses[map_idx], ranges[map_idx], angles, resolution=resolution, max_range=map_range,
-                           **MAP_SETTINGS)
-    t_map = time.perf_counter() - t0
+    if grid is None:
+        grid, t_map = build_map(poses, ranges, angles, resolution, map_range)
+    else:
+        t_map = 0.0
 
     rng = np.random.default_rng(seed)
     odom = noisy_odometry(poses, rng, odom_noise)
@@ -476,10 +486,19 @@ def print_all_table(results: list[dict], pool: dict, logs: list[dict] | None = N
     print("worst RMSE per localizer: " + ", ".join(f"{lab} {pool[k]['worst_rmse']:.3f} m" for k, lab in LOCALIZERS))
 
 
-def _run_one(job: tuple) -> dict:
-    path, seed, kw = job
-    logger.info("localizing %s, seed %d", Path(path).name, seed)
-    return run_log(path, seed, keep_errors=True, series=False, **kw)
+def _run_seeds(job: tuple) -> list[dict]:
+    """One log for every seed, the map built once."""
+    path, seeds, kw = job
+    log = read_carmen(path, sort=False)
+    poses, ranges, angles = log_scans(log, kw.get("max_scans"))
+    grid, t_map = build_map(poses, ranges, angles, kw.get("resolution", 0.05), kw.get("map_range", 30.0))
+    out = []
+    for seed in seeds:
+        logger.info("localizing %s, seed %d", Path(path).name, seed)
+        r = run_log(path, seed, log=log, keep_errors=True, series=False, grid=grid, **kw)
+        r["map"]["seconds"] = t_map
+        out.append(r)
+    return out
 
 
 def run_all(folder: Path, seeds: list[int], jobs: int = 1, **kw) -> dict:
@@ -488,13 +507,15 @@ def run_all(folder: Path, seeds: list[int], jobs: int = 1, **kw) -> dict:
                   if p.is_file() and (p.name.endswith(".log") or p.name.endswith(".log.gz")))
     if not logs:
         raise ValidationError(f"no CARMEN logs (*.log, *.log.gz) in {folder}")
-    work = [(p, s, kw) for p in logs for s in seeds]
+    # the largest logs first, so that the workers finish together
+    work = [(p, seeds, kw) for p in sorted(logs, key=lambda p: -p.stat().st_size)]
     t0 = time.perf_counter()
     if jobs > 1:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            results = list(pool.map(_run_one, work))
+            done = dict(zip([w[0] for w in work], pool.map(_run_seeds, work)))
     else:
-        results = [_run_one(w) for w in work]
+        done = {w[0]: _run_seeds(w) for w in work}
+    results = [r for p in logs for r in done[p]]
     pool_ = pooled(results)
     for r in results:
         r.pop("errors")
