@@ -52,7 +52,9 @@ sorting by them reorders the MIT log -- the scan index is the time):
    of laser displacement, and ``rot1`` is then an arbitrary angle whose noise would
    dominate.)
 4. **MCL** (:class:`~dfusion.localization.MonteCarloLocalization`, likelihood field,
-   KLD 500-5,000 particles, 60 beams, odometry motion model with
+   KLD 500-5,000 particles, 60 beams evenly spread over the beams with a reading below
+   ``--laser-range`` (``beam_selection="valid"``; ``docs/localization.md`` has why and
+   the numbers), odometry motion model with
    ``alpha = ((2 * 0.05)^2, (2 * 0.02)^2, (2 * 0.05)^2, 0.01)``, i.e. about twice the
    simulated noise) is started from the first localization scan's true pose with
    0.1 m / 0.05 rad uncertainty (pose tracking) and updated with every odometry pose and
@@ -64,7 +66,7 @@ sorting by them reorders the MIT log -- the scan index is the time):
    the map misses what the laser sees (the likelihood is low at the true pose too), and
    relocalizing there follows the map's errors -- measured with seeds 0 and 1: Freiburg
    RMSE 0.17 m without, 78-90 m with the local expanding search, 0.20-0.23 m with a
-   non-expanding one; Intel 0.07 m without, 0.12-0.14 m with (``docs/robots.md``).
+   non-expanding one; Intel 0.07 m without, 0.12-0.14 m with (``docs/localization.md``).
 5. **Scan matching + EKF**: :class:`~dfusion.localization.ScanMatchingEKF` --
    :class:`~dfusion.localization.OdometryEKF` (survey eq. 5-8) predicting with the
    odometry increments split into a turn and a move (noise 1.5 times the simulated one:
@@ -144,7 +146,7 @@ P0_SD = (0.1, 0.1, 0.05)
 #: occupancy-grid mapping options (grid_from_scans)
 MAP_SETTINGS: dict = {}
 #: MCL: particles, beams, Augmented-MCL rates (injection share on divergence alarms)
-MCL_SETTINGS = {"min_particles": 500, "max_particles": 5000, "max_beams": 120, "beam_selection": "valid",
+MCL_SETTINGS = {"min_particles": 500, "max_particles": 5000, "max_beams": 60, "beam_selection": "valid",
                 "alpha_slow": 0.001, "alpha_fast": 0.1}
 #: divergence monitors (both localizers): NIS window, false-alarm rate of each test
 MONITOR_WINDOW = 10

@@ -140,6 +140,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "MonteCarloLocalization",
     "kld_sample_size",
+    "heaviest_cluster",
 ]
 
 
@@ -224,6 +225,12 @@ class MonteCarloLocalization:
         Resample when ``N_eff < resample_threshold * N`` (1.0 = after every scan).
     max_beams : int
         Beams used per scan (evenly sub-sampled; ROS AMCL ``laser_max_beams``).
+    estimate_cluster : bool
+        :meth:`estimate` reports the mean of the heaviest cluster of connected KLD bins
+        (:func:`heaviest_cluster`, as ROS AMCL) instead of the mean of all particles, with
+        the second moment of *all* particles about it as covariance (the mean squared error
+        of that point under the whole posterior, so a second mode still shows). Default
+        ``False``: the mean of all particles.
     beam_selection : ``"all"`` or ``"valid"``
         ``"all"`` (default, as AMCL): the ``max_beams`` are evenly spaced over all beams and
         the ones without a usable reading (non-finite, below ``min_range``, at or beyond
@@ -274,6 +281,7 @@ class MonteCarloLocalization:
         resample_threshold: float = 0.5,
         max_beams: int = 60,
         beam_selection: Literal["all", "valid"] = "all",
+        estimate_cluster: bool = False,
         update_min_d: float = 0.0,
         update_min_a: float = 0.0,
         odom_window: float = 5.0,
@@ -330,6 +338,7 @@ class MonteCarloLocalization:
         if beam_selection not in ("all", "valid"):
             raise ValidationError(f"beam_selection must be 'all' or 'valid', got {beam_selection!r}")
         self.beam_selection = beam_selection
+        self.estimate_cluster = bool(estimate_cluster)
         self.max_beams = int(max_beams)
         self.update_min_d = float(update_min_d)
         self.update_min_a = float(update_min_a)
@@ -863,9 +872,76 @@ class MonteCarloLocalization:
             # particles injected by the recovery step have not been weighted by any scan
             # yet: they are hypotheses, not evidence, and are left out of the summary
             w = np.where(self._fresh, 0.0, w)
+        if self.estimate_cluster:
+            keep = heaviest_cluster(self._particles, w, self.kld_bins)
+            if not keep.all():
+                mean, _ = gaussian_summary(self._particles[keep], w[keep])
+                r = self._particles - mean
+                r[:, 2] = wrap_angle(r[:, 2])
+                wn = w / w.sum()
+                cov = (r * wn[:, None]).T @ r
+                cov = 0.5 * (cov + cov.T)
+                return Estimate("mcl", self._time, mean, cov, covariance_reliability(cov),
+                                n_particles=self._particles.shape[0], n_eff=self.n_eff)
         mean, cov = gaussian_summary(self._particles, w)
         return Estimate("mcl", self._time, mean, cov, covariance_reliability(cov),
                         n_particles=self._particles.shape[0], n_eff=self.n_eff)
+
+
+def heaviest_cluster(poses: ArrayLike, weights: ArrayLike, bins: ArrayLike) -> np.ndarray:
+    """Mask of the particles in the heaviest cluster of connected histogram bins.
+
+    Poses ``(N, 3)`` are binned on the grid ``bins = (dx, dy, dtheta)`` (the KLD bins;
+    headings wrap around); bins that touch (also diagonally: the 26 neighbours in
+    ``(x, y, theta)``) form one cluster (connected components); the cluster with the
+    largest total weight wins. This is how ROS AMCL chooses its pose estimate
+    (``pf_cluster_stats``: clusters of connected kd-tree leaves, the pose of the heaviest
+    one), so that a posterior with two modes (a corridor, a junction) is not summarized
+    by a point between them where no particle is.
+    """
+    from scipy.sparse import coo_matrix  # noqa: PLC0415
+    from scipy.sparse.csgraph import connected_components  # noqa: PLC0415
+
+    p = np.asarray(poses, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    bins = np.asarray(bins, dtype=float)
+    n_th = max(1, int(math.ceil(2.0 * math.pi / bins[2])))
+    b = np.floor(p / bins).astype(np.int64)
+    b[:, 2] %= n_th
+    uniq, inv = np.unique(b, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    k = uniq.shape[0]
+    if k == 1:
+        return np.ones(p.shape[0], dtype=bool)
+    lo = uniq[:, :2].min(axis=0) - 1
+    span = uniq[:, :2].max(axis=0) - lo + 2
+
+    def code(u: np.ndarray) -> np.ndarray:
+        return ((u[:, 0] - lo[0]) * span[1] + (u[:, 1] - lo[1])) * n_th + u[:, 2]
+
+    codes = code(uniq)
+    order = np.argsort(codes)
+    sorted_codes = codes[order]
+    rows, cols = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dt in (-1, 0, 1):
+                if dx == dy == dt == 0:
+                    continue
+                nb = uniq + np.array([dx, dy, dt])
+                nb[:, 2] %= n_th
+                c = code(nb)
+                pos = np.minimum(np.searchsorted(sorted_codes, c), k - 1)
+                hit = sorted_codes[pos] == c
+                rows.append(np.flatnonzero(hit))
+                cols.append(order[pos[hit]])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    graph = coo_matrix((np.ones(r.size), (r, c)), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    bin_w = np.bincount(inv, weights=w, minlength=k)
+    best = int(np.argmax(np.bincount(labels, weights=bin_w)))
+    return labels[inv] == best
 
 
 def _log_mean_exp(a: Array, w: Array | None = None) -> float:

@@ -12,6 +12,7 @@ from scipy.stats import chi2
 from dfusion.errors import NotInitializedError, OutsideWindowError, ShapeError, TimeError, ValidationError
 from dfusion.models import BeamErfcModel, LaserConfig, LikelihoodFieldModel, OdometryMotionModel
 from dfusion.localization import kld_sample_size, MonteCarloLocalization
+from dfusion.localization.mcl import heaviest_cluster
 from dfusion.estimation import gaussian_summary
 from dfusion.reliability import covariance_reliability
 from dfusion.geometry import se2_between, se2_compose, se2_inverse
@@ -257,6 +258,67 @@ def test_beam_selection_valid_spreads_the_budget_over_usable_beams(world):
     assert np.isin(seen["all"], LASER.angles[usable]).sum() < 20 // 2
     with pytest.raises(ValidationError):
         MonteCarloLocalization(g, LASER, beam_selection="some")
+
+
+def _clusters_brute_force(poses, w, bins):
+    """Connected bins by pairwise comparison and union-find (the reference)."""
+    n_th = math.ceil(2 * math.pi / bins[2])
+    b = np.floor(poses / bins).astype(int)
+    b[:, 2] %= n_th
+    keys = sorted({tuple(x) for x in b})
+    parent = list(range(len(keys)))
+
+    def find(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for i, u in enumerate(keys):
+        for j, v in enumerate(keys[:i]):
+            dth = abs(u[2] - v[2]) % n_th
+            if abs(u[0] - v[0]) <= 1 and abs(u[1] - v[1]) <= 1 and min(dth, n_th - dth) <= 1:
+                parent[find(i)] = find(j)
+    root = {k: find(i) for i, k in enumerate(keys)}
+    lab = np.array([root[tuple(x)] for x in b])
+    tot = {r: w[lab == r].sum() for r in set(lab)}
+    return lab == max(tot, key=tot.get)
+
+
+def test_heaviest_cluster_against_brute_force():
+    rng = np.random.default_rng(11)
+    bins = np.array([0.5, 0.5, math.radians(10.0)])
+    for trial in range(20):
+        k = rng.integers(1, 5)
+        centres = np.column_stack([rng.uniform(-3, 3, (k, 2)), rng.uniform(-math.pi, math.pi, k)])
+        p = np.concatenate([c + rng.normal(0, [0.3, 0.3, 0.1], (rng.integers(20, 200), 3)) for c in centres])
+        p[:, 2] = wrap_angle(p[:, 2])
+        w = rng.uniform(0.1, 1.0, p.shape[0])
+        np.testing.assert_array_equal(heaviest_cluster(p, w, bins), _clusters_brute_force(p, w, bins))
+
+
+def test_estimate_cluster_reports_the_heavier_mode(world):
+    g, path, _, odo = world
+    mcl = MonteCarloLocalization(g, LASER, max_particles=2000, rng=0, estimate_cluster=True)
+    plain = MonteCarloLocalization(g, LASER, max_particles=2000, rng=0)
+    rng = np.random.default_rng(3)
+    a = path[10] + rng.normal(0, [0.05, 0.05, 0.02], (600, 3))
+    b = path[10] + [2.0, 0.0, 0.0] + rng.normal(0, [0.05, 0.05, 0.02], (400, 3))
+    parts = np.vstack([a, b])
+    for m in (mcl, plain):
+        m.initialize_particles(parts, t=0.0)
+    e, e_all = mcl.estimate(), plain.estimate()
+    np.testing.assert_allclose(e.mean, gaussian_summary(a)[0], atol=1e-9)
+    np.testing.assert_allclose(e_all.mean, gaussian_summary(parts)[0], atol=1e-9)
+    # covariance: second moment of all particles about the reported mean
+    r = parts - e.mean
+    r[:, 2] = wrap_angle(r[:, 2])
+    np.testing.assert_allclose(e.cov, r.T @ r / parts.shape[0], atol=1e-12)
+    assert e.cov[0, 0] > e_all.cov[0, 0]  # the second mode still shows
+    # one mode: the plain Gaussian summary
+    for m in (mcl, plain):
+        m.initialize_particles(a, t=0.0)
+    np.testing.assert_allclose(mcl.estimate().mean, plain.estimate().mean, atol=1e-12)
+    np.testing.assert_allclose(mcl.estimate().cov, plain.estimate().cov, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------------------
