@@ -15,7 +15,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     )
     from dfusion.localization.landmark_ekf import LandmarkEKF
     from dfusion.localization.mcl import MonteCarloLocalization, kld_sample_size
-    from dfusion.localization.odometry_ekf import OdometryEKF
+    from dfusion.localization.odometry_ekf import OdometryEKF, ScanMatchingEKF, ScanMatchOutcome
     from dfusion.localization.radio_calibration import (
         MAP_SETTINGS_GRID,
         NOISE_MODELS,
@@ -60,6 +60,8 @@ __all__ = [
     "MonteCarloLocalization",
     "kld_sample_size",
     "OdometryEKF",
+    "ScanMatchingEKF",
+    "ScanMatchOutcome",
     "PathLossCalibration",
     "calibrate_path_loss",
     "calibrate_radio_map",
@@ -100,6 +102,8 @@ _WHERE = {
     "MonteCarloLocalization": ("dfusion.localization.mcl", 'MonteCarloLocalization'),
     "kld_sample_size": ("dfusion.localization.mcl", 'kld_sample_size'),
     "OdometryEKF": ("dfusion.localization.odometry_ekf", 'OdometryEKF'),
+    "ScanMatchingEKF": ("dfusion.localization.odometry_ekf", 'ScanMatchingEKF'),
+    "ScanMatchOutcome": ("dfusion.localization.odometry_ekf", 'ScanMatchOutcome'),
     "MAP_SETTINGS_GRID": ("dfusion.localization.radio_calibration", 'MAP_SETTINGS_GRID'),
     "NOISE_MODELS": ("dfusion.localization.radio_calibration", 'NOISE_MODELS'),
     "PathLossCalibration": ("dfusion.localization.radio_calibration", 'PathLossCalibration'),

@@ -41,6 +41,16 @@ Recovery: Augmented MCL (Thrun et al. table 8.3). ``w_slow`` and ``w_fast`` are
     particles survive long enough to lower the next averages), degrading tracking from 2 to
     about 10 cm; see ``docs/localization.md``.
 
+Lock-out detection and relocalization (``monitor=``; an addition): the predictive
+    likelihood per beam of each scan (the quantity Augmented MCL averages) is tested against
+    its running mean and variance over the accepted scans, one-sided at the monitor's gate
+    probability; its squared deficit is the NIS fed to an
+    :class:`~dfusion.estimation.innovation.LockoutDetector` (window and rejection-run
+    tests). On an alarm particles are injected into the prior of the current scan (share
+    ``max(1 - w_fast / w_slow, recovery_min_fraction)``), locally around the belief with an
+    expanding region or uniformly, kept only if they explain the scan better than the belief
+    (Bayes factor) and the next scan confirms it (:meth:`MonteCarloLocalization.relocalize`).
+
 Global localization: :meth:`MonteCarloLocalization.initialize_global` draws poses uniformly
     over the free cells with uniform headings (the uniform prior of the survey, sec. III).
 
@@ -90,10 +100,11 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.stats import norm
+from scipy.stats import chi2, norm
 
 from dfusion.errors import (
     NonFiniteError,
@@ -104,6 +115,7 @@ from dfusion.errors import (
     ValidationError,
 )
 from dfusion.estimation.estimate import Estimate
+from dfusion.estimation.innovation import DivergenceAlarm
 from dfusion.estimation.particle_filter import (
     effective_sample_size,
     gaussian_summary,
@@ -128,6 +140,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "MonteCarloLocalization",
     "kld_sample_size",
+    "heaviest_cluster",
 ]
 
 
@@ -212,6 +225,19 @@ class MonteCarloLocalization:
         Resample when ``N_eff < resample_threshold * N`` (1.0 = after every scan).
     max_beams : int
         Beams used per scan (evenly sub-sampled; ROS AMCL ``laser_max_beams``).
+    estimate_cluster : bool
+        :meth:`estimate` reports the mean of the heaviest cluster of connected KLD bins
+        (:func:`heaviest_cluster`, as ROS AMCL) instead of the mean of all particles, with
+        the second moment of *all* particles about it as covariance (the mean squared error
+        of that point under the whole posterior, so a second mode still shows). Default
+        ``False``: the mean of all particles.
+    beam_selection : ``"all"`` or ``"valid"``
+        ``"all"`` (default, as AMCL): the ``max_beams`` are evenly spaced over all beams and
+        the ones without a usable reading (non-finite, below ``min_range``, at or beyond
+        ``max_range``) are then dropped. ``"valid"``: evenly spaced over the beams with a
+        usable reading, so that every scan contributes ``max_beams`` end points (or all it
+        has): in open areas, where most beams return nothing within range, ``"all"`` leaves
+        few end points exactly where the map is least complete.
     update_min_d, update_min_a : float
         Skip in-order scans until the odometry moved this far (m) or turned this much
         (rad) since the last integrated scan (ROS AMCL ``update_min_*``; 0 = never skip).
@@ -225,6 +251,15 @@ class MonteCarloLocalization:
     max_scan_lead : float
         How far (s) a scan may be ahead of the newest odometry.
     rng : numpy Generator or seed
+    monitor : :class:`~dfusion.estimation.innovation.LockoutDetector` (1 dof), optional
+        Lock-out detection from the scan likelihood (:meth:`_likelihood_surprise`);
+        ``None`` (default): off. Then continuous Augmented-MCL injection (``alpha_slow``,
+        ``alpha_fast``) is replaced by injection on alarms only (:meth:`relocalize`).
+    recovery_sampler : ``"local"``, ``"uniform"`` or ``"none"``
+        Where relocalization draws particles on an alarm (``"none"``: detect and count only).
+    recovery_probability, recovery_min_fraction, recovery_expansion : float
+        Chi-square probability of the local search region, the smallest injected share,
+        and the variance factor of the region per further alarm (see :meth:`relocalize`).
     """
 
     def __init__(
@@ -245,6 +280,8 @@ class MonteCarloLocalization:
         alpha_fast: float = 0.0,
         resample_threshold: float = 0.5,
         max_beams: int = 60,
+        beam_selection: Literal["all", "valid"] = "all",
+        estimate_cluster: bool = False,
         update_min_d: float = 0.0,
         update_min_a: float = 0.0,
         odom_window: float = 5.0,
@@ -252,6 +289,11 @@ class MonteCarloLocalization:
         rng: np.random.Generator | int | None = None,
         ray_table: RayCastTable | None = None,
         ess_floor: float = 0.02,
+        monitor=None,
+        recovery_sampler: Literal["local", "uniform", "none"] = "local",
+        recovery_probability: float = 0.99,
+        recovery_min_fraction: float = 0.1,
+        recovery_expansion: float = 4.0,
     ) -> None:
         if not isinstance(grid, OccupancyGrid):
             raise ValidationError("grid must be an OccupancyGrid")
@@ -293,6 +335,11 @@ class MonteCarloLocalization:
         self.last_beta = 1.0
         n = laser.angles.size
         self._beams = np.unique(np.round(np.linspace(0, n - 1, min(int(max_beams), n))).astype(int))
+        if beam_selection not in ("all", "valid"):
+            raise ValidationError(f"beam_selection must be 'all' or 'valid', got {beam_selection!r}")
+        self.beam_selection = beam_selection
+        self.estimate_cluster = bool(estimate_cluster)
+        self.max_beams = int(max_beams)
         self.update_min_d = float(update_min_d)
         self.update_min_a = float(update_min_a)
         self.odom_window = float(odom_window)
@@ -308,8 +355,33 @@ class MonteCarloLocalization:
         self._log_w_slow: float | None = None
         self._log_w_fast: float | None = None
         self._fresh: np.ndarray | None = None  # particles injected since the last scan
+        # divergence monitoring and on-alarm relocalization (see relocalize)
+        self.monitor = monitor
+        if recovery_sampler not in ("local", "uniform", "none"):
+            raise ValidationError(f"recovery_sampler must be 'local', 'uniform' or 'none', got {recovery_sampler!r}")
+        if not (0.0 < recovery_probability < 1.0 and 0.0 <= recovery_min_fraction <= 1.0):
+            raise ValidationError("need 0 < recovery_probability < 1 and 0 <= recovery_min_fraction <= 1")
+        self.recovery_sampler = recovery_sampler
+        self.recovery_probability = float(recovery_probability)
+        self.recovery_min_fraction = float(recovery_min_fraction)
+        if not recovery_expansion >= 1.0:
+            raise ValidationError("recovery_expansion must be >= 1")
+        self.recovery_expansion = float(recovery_expansion)
+        self._chi2_recovery = float(chi2.ppf(self.recovery_probability, 3))
+        self._surprise_z = None if monitor is None else float(norm.ppf(monitor.gate_probability))
+        self._surprise_n = 0
+        self._surprise_mean = 0.0
+        self._surprise_var = 0.0
+        self._alarms_since_consistent = 0
+        self._anchor = None
+        self._shadow: tuple[Array, Array] | None = None
+        self._mean_range = 1.0
+        #: NIS of the latest in-order scan (monitoring only)
+        self.last_nis: float | None = None
         #: counters for diagnostics
-        self.stats = {"scans": 0, "late_scans": 0, "skipped_scans": 0, "resamples": 0, "injected": 0}
+        self.stats = {"scans": 0, "late_scans": 0, "skipped_scans": 0, "resamples": 0, "injected": 0,
+                      "gated": 0, "alarms": 0, "recoveries": 0,
+                      "recovery_failures": 0}
 
     # -- state access --------------------------------------------------------------------
     @property
@@ -461,6 +533,9 @@ class MonteCarloLocalization:
                     self.stats["skipped_scans"] += 1
                     return False
                 self._particles = self.motion.sample(self._particles, self._odom_at_time, o_t, self.rng)
+                if self._shadow is not None:
+                    sp, sw = self._shadow
+                    self._shadow = (self.motion.sample(sp, self._odom_at_time, o_t, self.rng), sw)
                 self._time, self._odom_at_time = t_eff, o_t
                 eval_poses = self._particles
             else:
@@ -471,7 +546,12 @@ class MonteCarloLocalization:
                 logger.debug("late scan at %.3f s applied at its own time (filter time %.3f s)", t_eff, self._time)
         else:
             eval_poses = self._particles
-        b = self._beams
+        if self.beam_selection == "valid":
+            usable = np.flatnonzero(np.isfinite(z) & (z >= self.laser.min_range) & (z < self.laser.max_range))
+            b = usable[np.unique(np.round(np.linspace(0, usable.size - 1, min(self.max_beams, usable.size)))
+                                 .astype(int))] if usable.size else usable
+        else:
+            b = self._beams
         zb = z[b]
         ab = self.laser.angles[b]
         ok = np.isfinite(zb) & (zb >= self.laser.min_range)
@@ -480,12 +560,186 @@ class MonteCarloLocalization:
             return False
         lp = laser_grid_poses(self.grid, eval_poses, self.laser.offset)
         ll, n_terms = self.sensor.log_likelihood(lp, zb, ab)
+        if self.monitor is not None and not late:
+            self._mean_range = float(np.mean(np.minimum(zb, self.laser.max_range)))
+            if self._shadow is not None:
+                ll = self._confirm_relocalization(ll, zb, ab)
+            alarm = self._likelihood_surprise(ll, n_terms)
+            if alarm is not None and self.recovery_sampler != "none":
+                ll = self.relocalize(ll, zb, ab, alarm.reason)
         self._apply_likelihood(ll, n_terms)
         if not late:
             self._last_update_odom = self._odom_at_time
         self.stats["scans"] += 1
         self.stats["late_scans"] += int(late)
         return True
+
+    # -- divergence monitoring and relocalization ----------------------------------------
+    def _capture_range(self) -> float:
+        """Distance (m) over which the sensor model tells poses apart: the likelihood field's
+        ``max_distance`` (end points farther from any obstacle all score alike), ``3 sigma``
+        for the erfc model."""
+        d = getattr(self.sensor, "max_distance", None)
+        return float(d) if d else 3.0 * float(getattr(self.sensor, "sigma", 0.1))
+
+    def _likelihood_surprise(self, ll: Array, n_terms: int):
+        r"""Test the scan's predictive likelihood against its usual level; the alarm or ``None``.
+
+        ``l_k = log sum_i w_i L_i^(1 / n)`` is the log of the predictive likelihood of the
+        scan per beam (the quantity Augmented MCL averages into ``w_slow`` and ``w_fast``;
+        ``n`` beams, prior weights ``w_i``). Its long-run mean ``m`` and variance ``s^2`` are
+        running averages over the *accepted* scans (rate ``max(alpha_slow, 1 / k)`` after
+        ``k`` of them). A locked-out belief -- no particle near the robot -- explains the
+        scan worse than usual, so the scan is *rejected* when
+
+            u_k = (l_k - m) / s < -z,      z = Phi^-1(P_G)
+
+        (one-sided test at level ``1 - P_G`` of the monitor's gate), and ``min(u_k, 0)^2``
+        is recorded as its NIS (1 degree of freedom; the one-sided square is stochastically
+        smaller than chi-square(1), so the window test stays conservative). The first
+        ``10`` scans only initialize ``m`` and ``s``.
+        """
+        w0 = self._weights if self._fresh is None else np.where(self._fresh, 0.0, self._weights)
+        ok = np.isfinite(ll)
+        if w0.sum() <= 0 or not ok.any() or n_terms < 1:
+            return None
+        per_beam = np.where(ok, ll, -np.inf) / n_terms
+        pm = float(np.max(per_beam))
+        lk = pm + math.log(float(w0 @ np.exp(per_beam - pm)) / float(w0.sum()))
+        n_seen = self._surprise_n
+        accepted = True
+        nis = 0.0
+        if n_seen >= 10 and self._surprise_var > 0:
+            u = (lk - self._surprise_mean) / math.sqrt(self._surprise_var)
+            nis = min(u, 0.0) ** 2
+            accepted = u >= -self._surprise_z
+        self.last_nis = nis
+        if accepted:
+            a = max(self.alpha_slow, 1.0 / (n_seen + 1))
+            d = lk - self._surprise_mean if n_seen else 0.0
+            self._surprise_mean = lk if n_seen == 0 else self._surprise_mean + a * d
+            self._surprise_var = (1.0 - a) * (self._surprise_var + a * d * d)
+            self._surprise_n += 1
+            self._alarms_since_consistent = 0
+        self.stats["gated"] += int(not accepted)
+        if n_seen < 10:
+            return None
+        alarm = self.monitor.record(nis, accepted)
+        if alarm is None and not accepted and self._alarms_since_consistent > 0:
+            # still rejected after a relocalization: widen the search at once
+            alarm = DivergenceAlarm("rejection_run", float(self.monitor.run), float(self.monitor.max_run))
+        if alarm is not None:
+            self.stats["alarms"] += 1
+        return alarm
+
+    def _confirm_relocalization(self, ll: Array, z: Array, angles: Array) -> Array:
+        """Keep the relocalized belief if it predicts this (next, independent) scan better
+        than the belief without the injection, else undo it; the log-likelihoods of the kept
+        particles."""
+        sp, sw = self._shadow
+        self._shadow = None
+        ll_s, _ = self.sensor.log_likelihood(laser_grid_poses(self.grid, sp, self.laser.offset), z, angles)
+        w0 = self._weights if self._fresh is None else np.where(self._fresh, 0.0, self._weights)
+        log_bf = _log_mean_exp(ll, w0) - _log_mean_exp(ll_s, sw)
+        if log_bf > 0.0:
+            self.stats["recoveries"] += 1
+            logger.info("MCL: relocalization confirmed by the next scan (log Bayes factor %.1f)", log_bf)
+            return ll
+        self.stats["recovery_failures"] += 1
+        logger.info("MCL: relocalization undone: the next scan prefers the belief without it (log Bayes factor %.1f)",
+                    log_bf)
+        self._particles, self._weights, self._fresh = sp, sw, None
+        return ll_s
+
+    def relocalize(self, ll: Array, z: Array, angles: Array, reason: str = "") -> Array:
+        r"""Inject particles into the prior of the current scan after a divergence alarm.
+
+        The injected share ``f`` is Augmented MCL's ``max(0, 1 - w_fast / w_slow)`` (Thrun et
+        al. 2005, table 8.3; the averages are tracked when ``alpha_slow, alpha_fast > 0``),
+        at least ``recovery_min_fraction``: an alarm always relocalizes. ``f N`` new poses
+        come from ``recovery_sampler``: ``local`` draws them from ``N(mu^-, chi2.ppf(p, 3)
+        4^a Sigma^-)``, the belief before the scan widened to its ``p =
+        recovery_probability`` region and its radius doubled for each of the ``a`` alarms
+        since the last accepted scan (an expanding search for a drift-type
+        lock-out; after a relocalization every further rejected scan raises the next
+        alarm at once);
+        ``uniform`` draws them uniformly over the free space (Thrun's choice; a kidnapped
+        robot). All attempts of one run of alarms search around the belief at its first
+        alarm (moved since by the odometry), so that repeated relocalizations cannot walk the
+        belief away step by step. The prior becomes the mixture
+        ``(1 - f) old + f new``: old particles keep their weights times ``1 - f``, the ``M``
+        new ones get ``f / M`` each, and all are then weighted by the *current* scan (``ll``
+        is extended with the new particles' log-likelihoods), so new particles that explain
+        the scan take over at once. The ``local`` region is capped at the capture range of
+        the sensor model (:meth:`_capture_range`: positions within it, headings within the
+        turn that moves an end point at the mean beam range that far), and the injection is
+        refused (counted in ``recovery_failures``) unless the new particles explain the scan
+        better than the belief: their average likelihood must exceed the belief's predictive
+        likelihood (a Bayes factor above 1 for "the robot is in the widened region" against
+        "the robot is where the belief says"). An injection is tentative: the belief without
+        it (weighted by this scan) is kept and moved with the odometry, and the next scan,
+        independent evidence, decides: the relocalization is kept only if it predicts that
+        scan better (Bayes factor; :meth:`_confirm_relocalization`; two scans must agree, as
+        for the scan-matching recovery). ``stats["recoveries"]`` counts the confirmed
+        relocalizations, ``stats["recovery_failures"]`` the refused and undone ones.
+
+        On real maps that miss part of what the laser sees, the likelihood test also fires
+        where the belief is right, and relocalizing then follows the map's errors (measured
+        on the CARMEN logs, ``docs/localization.md``): use it where lock-outs are the
+        bigger risk. Returns the extended ``ll`` (unchanged if refused).
+        """
+        N = self._particles.shape[0]
+        p_inj = 0.0
+        if self._log_w_slow is not None and (self.alpha_slow > 0 or self.alpha_fast > 0):
+            p_inj = max(0.0, 1.0 - math.exp(self._log_w_fast - self._log_w_slow))
+        f = min(max(p_inj, self.recovery_min_fraction), 1.0)
+        w0 = self._weights if self._fresh is None else np.where(self._fresh, 0.0, self._weights)
+        n_new = max(1, int(round(f * N)))
+        if self.recovery_sampler == "local":
+            if self._alarms_since_consistent == 0 or self._anchor is None:
+                mu, C = gaussian_summary(self._particles, w0)
+                self._anchor = (mu, 0.5 * (C + C.T), None if self._odom_at_time is None else self._odom_at_time.copy())
+            mu, C, o_a = self._anchor
+            if o_a is not None and self._odom_at_time is not None:
+                mu = se2_compose(mu, se2_between(o_a, self._odom_at_time))
+            C = self._chi2_recovery * self.recovery_expansion ** self._alarms_since_consistent * C
+            # no farther than the capture range of the sensor model
+            reach = self._capture_range()
+            lam, V = np.linalg.eigh(C)
+            cap = np.array([reach**2, reach**2, (reach / max(self._mean_range, 1e-3)) ** 2])
+            lam = np.minimum(np.maximum(lam, 1e-12), (V * V).T @ cap)  # v^T diag(cap) v per axis v
+            C = (V * lam) @ V.T
+            new = self.rng.multivariate_normal(mu, C, size=n_new, method="eigh")
+            new[:, 2] = wrap_angle(new[:, 2])
+            free = self.grid.is_free(new[:, :2])
+            new = new[free] if free.any() else new
+        else:
+            new = self.grid.sample_free_poses(n_new, self.rng)
+        self._alarms_since_consistent += 1
+        lp = laser_grid_poses(self.grid, new, self.laser.offset)
+        ll_new, n_terms = self.sensor.log_likelihood(lp, z, angles)
+        # Bayes factor of the injected component against the belief (log): the widened
+        # region must explain the scan better than the belief does, else nothing changes
+        log_bf = _log_mean_exp(ll_new) - _log_mean_exp(ll, w0)
+        if not log_bf > 0.0:
+            self.stats["recovery_failures"] += 1
+            logger.info("MCL: relocalization (%s) refused: the %d %s particles explain the scan worse than "
+                        "the belief (log Bayes factor %.1f)", reason, new.shape[0], self.recovery_sampler, log_bf)
+            return ll
+        M = new.shape[0]
+        # the belief without the injection, weighted by this scan, waits for the next scan
+        with np.errstate(divide="ignore"):
+            a = np.log(w0) + np.where(np.isfinite(ll), ll, -np.inf)
+        ws = np.exp(a - np.max(a))
+        self._shadow = (self._particles.copy(), ws / ws.sum())
+        self._particles = np.concatenate([self._particles, new])
+        self._weights = np.concatenate([(1.0 - f) * w0 / w0.sum(), np.full(M, f / M)])
+        self._fresh = None
+        self.monitor.reset()
+        self.stats["injected"] += M
+        logger.info("MCL: relocalization (%s): %d %s particles added to %d (prior share %.2f, log Bayes factor "
+                    "%.1f)", reason, M, self.recovery_sampler, N, f, log_bf)
+        return np.concatenate([ll, ll_new])
 
     def _skip(self, o_t: Array) -> bool:
         if self._last_update_odom is None or (self.update_min_d <= 0 and self.update_min_a <= 0):
@@ -551,7 +805,8 @@ class MonteCarloLocalization:
     def resample(self) -> None:
         """Resample now (KLD-adaptive or fixed size), with Augmented-MCL injection when enabled."""
         p_inject = 0.0
-        if self._log_w_slow is not None and (self.alpha_slow > 0 or self.alpha_fast > 0):
+        if self._log_w_slow is not None and (self.alpha_slow > 0 or self.alpha_fast > 0) and self.monitor is None:
+            # continuous Augmented MCL; with a monitor, particles are injected on alarms only
             p_inject = max(0.0, 1.0 - math.exp(self._log_w_fast - self._log_w_slow))
         rng = self.rng
         if self.adaptive:
@@ -617,9 +872,87 @@ class MonteCarloLocalization:
             # particles injected by the recovery step have not been weighted by any scan
             # yet: they are hypotheses, not evidence, and are left out of the summary
             w = np.where(self._fresh, 0.0, w)
+        if self.estimate_cluster:
+            keep = heaviest_cluster(self._particles, w, self.kld_bins)
+            if not keep.all():
+                mean, _ = gaussian_summary(self._particles[keep], w[keep])
+                r = self._particles - mean
+                r[:, 2] = wrap_angle(r[:, 2])
+                wn = w / w.sum()
+                cov = (r * wn[:, None]).T @ r
+                cov = 0.5 * (cov + cov.T)
+                return Estimate("mcl", self._time, mean, cov, covariance_reliability(cov),
+                                n_particles=self._particles.shape[0], n_eff=self.n_eff)
         mean, cov = gaussian_summary(self._particles, w)
         return Estimate("mcl", self._time, mean, cov, covariance_reliability(cov),
                         n_particles=self._particles.shape[0], n_eff=self.n_eff)
+
+
+def heaviest_cluster(poses: ArrayLike, weights: ArrayLike, bins: ArrayLike) -> np.ndarray:
+    """Mask of the particles in the heaviest cluster of connected histogram bins.
+
+    Poses ``(N, 3)`` are binned on the grid ``bins = (dx, dy, dtheta)`` (the KLD bins;
+    headings wrap around); bins that touch (also diagonally: the 26 neighbours in
+    ``(x, y, theta)``) form one cluster (connected components); the cluster with the
+    largest total weight wins. This is how ROS AMCL chooses its pose estimate
+    (``pf_cluster_stats``: clusters of connected kd-tree leaves, the pose of the heaviest
+    one), so that a posterior with two modes (a corridor, a junction) is not summarized
+    by a point between them where no particle is.
+    """
+    from scipy.sparse import coo_matrix  # noqa: PLC0415
+    from scipy.sparse.csgraph import connected_components  # noqa: PLC0415
+
+    p = np.asarray(poses, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    bins = np.asarray(bins, dtype=float)
+    n_th = max(1, int(math.ceil(2.0 * math.pi / bins[2])))
+    b = np.floor(p / bins).astype(np.int64)
+    b[:, 2] %= n_th
+    uniq, inv = np.unique(b, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    k = uniq.shape[0]
+    if k == 1:
+        return np.ones(p.shape[0], dtype=bool)
+    lo = uniq[:, :2].min(axis=0) - 1
+    span = uniq[:, :2].max(axis=0) - lo + 2
+
+    def code(u: np.ndarray) -> np.ndarray:
+        return ((u[:, 0] - lo[0]) * span[1] + (u[:, 1] - lo[1])) * n_th + u[:, 2]
+
+    codes = code(uniq)
+    order = np.argsort(codes)
+    sorted_codes = codes[order]
+    rows, cols = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dt in (-1, 0, 1):
+                if dx == dy == dt == 0:
+                    continue
+                nb = uniq + np.array([dx, dy, dt])
+                nb[:, 2] %= n_th
+                c = code(nb)
+                pos = np.minimum(np.searchsorted(sorted_codes, c), k - 1)
+                hit = sorted_codes[pos] == c
+                rows.append(np.flatnonzero(hit))
+                cols.append(order[pos[hit]])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    graph = coo_matrix((np.ones(r.size), (r, c)), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    bin_w = np.bincount(inv, weights=w, minlength=k)
+    best = int(np.argmax(np.bincount(labels, weights=bin_w)))
+    return labels[inv] == best
+
+
+def _log_mean_exp(a: Array, w: Array | None = None) -> float:
+    """``log(sum_i w_i exp(a_i) / sum_i w_i)`` (``w`` = 1 by default), ignoring non-finite ``a``."""
+    a = np.asarray(a, dtype=float)
+    w = np.ones_like(a) if w is None else np.asarray(w, dtype=float)
+    ok = np.isfinite(a) & (w > 0)
+    if not ok.any():
+        return -math.inf
+    m = float(np.max(a[ok]))
+    return m + math.log(float(w[ok] @ np.exp(a[ok] - m)) / float(w[ok].sum()))
 
 
 def _log_ema(log_old: float, log_new: float, alpha: float) -> float:

@@ -49,6 +49,7 @@ propagates the measurement noise through the minimizer; it is not implemented he
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -63,7 +64,17 @@ from dfusion.linalg import Array, as_vector
 from dfusion.maps.nearest import NearestPointGrid
 from dfusion.reliability import covariance_reliability
 
-__all__ = ["ICPResult", "ScanMatcher", "icp", "scan_to_points", "estimate_normals"]
+__all__ = [
+    "ICPResult",
+    "ScanMatcher",
+    "icp",
+    "scan_to_points",
+    "estimate_normals",
+    "robust_weights",
+    "icp_covariance",
+    "hac_bandwidth",
+    "ROBUST_TUNING",
+]
 
 
 def scan_to_points(
@@ -98,6 +109,134 @@ def estimate_normals(points: Array, tree: cKDTree | None = None, k: int = 7) -> 
     return np.column_stack([-np.sin(phi), np.cos(phi)])
 
 
+#: Tuning constants ``c`` of the M-estimators for 95 % asymptotic efficiency at the normal
+#: distribution (Huber 1981; Holland & Welsch, "Robust regression using iteratively
+#: reweighted least-squares", Commun. Stat. A 6(9), 1977).
+ROBUST_TUNING = {"huber": 1.345, "cauchy": 2.3849, "tukey": 4.6851}
+
+
+def robust_weights(residuals: ArrayLike, kernel: str, scale: float) -> Array:
+    r"""IRLS weights ``w(u) = psi(u) / u`` of an M-estimator, ``u = |r| / (c scale)``.
+
+    ``huber``: ``w = min(1, 1 / u)``; ``cauchy``: ``w = 1 / (1 + u^2)``; ``tukey``
+    (biweight): ``w = (1 - u^2)^2`` for ``u < 1``, else 0. ``c`` from :data:`ROBUST_TUNING`.
+    Each IRLS step solves the weighted least-squares problem with these weights, which
+    decreases the robust cost ``sum rho(r_i / scale)`` (Holland & Welsch 1977).
+    """
+    if kernel not in ROBUST_TUNING:
+        raise ValidationError(f"unknown robust kernel {kernel!r}")
+    u = np.abs(np.asarray(residuals, dtype=float)) / (ROBUST_TUNING[kernel] * float(scale))
+    if kernel == "huber":
+        return 1.0 / np.maximum(u, 1.0)
+    if kernel == "cauchy":
+        return 1.0 / (1.0 + u * u)
+    return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+
+
+def hac_bandwidth(scores: Array) -> int:
+    r"""Bartlett-kernel bandwidth of Andrews (1991, Econometrica 59(3), eq. 6.4, AR(1) plug-in).
+
+    For each column ``a`` of ``scores`` (a sequence in beam order) the lag-1
+    autocorrelation ``rho_a`` is estimated; with the columns standardized,
+    ``alpha = sum_a 4 rho_a^2 / ((1 - rho_a)^6 (1 + rho_a)^2) / sum_a (1 - rho_a)^-4`` and the
+    bandwidth is ``L = ceil(1.1447 (alpha n)^(1/3))``, at most ``n - 1``.
+    """
+    g = np.asarray(scores, dtype=float)
+    n = g.shape[0]
+    if n < 3:
+        return 0
+    num = den = 0.0
+    for a in range(g.shape[1]):
+        x = g[:, a] - g[:, a].mean()
+        v = float(x @ x)
+        if v <= 0.0:
+            continue
+        rho = float(np.clip(x[1:] @ x[:-1] / v, -0.97, 0.97))
+        num += 4.0 * rho * rho / ((1.0 - rho) ** 6 * (1.0 + rho) ** 2)
+        den += 1.0 / (1.0 - rho) ** 4
+    if den == 0.0:
+        return 0
+    return int(min(n - 1, math.ceil(1.1447 * (num / den * n) ** (1.0 / 3.0))))
+
+
+def icp_covariance(
+    J: ArrayLike,
+    r: ArrayLike,
+    w: ArrayLike | None = None,
+    method: Literal["hessian", "sandwich", "hac"] = "hessian",
+    *,
+    point_index: ArrayLike | None = None,
+    min_variance: float = 1e-8,
+) -> Array:
+    r"""Covariance of a (weighted) least-squares pose from its residuals ``r`` and Jacobian ``J``.
+
+    With ``W = diag(w)`` (IRLS weights, 1 without a robust kernel), ``H = J^T W J`` and
+    ``m`` residual rows:
+
+    ``hessian``
+        ``s^2 H^-1`` with ``s^2 = sum w r^2 / (m - 3)`` (Bengtsson & Baerveldt 2003; the
+        module docstring): residuals independent with equal variance.
+    ``sandwich``
+        ``H^-1 M H^-1 m / (m - 3)``, ``M = sum_i g_i g_i^T``, ``g_i = w_i r_i J_i^T`` summed
+        over the rows of scan point ``i`` (the heteroscedasticity-consistent covariance of
+        an M-estimator; Huber 1967, White 1980): residuals independent, variance free.
+    ``hac``
+        As ``sandwich`` with ``M = Gamma_0 + sum_{l=1}^{L} (1 - l / (L + 1)) (Gamma_l +
+        Gamma_l^T)``, ``Gamma_l = sum_i g_i g_{i-l}^T`` over the scan points in beam order
+        (outliers count as zero scores), Bartlett kernel and the bandwidth ``L`` of
+        :func:`hac_bandwidth` (Newey & West, Econometrica 55(3), 1987; Andrews 1991).
+        Neighbouring beams hit the same wall, and a wall drawn a little off in the map
+        shifts all their residuals alike; the Hessian and the plain sandwich treat them as
+        independent evidence and are then too confident.
+
+    Directions that the scan does not constrain (eigenvalue of ``H`` below ``1e-12`` of
+    the largest, e.g. along a featureless corridor) get the variance ``s^2 / (1e-12
+    lambda_max)``, effectively infinite. ``point_index`` (``(m,)``, non-decreasing) names
+    the scan point of each row; default one row per point.
+    """
+    J = np.asarray(J, dtype=float)
+    r = np.asarray(r, dtype=float).reshape(-1)
+    m = r.size
+    w = np.ones(m) if w is None else np.asarray(w, dtype=float).reshape(-1)
+    if J.shape != (m, 3) or w.shape != (m,):
+        raise ShapeError("J must be (m, 3) and w (m,) for m residuals")
+    if method not in ("hessian", "sandwich", "hac"):
+        raise ValidationError(f"unknown covariance estimate {method!r}")
+    dof = max(m - 3, 1)
+    s2 = max(float(w @ (r * r)) / dof, min_variance)
+    lam, V = np.linalg.eigh((J * w[:, None]).T @ J)
+    lam_max = max(float(lam[-1]), 1e-300)
+    weak = lam < 1e-12 * lam_max
+    lam = np.maximum(lam, 1e-12 * lam_max)
+    if method == "hessian":
+        cov = s2 * (V / lam) @ V.T
+        return 0.5 * (cov + cov.T)
+    g_rows = J * (w * r)[:, None]
+    if point_index is None:
+        G = g_rows
+    else:
+        pi = np.asarray(point_index, dtype=np.int64).reshape(-1)
+        G = np.zeros((int(pi.max()) + 1 if m else 0, 3))
+        np.add.at(G, pi, g_rows)
+    M = G.T @ G
+    if method == "hac":
+        used = np.flatnonzero(np.any(G != 0.0, axis=1))
+        L = hac_bandwidth(G[used]) if used.size else 0
+        for lag in range(1, L + 1):
+            Gl = G[lag:].T @ G[:-lag]
+            M += (1.0 - lag / (L + 1.0)) * (Gl + Gl.T)
+    M *= m / dof
+    Hinv = (V / lam) @ V.T
+    cov = Hinv @ M @ Hinv
+    if weak.any():  # unconstrained directions: as the Hessian estimate (effectively infinite)
+        Vw = V[:, weak]
+        cov = cov + s2 * (Vw / lam[weak]) @ Vw.T
+    cov = 0.5 * (cov + cov.T)
+    # floor at the residual-variance floor in every direction (a perfect fit has M = 0)
+    floor = min_variance * Hinv
+    return cov + floor
+
+
 @dataclass(frozen=True)
 class ICPResult:
     """Outcome of :meth:`ScanMatcher.match`.
@@ -116,6 +255,11 @@ class ICPResult:
         Which scan points were used in the last iteration.
     reliability : float
         ``1 / (E + 1)``, ``E = sqrt(c_xx + c_yy)``.
+    scale : float
+        Robust residual scale ``1.4826 MAD`` of the last iteration's inlier residuals (m;
+        floored at ``robust_scale_floor``); ``nan`` without a robust kernel.
+    n_points : int
+        Number of scan points given (``inlier_fraction = n_inliers / n_points``).
     """
 
     pose: Array
@@ -126,6 +270,13 @@ class ICPResult:
     converged: bool
     inliers: np.ndarray
     reliability: float
+    scale: float = float("nan")
+    n_points: int = 0
+
+    @property
+    def inlier_fraction(self) -> float:
+        """Fraction of the scan points with an inlier correspondence at the solution."""
+        return self.n_inliers / self.n_points if self.n_points else 0.0
 
 
 
@@ -152,6 +303,14 @@ class ScanMatcher:
         Neighbours used for the reference normals (point-to-line).
     min_variance : float
         Floor of the residual variance used in the covariance (m^2).
+    robust : ``"none"``, ``"huber"``, ``"cauchy"`` or ``"tukey"``
+        M-estimator kernel of the iteratively reweighted least squares (see
+        :func:`robust_weights`); ``"none"`` (default) is plain least squares.
+    robust_scale_floor : float
+        Lower bound (m) of the robust residual scale ``1.4826 MAD``.
+    covariance : ``"hessian"``, ``"sandwich"`` or ``"hac"``
+        Covariance estimate of the match (see :func:`icp_covariance`); default
+        ``"hessian"`` (the module docstring).
     """
 
     def __init__(
@@ -166,6 +325,9 @@ class ScanMatcher:
         normal_neighbors: int = 7,
         min_variance: float = 1e-8,
         trim_keep_factor: float = 3.0,
+        robust: Literal["none", "huber", "cauchy", "tukey"] = "none",
+        robust_scale_floor: float = 0.01,
+        covariance: Literal["hessian", "sandwich", "hac"] = "hessian",
         lookup: NearestPointGrid | None = None,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
@@ -185,6 +347,15 @@ class ScanMatcher:
         self.trim_fraction = float(trim_fraction)
         self.trim_keep_factor = float(trim_keep_factor)
         self.min_variance = float(min_variance)
+        if robust not in ROBUST_TUNING and robust != "none":
+            raise ValidationError(f"unknown robust kernel {robust!r}")
+        if covariance not in ("hessian", "sandwich", "hac"):
+            raise ValidationError(f"unknown covariance estimate {covariance!r}")
+        if not robust_scale_floor > 0:
+            raise ValidationError("robust_scale_floor must be positive")
+        self.robust = robust
+        self.robust_scale_floor = float(robust_scale_floor)
+        self.covariance = covariance
         self.tree = cKDTree(ref)
         #: Grid lookup replacing the KD-tree search (:meth:`from_grid` with ``nearest="grid"``).
         self.lookup = lookup
@@ -242,6 +413,49 @@ class ScanMatcher:
         return cls(pts, method, lookup=lookup, **kw)
 
     # -- matching ------------------------------------------------------------------------
+    def replace(self, **changes) -> "ScanMatcher":
+        """A copy sharing the reference, KD-tree, normals and lookup table, with other
+        matching options (e.g. a wider ``max_correspondence_distance``)."""
+        allowed = {"max_iterations", "tolerance", "max_correspondence_distance", "trim_fraction",
+                   "trim_keep_factor", "robust", "robust_scale_floor", "covariance", "min_variance"}
+        bad = set(changes) - allowed
+        if bad:
+            raise ValidationError(f"cannot replace {sorted(bad)}")
+        out = copy.copy(self)
+        for k, v in changes.items():
+            setattr(out, k, v)
+        if out.robust != "none" and out.robust not in ROBUST_TUNING:
+            raise ValidationError(f"unknown robust kernel {out.robust!r}")
+        return out
+
+    def robust_cost(self, scan_points: ArrayLike, pose: ArrayLike, scale: float, kernel: str = "cauchy") -> float:
+        r"""``sum_i rho(r_i / (c scale))`` of the scan at ``pose`` (lower is a better fit).
+
+        ``r_i`` is the point-to-line (point-to-point) residual to the nearest reference
+        point; points with no reference point within ``max_correspondence_distance`` count
+        as that far. ``rho(u) = log(1 + u^2)`` (``cauchy``: minus the log-density of a
+        Cauchy residual up to a constant, so differences are log-likelihood ratios),
+        ``u^2 / 2`` clipped at 1 (``huber``/``tukey``: a truncated quadratic). Used to
+        compare the poses of one scan, e.g. the candidates of a widened search.
+        """
+        p = np.asarray(scan_points, dtype=float)
+        x = as_vector(pose, 3, "pose")
+        q = p @ rotation(x[2]).T + x[:2]
+        ub = np.inf if self.max_correspondence_distance is None else self.max_correspondence_distance
+        dist, idx = self._nearest(q, ub)
+        ok = np.isfinite(dist)
+        a = np.full(p.shape[0], ub if math.isfinite(ub) else 1e3)
+        if ok.any():
+            i = idx[ok]
+            if self.method == "point_to_line":
+                a[ok] = np.abs(np.einsum("ij,ij->i", q[ok] - self.reference[i], self.normals[i]))
+            else:
+                a[ok] = dist[ok]
+        u = a / (ROBUST_TUNING.get(kernel, ROBUST_TUNING["cauchy"]) * float(scale))
+        if kernel == "cauchy":
+            return float(np.sum(np.log1p(u * u)))
+        return float(np.sum(np.minimum(0.5 * u * u, 1.0)))
+
     def _nearest(self, q: Array, ub: float) -> tuple[np.ndarray, np.ndarray]:
         """Nearest reference point (distance, index; inf / M beyond ``ub``)."""
         if self.lookup is None:
@@ -271,7 +485,7 @@ class ScanMatcher:
         return idx, np.where(ok, res, np.inf), ok
 
     def match(self, scan_points: ArrayLike, initial_pose: ArrayLike = (0.0, 0.0, 0.0)) -> ICPResult:
-        """Align ``scan_points`` ``(K, 2)`` (laser frame) starting from ``initial_pose``."""
+        """Align ``scan_points`` ``(K, 2)`` (laser frame, in beam order) starting from ``initial_pose``."""
         p = np.asarray(scan_points, dtype=float)
         if p.ndim != 2 or p.shape[1] != 2:
             raise ShapeError(f"scan points must be (K, 2), got {p.shape}")
@@ -281,6 +495,9 @@ class ScanMatcher:
         converged = False
         it = 0
         ok = np.zeros(p.shape[0], dtype=bool)
+        robust = self.robust != "none"
+        wk = None
+        scale = float("nan")
         for it in range(1, self.max_iterations + 1):
             R = rotation(x[2])
             rp = p @ R.T
@@ -288,10 +505,12 @@ class ScanMatcher:
             idx, _, ok = self._correspond(q)
             if ok.sum() < 3:
                 raise ValidationError("ICP lost track: fewer than 3 correspondences")
+            if robust:
+                wk, scale = self._robust_weights(q[ok], self.reference[idx[ok]], None if self.normals is None else self.normals[idx[ok]])
             if self.method == "point_to_point":
-                new = self._solve_point_to_point(p[ok], self.reference[idx[ok]])
+                new = self._solve_point_to_point(p[ok], self.reference[idx[ok]], wk)
             else:
-                new = self._step_point_to_line(x, rp[ok], q[ok], self.reference[idx[ok]], self.normals[idx[ok]])
+                new = self._step_point_to_line(x, rp[ok], q[ok], self.reference[idx[ok]], self.normals[idx[ok]], wk)
             dt = math.hypot(new[0] - x[0], new[1] - x[1])
             dr = abs(float(wrap_angle(new[2] - x[2])))
             x = new
@@ -303,35 +522,48 @@ class ScanMatcher:
         R = rotation(x[2])
         rp = p @ R.T
         q = rp + x[:2]
-        J, r = self._jacobian(rp[ok], q[ok], self.reference[idx[ok]], None if self.normals is None else self.normals[idx[ok]])
-        m = r.size
-        s2 = max(float(r @ r) / max(m - 3, 1), self.min_variance)
-        # (J^T J)^-1 through its eigen-decomposition: directions the scan does not
-        # constrain (eigenvalue ~ 0, e.g. along a featureless corridor) get a huge variance
-        # instead of an error or, as a pseudo-inverse would give, zero
-        w, V = np.linalg.eigh(J.T @ J)
-        w = np.maximum(w, max(float(w[-1]), 1e-300) * 1e-12)
-        cov = s2 * (V / w) @ V.T
-        cov = 0.5 * (cov + cov.T)
-        rmse = math.sqrt(float(np.mean(r**2) * (2 if self.method == "point_to_point" else 1)))
-        return ICPResult(x, cov, rmse, int(ok.sum()), it, converged, ok, covariance_reliability(cov))
+        nrm = None if self.normals is None else self.normals[idx[ok]]
+        if robust:
+            wk, scale = self._robust_weights(q[ok], self.reference[idx[ok]], nrm)
+        J, r = self._jacobian(rp[ok], q[ok], self.reference[idx[ok]], nrm)
+        rows_per_point = 2 if self.method == "point_to_point" else 1
+        w_rows = None if wk is None else np.repeat(wk, rows_per_point)
+        point_of_row = np.repeat(np.flatnonzero(ok), rows_per_point)
+        cov = icp_covariance(J, r, w_rows, self.covariance, point_index=point_of_row, min_variance=self.min_variance)
+        rmse = math.sqrt(float(np.mean(r**2) * rows_per_point))
+        return ICPResult(x, cov, rmse, int(ok.sum()), it, converged, ok, covariance_reliability(cov), scale, int(p.shape[0]))
+
+    def _robust_weights(self, q: Array, ref: Array, n: Array | None) -> tuple[Array, float]:
+        """IRLS weights of the current correspondences and the robust scale used."""
+        if n is not None:
+            a = np.abs(np.einsum("ij,ij->i", q - ref, n))
+        else:
+            a = np.linalg.norm(q - ref, axis=1)
+        scale = max(1.4826 * float(np.median(a)), self.robust_scale_floor)
+        return robust_weights(a, self.robust, scale), scale
 
     @staticmethod
-    def _solve_point_to_point(p: Array, q: Array) -> Array:
-        """Closed-form rigid transform minimizing ``sum |R p + t - q|^2`` (Arun et al.)."""
-        mp, mq = p.mean(axis=0), q.mean(axis=0)
-        S = (p - mp).T @ (q - mq)
+    def _solve_point_to_point(p: Array, q: Array, w: Array | None = None) -> Array:
+        """Closed-form rigid transform minimizing ``sum w |R p + t - q|^2`` (Arun et al.)."""
+        if w is None:
+            mp, mq = p.mean(axis=0), q.mean(axis=0)
+            S = (p - mp).T @ (q - mq)
+        else:
+            ws = w / max(float(w.sum()), 1e-300)
+            mp, mq = ws @ p, ws @ q
+            S = ((p - mp) * ws[:, None]).T @ (q - mq)
         theta = math.atan2(S[0, 1] - S[1, 0], S[0, 0] + S[1, 1])
         t = mq - rotation(theta) @ mp
         return np.array([t[0], t[1], theta])
 
     @staticmethod
-    def _step_point_to_line(x: Array, rp: Array, q: Array, ref: Array, n: Array) -> Array:
-        """One Gauss-Newton step of the point-to-line cost."""
+    def _step_point_to_line(x: Array, rp: Array, q: Array, ref: Array, n: Array, w: Array | None = None) -> Array:
+        """One (weighted) Gauss-Newton step of the point-to-line cost."""
         r = np.einsum("ij,ij->i", q - ref, n)
         J = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * rp[:, 0] - n[:, 0] * rp[:, 1]])
-        H = J.T @ J
-        g = J.T @ r
+        Jw = J if w is None else J * w[:, None]
+        H = Jw.T @ J
+        g = Jw.T @ r
         try:
             dx = -np.linalg.solve(H + 1e-12 * np.eye(3), g)
         except np.linalg.LinAlgError:

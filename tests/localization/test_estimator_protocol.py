@@ -12,13 +12,15 @@ from dfusion.localization import (
     LandmarkEKF,
     MonteCarloLocalization,
     OdometryEKF,
+    ScanMatcher,
+    ScanMatchingEKF,
     WSNTracker,
 )
 from dfusion.maps.buildings import rooms
 from dfusion.models import ConstantVelocity, LaserConfig, PinholeCamera, RSSISensor, Unicycle
 from dfusion.models.odometry import VelocityOdometry
 
-CLASSES = (MonteCarloLocalization, OdometryEKF, LandmarkEKF, EnvironmentCameraLocalizer, WSNTracker)
+CLASSES = (MonteCarloLocalization, OdometryEKF, ScanMatchingEKF, LandmarkEKF, EnvironmentCameraLocalizer, WSNTracker)
 
 
 @pytest.mark.parametrize("cls", CLASSES, ids=lambda c: c.__name__)
@@ -43,7 +45,9 @@ def _instances():
     wsn = WSNTracker(RSSISensor([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]], -45.0, 2.0, 4.0), 200, seed=0,
                      motion="constant_velocity", q=ConstantVelocity(2, 0.1).q)
     wsn.initialize(mean=[1.0, 1.0], cov=np.eye(2), t=0.0)
-    return [mcl, odo, lm, cam, wsn]
+    sm = ScanMatchingEKF(ScanMatcher.from_grid(grid), OdometryEKF([3.0, 3.0, 0.0], np.eye(3) * 0.01))
+    sm.predict(0.1, ([0.0, 0.0, 0.0], [0.1, 0.0, 0.0]))
+    return [mcl, odo, sm, lm, cam, wsn]
 
 
 def test_instances_are_estimators_and_report_estimates():

@@ -1,4 +1,4 @@
-"""ICP scan matching (both metrics, trimming, covariance) and the odometry +
+"""ICP scan matching (both metrics, trimming, robust kernels, covariance estimates) and the odometry +
 scan-matching EKF (survey eq. 5-8) against filterpy driven directly."""
 from __future__ import annotations
 
@@ -11,8 +11,17 @@ from filterpy.kalman import update as kf_update
 
 from dfusion.errors import NotPositiveDefiniteError, ValidationError
 from dfusion.geometry import se2_compose
-from dfusion.localization import estimate_normals, icp, scan_to_points, ScanMatcher
 from dfusion.localization import OdometryEKF
+from dfusion.localization.scan_matching import (
+    ROBUST_TUNING,
+    ScanMatcher,
+    estimate_normals,
+    hac_bandwidth,
+    icp,
+    icp_covariance,
+    robust_weights,
+    scan_to_points,
+)
 from dfusion.models import odometry_increment
 from dfusion.maps import cast_rays
 from dfusion.geometry import wrap_angle
@@ -225,3 +234,69 @@ def test_odometry_ekf_gate_and_increments():
 
 def chi2_3_999() -> float:
     return 16.266236196238129  # chi-square(3) 0.999 quantile
+
+
+# ----------------------------------------------------------------------------------------
+# robust kernels and covariance
+# ----------------------------------------------------------------------------------------
+def test_robust_weights_against_the_weight_functions():
+    r = np.array([0.0, 0.01, 0.02, 0.05, 0.1, 1.0])
+    s = 0.02
+    for kernel, c in ROBUST_TUNING.items():
+        w = robust_weights(r, kernel, s)
+        for ri, wi in zip(r, w):
+            u = abs(ri) / (c * s)
+            expect = {"huber": 1.0 if u <= 1 else 1.0 / u, "cauchy": 1.0 / (1.0 + u * u),
+                      "tukey": (1 - u * u) ** 2 if u < 1 else 0.0}[kernel]
+            assert wi == pytest.approx(expect)
+
+
+def test_hac_bandwidth_grows_with_the_autocorrelation():
+    rng = np.random.default_rng(2)
+    white = rng.normal(size=(400, 1))
+    ar = np.zeros((400, 1))
+    for i in range(1, 400):
+        ar[i] = 0.9 * ar[i - 1] + white[i]
+    # Andrews' AR(1) plug-in, written out: alpha = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2)
+    x = ar[:, 0] - ar[:, 0].mean()
+    rho = float(x[1:] @ x[:-1] / (x @ x))
+    alpha = 4 * rho**2 / ((1 - rho) ** 2 * (1 + rho) ** 2)
+    assert hac_bandwidth(ar) == math.ceil(1.1447 * (alpha * 400) ** (1 / 3))
+    assert hac_bandwidth(white) < 5 < hac_bandwidth(ar)
+
+
+def test_hac_covariance_matches_monte_carlo_with_correlated_noise():
+    """Least squares on a line-fit design with AR(1) noise (rho = 0.5): the empirical
+    covariance of the estimates over 2,000 draws is the reference. (Newey-West estimates
+    are biased low in finite samples, more so for stronger correlation: measured 0.77-0.85
+    of the truth here, 0.57-0.65 for rho = 0.8, against 0.36 and 0.11 for the Hessian.)"""
+    rng = np.random.default_rng(3)
+    m = 300
+    t = np.linspace(-1, 1, m)
+    J = np.column_stack([np.ones(m), t, np.sin(3 * t)])
+    ests, covs_h, covs_hac = [], [], []
+    for _ in range(2000):
+        e = np.zeros(m)
+        w = rng.normal(0, 0.02, m)
+        for i in range(1, m):
+            e[i] = 0.5 * e[i - 1] + w[i]
+        beta = np.linalg.lstsq(J, e, rcond=None)[0]
+        r = e - J @ beta
+        ests.append(beta)
+        covs_h.append(icp_covariance(J, r, method="hessian"))
+        covs_hac.append(icp_covariance(J, r, method="hac"))
+    emp = np.cov(np.array(ests).T)
+    hac = np.mean(covs_hac, axis=0)
+    hes = np.mean(covs_h, axis=0)
+    for i in range(3):
+        assert 0.7 * emp[i, i] < hac[i, i] < 1.2 * emp[i, i]
+        assert hes[i, i] < 0.45 * emp[i, i]  # independence assumed: far too confident
+
+
+def test_sandwich_equals_the_hessian_estimate_for_homoscedastic_independent_residuals():
+    rng = np.random.default_rng(4)
+    J = rng.normal(size=(5000, 3))
+    r = rng.normal(0, 0.05, 5000)
+    h = icp_covariance(J, r, method="hessian")
+    s = icp_covariance(J, r, method="sandwich")
+    np.testing.assert_allclose(s, h, rtol=0.1, atol=0.05 * float(np.mean(np.diag(h))))

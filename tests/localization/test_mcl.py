@@ -9,15 +9,17 @@ import pytest
 from scipy.special import erfc
 from scipy.stats import chi2
 
-from dfusion.errors import NotInitializedError, OutsideWindowError, ShapeError, TimeError
+from dfusion.errors import NotInitializedError, OutsideWindowError, ShapeError, TimeError, ValidationError
 from dfusion.models import BeamErfcModel, LaserConfig, LikelihoodFieldModel, OdometryMotionModel
 from dfusion.localization import kld_sample_size, MonteCarloLocalization
+from dfusion.localization.mcl import heaviest_cluster
 from dfusion.estimation import gaussian_summary
 from dfusion.reliability import covariance_reliability
 from dfusion.geometry import se2_between, se2_compose, se2_inverse
 from dfusion.maps import cast_rays
 from dfusion.geometry import wrap_angle
 from dfusion.maps.buildings import rooms
+from tests.helpers.rooms_world import drifting_odometry, wander_path
 
 LASER = LaserConfig.uniform(181, math.pi, 10.0)
 
@@ -27,24 +29,11 @@ def world():
     """A seeded rooms map, a robot path through it, noisy scans and drifting odometry."""
     g = rooms(12.0, 8.0, 3, 2, seed=3)
     rng = np.random.default_rng(0)
-    p = np.array([2.0, 2.0, 0.0])
-    path = [p.copy()]
-    while len(path) < 90:
-        look = cast_rays(g, p[None], [0.0, 0.5, -0.5], 10.0)[0]
-        if look[0] < 0.8:
-            p[2] = wrap_angle(p[2] + (0.5 if look[1] > look[2] else -0.5))
-        else:
-            p[2] = wrap_angle(p[2] + rng.normal(0, 0.05))
-            p[:2] += 0.15 * np.array([math.cos(p[2]), math.sin(p[2])])
-        path.append(p.copy())
-    path = np.array(path)
+    path = wander_path(g, 90, rng)
     assert g.is_free(path[:, :2]).all()
     scans = cast_rays(g, path, LASER.angles, LASER.max_range) + rng.normal(0, 0.02, (len(path), LASER.angles.size))
-    odo = [np.array([5.0, -3.0, 1.0])]  # odometry frame unrelated to the map frame
-    for k in range(1, len(path)):
-        d = se2_between(path[k - 1], path[k]) + rng.normal(0, [0.01, 0.005, 0.01])
-        odo.append(se2_compose(odo[-1], d))
-    return g, path, scans, np.array(odo)
+    odo = drifting_odometry(path, rng)  # odometry frame unrelated to the map frame
+    return g, path, scans, odo
 
 
 def _run(mcl, path, scans, odo, start=1, dt=0.1):
@@ -198,6 +187,138 @@ def test_likelihood_field_against_direct_computation(world):
             d = min(d, 2.0)
             total += math.log(0.9 * math.exp(-0.5 * (d / 0.2) ** 2) / (math.sqrt(2 * math.pi) * 0.2) + 0.1 / 10.0)
         assert ll[p] == pytest.approx(total, rel=1e-5, abs=1e-4)
+
+
+def test_likelihood_field_beam_skip_against_direct_computation(world):
+    """AMCL's beam skipping, written out here: per beam, the share of particles whose end
+    point lies within 0.5 m of the map's surface; beams at or below 0.3 are left out of
+    every particle's product, unless 90 % of the beams would be."""
+    g, path, _, _ = world
+    rng = np.random.default_rng(7)
+    true = path[30]
+    angles = LASER.angles[::6]
+    z = cast_rays(g, true[None], angles, 10.0)[0] + rng.normal(0, 0.01, angles.size)
+    sd = g.surface_distance_field()
+
+    def surface_distance(pose, ranges):
+        e = pose[:2] + ranges[:, None] * np.column_stack([np.cos(pose[2] + angles), np.sin(pose[2] + angles)])
+        i, j = g.world_to_cell(e)
+        inside = g.in_bounds(i, j)
+        return np.where(inside, sd[np.clip(i, 0, sd.shape[0] - 1), np.clip(j, 0, sd.shape[1] - 1)], 2.0)
+
+    # unmapped obstacles: some beams end half-way, more than 1 m from any mapped surface
+    occluded = np.flatnonzero(surface_distance(true, 0.5 * z) > 1.0)[:6]
+    assert occluded.size >= 3
+    z[occluded] *= 0.5
+    poses = true + rng.normal(0, [0.05, 0.05, 0.02], (200, 3))
+    plain = LikelihoodFieldModel()
+    plain.prepare(g, 10.0)
+    skip = LikelihoodFieldModel(beam_skip=True)
+    skip.prepare(g, 10.0)
+    lp = g.pose_to_grid(poses)
+    use = z < 10.0
+    near = np.array([surface_distance(p, z) <= 0.5 for p in poses])
+    keep = use & (near.mean(axis=0) > 0.3)
+    assert 0 < (use & ~keep).sum() < 0.9 * use.sum()
+    assert not keep[occluded].any()  # the occluded beams are among the skipped ones
+    ll, n = skip.log_likelihood(lp, z, angles)
+    ref, n_ref = plain.log_likelihood(lp, z[keep], angles[keep])
+    assert n == n_ref == keep.sum() and skip.skipped_beams == use.sum() - keep.sum()
+    np.testing.assert_allclose(ll, ref, rtol=1e-6)
+    # when at least beam_skip_error_threshold of the beams would be skipped, all are used
+    strict = LikelihoodFieldModel(beam_skip=True, beam_skip_error_threshold=0.5 * (use & ~keep).sum() / use.sum())
+    strict.prepare(g, 10.0)
+    ll_all, n_all = strict.log_likelihood(lp, z, angles)
+    assert n_all == use.sum() and strict.beam_skip_errors == 1 and skip.beam_skip_errors == 0
+    np.testing.assert_allclose(ll_all, plain.log_likelihood(lp, z, angles)[0], rtol=1e-6)
+
+
+def test_beam_selection_valid_spreads_the_budget_over_usable_beams(world):
+    """``beam_selection="valid"``: ``max_beams`` evenly spaced indices among the beams with a
+    reading below ``max_range`` (the others never reach the sensor model)."""
+    g, path, scans, odo = world
+    seen = {}
+    for mode in ("all", "valid"):
+        mcl = MonteCarloLocalization(g, LASER, max_particles=300, max_beams=20, beam_selection=mode, rng=0)
+        calls = []
+        orig = mcl.sensor.log_likelihood
+        mcl.sensor.log_likelihood = lambda lp, z, a, _o=orig, _c=calls: (_c.append(a.copy()), _o(lp, z, a))[1]
+        mcl.predict(0.0, odo[0])
+        mcl.initialize_gaussian(path[0], np.diag([0.05, 0.05, 0.02]) ** 2)
+        z = scans[1].copy()
+        z[::2] = np.inf  # every other beam: no return
+        z[100:] = LASER.max_range + 1.0  # and the left part beyond the range
+        mcl.predict(0.1, odo[1])
+        mcl.update(0.1, z)
+        seen[mode] = calls[0]
+    usable = np.flatnonzero(np.isfinite(z) & (z < LASER.max_range))
+    expect = usable[np.round(np.linspace(0, usable.size - 1, 20)).astype(int)]
+    np.testing.assert_array_equal(seen["valid"], LASER.angles[expect])
+    # of the evenly spaced beams most have no reading within range
+    assert np.isin(seen["all"], LASER.angles[usable]).sum() < 20 // 2
+    with pytest.raises(ValidationError):
+        MonteCarloLocalization(g, LASER, beam_selection="some")
+
+
+def _clusters_brute_force(poses, w, bins):
+    """Connected bins by pairwise comparison and union-find (the reference)."""
+    n_th = math.ceil(2 * math.pi / bins[2])
+    b = np.floor(poses / bins).astype(int)
+    b[:, 2] %= n_th
+    keys = sorted({tuple(x) for x in b})
+    parent = list(range(len(keys)))
+
+    def find(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for i, u in enumerate(keys):
+        for j, v in enumerate(keys[:i]):
+            dth = abs(u[2] - v[2]) % n_th
+            if abs(u[0] - v[0]) <= 1 and abs(u[1] - v[1]) <= 1 and min(dth, n_th - dth) <= 1:
+                parent[find(i)] = find(j)
+    root = {k: find(i) for i, k in enumerate(keys)}
+    lab = np.array([root[tuple(x)] for x in b])
+    tot = {r: w[lab == r].sum() for r in set(lab)}
+    return lab == max(tot, key=tot.get)
+
+
+def test_heaviest_cluster_against_brute_force():
+    rng = np.random.default_rng(11)
+    bins = np.array([0.5, 0.5, math.radians(10.0)])
+    for trial in range(20):
+        k = rng.integers(1, 5)
+        centres = np.column_stack([rng.uniform(-3, 3, (k, 2)), rng.uniform(-math.pi, math.pi, k)])
+        p = np.concatenate([c + rng.normal(0, [0.3, 0.3, 0.1], (rng.integers(20, 200), 3)) for c in centres])
+        p[:, 2] = wrap_angle(p[:, 2])
+        w = rng.uniform(0.1, 1.0, p.shape[0])
+        np.testing.assert_array_equal(heaviest_cluster(p, w, bins), _clusters_brute_force(p, w, bins))
+
+
+def test_estimate_cluster_reports_the_heavier_mode(world):
+    g, path, _, odo = world
+    mcl = MonteCarloLocalization(g, LASER, max_particles=2000, rng=0, estimate_cluster=True)
+    plain = MonteCarloLocalization(g, LASER, max_particles=2000, rng=0)
+    rng = np.random.default_rng(3)
+    a = path[10] + rng.normal(0, [0.05, 0.05, 0.02], (600, 3))
+    b = path[10] + [2.0, 0.0, 0.0] + rng.normal(0, [0.05, 0.05, 0.02], (400, 3))
+    parts = np.vstack([a, b])
+    for m in (mcl, plain):
+        m.initialize_particles(parts, t=0.0)
+    e, e_all = mcl.estimate(), plain.estimate()
+    np.testing.assert_allclose(e.mean, gaussian_summary(a)[0], atol=1e-9)
+    np.testing.assert_allclose(e_all.mean, gaussian_summary(parts)[0], atol=1e-9)
+    # covariance: second moment of all particles about the reported mean
+    r = parts - e.mean
+    r[:, 2] = wrap_angle(r[:, 2])
+    np.testing.assert_allclose(e.cov, r.T @ r / parts.shape[0], atol=1e-12)
+    assert e.cov[0, 0] > e_all.cov[0, 0]  # the second mode still shows
+    # one mode: the plain Gaussian summary
+    for m in (mcl, plain):
+        m.initialize_particles(a, t=0.0)
+    np.testing.assert_allclose(mcl.estimate().mean, plain.estimate().mean, atol=1e-12)
+    np.testing.assert_allclose(mcl.estimate().cov, plain.estimate().cov, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------------------
