@@ -16,6 +16,13 @@ the recorded estimates into a :class:`~dfusion.sim.runner.SimulationResult`:
   keys and the plot are those of ``dfusion simulate``; the JSON has one extra
   key, ``run``, with what only a multi-process run has (incarnations,
   rejected messages, lost measurements, wall-clock figures).
+
+Links that change at run time (``Scenario.dynamic``): every step publication also carries
+the node's view of the tree rule (:class:`~dfusion.run.common.TreeStatus`), and
+:func:`tree_metrics` rebuilds from them what ``simulate`` reports under ``metrics["links"]``:
+every change of the links (a link exists when both ends report it), whether it changed the
+agreed fusion tree, and how many send periods the rule took to settle after it
+(:func:`dfusion.fusion.tree.forest_settled` over the nodes' published states).
 """
 from __future__ import annotations
 
@@ -32,9 +39,12 @@ import numpy as np
 from dfusion.errors import MessageError
 from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.channel import time_key
-from dfusion.run.common import Status, add_tls_arguments, load_network_key, security_from_args
+from dfusion.fusion.tree import NodeTreeState, TreeEpoch, forest_settled
+from dfusion.models.base import model_at
+from dfusion.run.common import Status, TreeStatus, add_tls_arguments, load_network_key, security_from_args
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
+from dfusion.sim.links import LinkChange
 from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
 from dfusion.sim.world import simulate_world
 from dfusion.transport.base import TransportStats
@@ -69,6 +79,8 @@ class NodeRecord:
     out_mean: np.ndarray | None = None
     out_cov: np.ndarray | None = None
     out_source: list[str] | None = None
+    #: Links that change: the node's view of the tree at each step it published (None: none).
+    tree: list[TreeStatus | None] = field(default_factory=list)
 
 
 class Monitor:
@@ -89,7 +101,8 @@ class Monitor:
         self.sc, self.network, self.key = sc, network, network_key
         K, n = sc.steps + 1, sc.target.motion.dim
         self.records = {
-            name: NodeRecord(name, np.full((K, n), np.nan), np.full((K, n, n), np.nan), np.zeros(K, bool))
+            name: NodeRecord(name, np.full((K, n), np.nan), np.full((K, n, n), np.nan), np.zeros(K, bool),
+                             tree=[None] * K)
             for name in sorted(sc.nodes)
         }
         self.rejected = 0
@@ -151,6 +164,8 @@ class Monitor:
             rec.ready = True
         elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
             rec.mean[st.k], rec.cov[st.k], rec.have[st.k] = st.mean, st.cov, True
+            if st.tree is not None and rec.tree:
+                rec.tree[st.k] = st.tree
             for f in self.listeners:
                 f(rec.name, round(st.k * self.sc.dt, 9), st.mean, st.cov)
             if st.output is not None:
@@ -214,12 +229,12 @@ def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = f
         while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
             m = by_time[ic]
             if not m.clutter:   # the reference knows which detections are false
-                central.add(m.t, m.z, sensors[m.node], seq=ic)
+                central.add(m.t, m.z, model_at(sensors[m.node], m.t), seq=ic)
             ic += 1
         c_mean[k], c_cov[k] = central.estimate(times[k])
     for m in by_time[ic:]:
         if not m.clutter:
-            central.add(m.t, m.z, sensors[m.node], seq=ic)
+            central.add(m.t, m.z, model_at(sensors[m.node], m.t), seq=ic)
         ic += 1
     c_final, _ = central.estimate(float(times[-1]))
     return c_mean, c_cov, c_final
@@ -317,6 +332,11 @@ def build_result(
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)
+    links = tree_metrics(sc, records)
+    if links is not None:
+        links["epochs_started"] = int(sum(
+            sum(s.get("epochs_started", 0) for s in records[n].stats.values()) for n in records))
+        result.metrics["links"] = links
     # the counts of traffic_lines: built = published + dropped by link emulation; published =
     # delivered + not received (lost by the transport, or the receiver was down); delivered =
     # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers)
@@ -340,6 +360,76 @@ def build_result(
         **(extra or {}),
     }
     return result
+
+
+def _pair(a: str, b: str) -> tuple[str, str]:
+    return (a, b) if a < b else (b, a)
+
+
+def tree_metrics(sc: Scenario, records: dict[str, NodeRecord]) -> dict[str, Any] | None:
+    """Links that change: the changes of the links and the tree of a run, from the nodes' published
+    tree states (``metrics["links"]`` as ``simulate`` has it; None on a fixed tree).
+
+    At each grid step the nodes that published a tree state there are the network; a link
+    exists when both ends list it (each end keeps a link while the scenario allows it and it
+    sees the other's liveliness token); a node that published nothing at a step (down, or not
+    yet started) has no links then. A step whose links differ from the previous step's is a
+    change (``what``: links up and down, nodes gone and back); the tree has settled when
+    :func:`~dfusion.fusion.tree.forest_settled` holds for the published states on those links.
+    Information settling is not inspected here (``info_settled`` stays None: the nodes do
+    not publish their information blocks).
+    """
+    if not sc.dynamic:
+        return None
+    period = max(s.send_period for s in sc.nodes.values())
+    K = sc.steps + 1
+    changes: list[LinkChange] = []
+    prev_links: set[tuple[str, str]] | None = None
+    prev_nodes: set[str] = set()
+    settled_tree: set[tuple[str, str]] = set()
+    for k in range(K):
+        states = {n: r.tree[k] for n, r in records.items() if r.tree and r.tree[k] is not None}
+        if not states:
+            continue
+        t = round(k * sc.dt, 9)
+        links = {_pair(a, b) for a, s in states.items() for b in s.links if b in states and a in states[b].links}
+        edges = {_pair(a, b) for a, s in states.items() for b in s.tree_links
+                 if b in states and a in states[b].tree_links}
+        view = {n: NodeTreeState(n, TreeEpoch(s.term, s.root), s.parent, frozenset(s.tree_links))
+                for n, s in states.items()}
+        settled, _ = forest_settled(view, links)
+        if prev_links is not None and (links != prev_links or set(states) != prev_nodes):
+            what = [f"{n} gone" for n in sorted(prev_nodes - set(states))] + \
+                   [f"{n} back" for n in sorted(set(states) - prev_nodes)] + \
+                   [f"{a} - {b} down" for a, b in sorted(prev_links - links)] + \
+                   [f"{a} - {b} up" for a, b in sorted(links - prev_links)]
+            if what:
+                for c in changes:
+                    if c.tree_settled is None:
+                        c.overlapped = True
+                changes.append(LinkChange(t, what, set(settled_tree)))
+        if settled:
+            settled_tree = edges
+            for c in changes:
+                if c.tree_settled is None:
+                    c.tree_settled, c.tree_after = t, set(edges)
+        prev_links, prev_nodes = links, set(states)
+    rows = [c.as_dict(period) for c in changes]
+    done = [r for r in rows if r["tree_settled_send_periods"] is not None and not r["overlapped"]]
+    trees = [r for r in done if r["tree_changed"]]
+    v = [r["tree_settled_send_periods"] for r in trees]
+    none = {"median": None, "max": None}
+    return {
+        "send_period": period,
+        "link_changes": len(rows),
+        "tree_changes": sum(r["tree_changed"] for r in rows),
+        "changes": rows,
+        "settling_tree_changes": {"tree": {"median": float(np.median(v)) if v else None,
+                                           "max": float(np.max(v)) if v else None},
+                                  "information": none, "count": len(trees)},
+        "settling_other_changes": {"information": none},
+        "information_inspected": False,
+    }
 
 
 def run_table(result) -> str:
@@ -379,6 +469,10 @@ def run_table(result) -> str:
     bits.append(f"largest lag behind the clock {lag:.2f} s wall")
     bits.append(f"network {run.get('network', '?')}")
     head = "processes: " + ", ".join(bits)
+    if result.metrics.get("links", {}).get("information_inspected") is False:
+        cpu_lines.append("  links that change: a link exists while the scenario allows it and both ends see each "
+                         "other's liveliness token; settling measured from the tree states the nodes publish "
+                         "(information settling is not inspected in dfusion run: '-')")
     return "\n".join([head] + cpu_lines + lines)
 
 
