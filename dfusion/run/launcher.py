@@ -605,7 +605,9 @@ class Launcher:
                 "monitor_rejected": self.monitor.rejected,
                 "failures": list(self.failures),
                 "links_emulated": self.opts.emulate_links,
-                "links": describe_links(self.opts.emulate_links, self.sc.links),
+                # links that change: the [radio] table describes the links not in [[links]]
+                "links": describe_links(self.opts.emulate_links, {**self.sc.links, ("", "radio"): self.sc.radio}
+                                        if self.sc.dynamic else self.sc.links),
                 "authenticated": self.key is not None,
                 "network_key": self.key_source,
                 "tls": self.tls is not None,

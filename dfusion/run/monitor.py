@@ -8,10 +8,11 @@ the recorded estimates into a :class:`~dfusion.sim.runner.SimulationResult`:
 * each node's estimate at grid step ``k`` is the one it published at step
   ``k``; a step it did not publish (it was down, or a publication was lost) holds
   the previous one (the prior before the first);
-* the centralized EKF runs here on the same world (the scenario's seed), exactly
-  as ``dfusion.sim.runner.run_scenario`` runs it, on every measurement except
-  those a node reported lost (made while no incarnation of it was running:
-  nobody could fuse them);
+* the two centralized references (fair: the same detections through the same gate
+  and clutter model as the nodes; oracle: false detections skipped) run here on the
+  same world (the scenario's seed), exactly as ``dfusion.sim.runner.run_scenario``
+  runs them (its ``References``), on every measurement except those a node reported
+  lost (made while no incarnation of it was running: nobody could fuse them);
 * the metrics are computed by the runner's own code, so the table, the JSON
   keys and the plot are those of ``dfusion simulate``; the JSON has one extra
   key, ``run``, with what only a multi-process run has (incarnations,
@@ -37,15 +38,14 @@ from typing import Any
 import numpy as np
 
 from dfusion.errors import MessageError
-from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.channel import time_key
 from dfusion.fusion.tree import NodeTreeState, TreeEpoch, forest_settled
-from dfusion.models.base import model_at
 from dfusion.run.common import Status, TreeStatus, add_tls_arguments, load_network_key, security_from_args
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.links import LinkChange
-from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
+from dfusion.scenario.build import build_front_ends
+from dfusion.sim.runner import NodeOutput, References, SimulationResult, compute_metrics, frames
 from dfusion.sim.world import simulate_world
 from dfusion.transport.base import TransportStats
 from dfusion.transport.zenoh import (
@@ -210,34 +210,39 @@ class Monitor:
             time.sleep(0.01)
 
 
-def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
-    """The centralized EKF as ``run_scenario`` runs it: ``(mean (K,n), cov (K,n,n), final mean)``.
+def centralized_references(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
+    """The two centralized references as ``run_scenario`` runs them (its
+    :class:`~dfusion.sim.runner.References` on the world's frames in time order): the *fair* one
+    (every detection of a frame through the front end's gate and clutter model) and the
+    *oracle* (false detections skipped). Returns ``(fair mean (K,n), fair cov (K,n,n), fair
+    final mean, oracle mean, oracle cov, oracle final mean)``.
 
     ``exclude`` holds ``(node, time_key)`` of measurements nobody received.
     """
-    motion = sc.target.motion
-    central = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
-    sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
-    K, n = sc.steps + 1, motion.dim
+    refs = References(sc, build_front_ends(sc))
+    K, n = sc.steps + 1, sc.target.motion.dim
     times = np.round(sc.dt * np.arange(K), 9)
-    by_time = [m for m in world.measurements if (m.node, time_key(m.t)) not in exclude]
+    by_time = frames([m for m in world.measurements if (m.node, time_key(m.t)) not in exclude])
     c_mean, c_cov = np.empty((K, n)), np.empty((K, n, n))
-    c_mean[0], c_cov[0] = central.estimate(times[0])
+    o_mean, o_cov = np.empty((K, n)), np.empty((K, n, n))
+    (c_mean[0], c_cov[0]), (o_mean[0], o_cov[0]) = refs.estimate(times[0])
     ic = 0
     for k in range(1, K):
         t = float(times[k])
-        while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
-            m = by_time[ic]
-            if not m.clutter:   # the reference knows which detections are false
-                central.add(m.t, m.z, model_at(sensors[m.node], m.t), seq=ic)
+        while ic < len(by_time) and by_time[ic][0].t <= t + 1e-9:
+            refs.add(by_time[ic], seq=ic)
             ic += 1
-        c_mean[k], c_cov[k] = central.estimate(times[k])
-    for m in by_time[ic:]:
-        if not m.clutter:
-            central.add(m.t, m.z, model_at(sensors[m.node], m.t), seq=ic)
+        (c_mean[k], c_cov[k]), (o_mean[k], o_cov[k]) = refs.estimate(times[k])
+    for frame in by_time[ic:]:
+        refs.add(frame, seq=ic)
         ic += 1
-    c_final, _ = central.estimate(float(times[-1]))
-    return c_mean, c_cov, c_final
+    (c_final, _), (o_final, _) = refs.estimate(float(times[-1]))
+    return c_mean, c_cov, c_final, o_mean, o_cov, o_final
+
+
+def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
+    """The fair centralized reference of :func:`centralized_references`: ``(mean (K,n), cov (K,n,n), final mean)``."""
+    return centralized_references(sc, world, exclude)[:3]
 
 
 def _filled(rec: NodeRecord, sc: Scenario) -> tuple[np.ndarray, np.ndarray, int]:
@@ -284,7 +289,7 @@ def build_result(
     """
     world = world if world is not None else simulate_world(sc)
     lost = {(name, time_key(t)) for name, st in finals.items() for t in st.lost}
-    c_mean, c_cov, c_final = centralized_reference(sc, world, lost)
+    c_mean, c_cov, c_final, o_mean, o_cov, o_final = centralized_references(sc, world, lost)
     K = sc.steps + 1
     times = np.round(sc.dt * np.arange(K), 9)
     truth = np.array([world.truth(t) for t in times])
@@ -328,7 +333,8 @@ def build_result(
             "cpu_s": total.get("cpu_ms", 0) / 1000,
             "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
         }
-    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs)
+    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
+                              oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final)
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)

@@ -44,6 +44,7 @@ import math
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -203,6 +204,7 @@ class NodeProcess:
         #: The nodes this one may link to: its tree neighbours, or every possible peer when links change.
         self.neighbors = peers(sc, name)
         self._links_frozen = False
+        self._warming: threading.Thread | None = None
         self.zconfig = zconfig or ZenohConfig()
         self.speed = float(speed)
         self.start = start
@@ -345,17 +347,18 @@ class NodeProcess:
         yield from self._final_phase()
 
     def _warm_up(self) -> None:
-        """Before the clock starts (and before "ready"): load what the first message would load.
+        """Start loading, in a background thread, what the first message would load.
 
         The consistency test (``[protection]``, :mod:`dfusion.fusion.guard`) imports scipy for
         its chi-square quantile on the first message it tests: 1-3 s of CPU on a loaded
         machine, which made every node fall seconds behind the clock at the start of a run
-        (measured: 12 s behind at ``--speed 2`` with four nodes on two cores). Done here, it
-        delays "ready" instead.
+        (measured: 12 s behind at ``--speed 2`` with four nodes on two cores). The node
+        reports "ready" once it is loaded (the launcher starts the clock after every node is
+        ready); with a given start time the loop does not wait for it.
         """
-        guard = getattr(self.node, "guard", None)
-        if guard is not None:
-            guard.threshold(self.node.filter.n)
+        if getattr(self.node, "guard", None) is not None:
+            self._warming = threading.Thread(target=_load_guard_quantiles, name=f"{self.name}-warm-up", daemon=True)
+            self._warming.start()
 
     def _wait_for_start(self) -> Iterator[Wait]:
         """Wait for the start time; publish "ready" once the neighbours are seen."""
@@ -372,7 +375,8 @@ class NodeProcess:
                 if now >= self.start:
                     break
                 before_start = True
-            up = all(self.tr.alive(nb) for nb in self.neighbors)
+            up = all(self.tr.alive(nb) for nb in self.neighbors) and not (
+                self._warming is not None and self._warming.is_alive())
             if (up or now - opened > self.ready_timeout) and now - last_ready >= READY_PERIOD:
                 self._publish("ready", -1)
                 last_ready = now
@@ -584,6 +588,14 @@ class NodeProcess:
         except Exception as exc:   # the monitor is optional
             log.debug("%s: monitor publication failed: %s", self.name, exc)
         return st
+
+
+def _load_guard_quantiles() -> None:
+    """Import what :meth:`dfusion.fusion.guard.NeighbourGuard.threshold` imports (a warm-up thread)."""
+    try:
+        import scipy.stats  # noqa: F401
+    except Exception as exc:   # only a warm-up: the guard imports it again and reports any error
+        log.debug("warm-up import failed: %s", exc)
 
 
 class Host:
