@@ -178,6 +178,7 @@ class _Proc:
     external: int | None = None          # pid of an incarnation started by hand, while it runs
     by_hand: int = 0                     # incarnations started by hand that the launcher followed
     waiting_back: dict | None = None     # the supervision event waiting for the new incarnation's first step
+    exit_seen: subprocess.Popen | None = None   # the incarnation whose exit _check_exits has handled
 
 
 class Launcher:
@@ -443,11 +444,13 @@ class Launcher:
     # ------------------------------------------------------------------ supervision
     def _check_exits(self) -> None:
         for name, p in self.procs.items():
-            if p.popen is None or p.popen.returncode is not None:
+            # not popen.returncode: another poll() (_running) may have reaped the exit first
+            if p.popen is None or p.exit_seen is p.popen:
                 continue
             rc = p.popen.poll()
             if rc is None:
                 continue
+            p.exit_seen = p.popen
             p.exit_codes.append(rc)
             finished = self._finished(name)
             if p.killed_by_us or (rc == 0 and finished):
