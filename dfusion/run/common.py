@@ -132,8 +132,37 @@ def security_from_args(args: argparse.Namespace) -> SecurityOptions:
 
 
 def final_rounds(sc: Scenario) -> int:
-    """Rounds of the final phase: :func:`dfusion.topology.settling_rounds` (as in ``dfusion simulate``)."""
+    """Rounds of the final phase: :func:`dfusion.topology.settling_rounds` (as in ``dfusion simulate``).
+
+    Links that change (``sc.dynamic``): no node knows the tree the rule settles on, so the
+    bound for ``n`` nodes: ``n + 1`` rounds for the tree rule to settle (a new epoch floods
+    at most ``n - 1`` hops, one more round for the children to name their parent, one
+    for the last change a link break made) and ``settling_rounds`` of the longest tree,
+    ``(n - 1) + 2``: ``2 n + 2`` (``docs/processes.md``).
+    """
+    if sc.dynamic:
+        return 2 * len(sc.nodes) + 2
     return settling_rounds(sc.tree)
+
+
+@dataclass(frozen=True)
+class TreeStatus:
+    """A node's view of the tree rule (links that change), in its monitor publications: its tree
+    epoch ``(term, root)``, its parent (None: the root), the links it has, its tree links."""
+
+    term: int
+    root: str
+    parent: str | None
+    links: tuple[str, ...]
+    tree_links: tuple[str, ...]
+
+    def to_list(self) -> list:
+        return [int(self.term), self.root, self.parent or "", list(self.links), list(self.tree_links)]
+
+    @classmethod
+    def from_list(cls, v: list) -> TreeStatus:
+        term, root, parent, links, tree_links = v
+        return cls(int(term), str(root), str(parent) or None, tuple(map(str, links)), tuple(map(str, tree_links)))
 
 
 @dataclass
@@ -159,6 +188,7 @@ class Status:
     stats: dict[str, int] = field(default_factory=dict)
     lost: list[float] = field(default_factory=list)
     output: tuple[str, np.ndarray, np.ndarray] | None = None
+    tree: TreeStatus | None = None
 
     def encode(self, key: FrameKey | None = None) -> bytes:
         """The publication; with ``key`` it carries ``HMAC-SHA256(K, "dfusion-monitor/2" 0x00 body)``,
@@ -176,6 +206,7 @@ class Status:
                 "output": None if self.output is None else [
                     self.output[0], np.ascontiguousarray(self.output[1], "<f8").tobytes(),
                     np.ascontiguousarray(self.output[2], "<f8").tobytes()],
+                "tree": None if self.tree is None else self.tree.to_list(),
             },
             use_bin_type=True,
         )
@@ -221,8 +252,9 @@ class Status:
                 name, om, oc = d["output"]
                 om = np.frombuffer(om, "<f8").copy()
                 output = (str(name), om, np.frombuffer(oc, "<f8").copy().reshape(len(om), len(om)))
+            tree = None if d.get("tree") is None else TreeStatus.from_list(d["tree"])
             st = cls(str(d["node"]), int(d["epoch"]), str(d["phase"]), int(d["k"]), float(d["t"]), mean, cov,
-                     float(d["started"]), dict(d["stats"]), list(d["lost"]), output)
+                     float(d["started"]), dict(d["stats"]), list(d["lost"]), output, tree)
         except MessageError:
             raise
         except Exception as exc:
@@ -271,6 +303,7 @@ class Status:
             "cov": None if self.cov is None else self.cov.tolist(),
             "output": None if self.output is None else [self.output[0], self.output[1].tolist(),
                                                         self.output[2].tolist()],
+            "tree": None if self.tree is None else self.tree.to_list(),
         }
 
     @classmethod
@@ -279,5 +312,6 @@ class Status:
         cov = None if d.get("cov") is None else np.asarray(d["cov"], float)
         out = d.get("output")
         output = None if out is None else (str(out[0]), np.asarray(out[1], float), np.asarray(out[2], float))
+        tree = None if d.get("tree") is None else TreeStatus.from_list(d["tree"])
         return cls(d["node"], int(d["epoch"]), d["phase"], int(d["k"]), float(d["t"]), mean, cov,
-                   float(d.get("started", 0.0)), dict(d.get("stats", {})), list(d.get("lost", [])), output)
+                   float(d.get("started", 0.0)), dict(d.get("stats", {})), list(d.get("lost", [])), output, tree)

@@ -85,6 +85,7 @@ from dfusion.run.supervision import (
     node_lock_path,
     pid_running,
 )
+from dfusion.scenario.links import peers
 from dfusion.scenario.loader import load_scenario
 from dfusion.transport.zenoh import ZenohConfig, check_name, free_tcp_endpoints
 
@@ -270,8 +271,9 @@ class Launcher:
                 "--listen", self.host_endpoints[host], "--speed", repr(o.speed), "--network-key-file",
                 str(self.key_file), "--round-timeout", repr(o.round_timeout),
                 "--measurements", str(self.run_dir / "measurements")]
-        peers = sorted({self.host_of[nb] for name in nodes for nb in sc.neighbors(name)} - {host})
-        for peer in peers:
+        # every host it may link to (links that change: every possible peer, dfusion.scenario.links.peers)
+        hosts = sorted({self.host_of[nb] for name in nodes for nb in peers(sc, name)} - {host})
+        for peer in hosts:
             cmd += ["--connect", self.host_endpoints[peer]]
         if o.seed is not None:
             cmd += ["--seed", str(o.seed)]
@@ -614,7 +616,9 @@ class Launcher:
                 "monitor_rejections": dict(self.monitor.rejections),
                 "failures": list(self.failures),
                 "links_emulated": self.opts.emulate_links,
-                "links": describe_links(self.opts.emulate_links, self.sc.links),
+                # links that change: the [radio] table describes the links not in [[links]]
+                "links": describe_links(self.opts.emulate_links, {**self.sc.links, ("", "radio"): self.sc.radio}
+                                        if self.sc.dynamic else self.sc.links),
                 "authenticated": self.key is not None,
                 "network_key": self.key_source,
                 "tls": self.tls is not None,
@@ -746,14 +750,17 @@ def host_groups(sc, per_process: int) -> dict[str, list[str]]:
     names = sorted(sc.nodes)
     if per_process <= 1:
         return {n: [n] for n in names}
-    order, seen, stack = [], set(), [names[0]]
-    while stack:
-        u = stack.pop()
-        if u in seen:
-            continue
-        seen.add(u)
-        order.append(u)
-        stack.extend(sorted(set(sc.neighbors(u)) - seen, reverse=True))
+    order: list[str] = []
+    seen: set[str] = set()
+    for first in names:   # links that change may leave several components
+        stack = [first]
+        while stack:
+            u = stack.pop()
+            if u in seen:
+                continue
+            seen.add(u)
+            order.append(u)
+            stack.extend(sorted(set(peers(sc, u)) - seen, reverse=True))
     count = -(-len(order) // per_process)
     base, extra = divmod(len(order), count)
     prefix = "host"

@@ -8,14 +8,22 @@ the recorded estimates into a :class:`~dfusion.sim.runner.SimulationResult`:
 * each node's estimate at grid step ``k`` is the one it published at step
   ``k``; a step it did not publish (it was down, or a publication was lost) holds
   the previous one (the prior before the first);
-* the centralized EKF runs here on the same world (the scenario's seed), exactly
-  as ``dfusion.sim.runner.run_scenario`` runs it, on every measurement except
-  those a node reported lost (made while no incarnation of it was running:
-  nobody could fuse them);
+* the two centralized references (fair: the same detections through the same gate
+  and clutter model as the nodes; oracle: false detections skipped) run here on the
+  same world (the scenario's seed), exactly as ``dfusion.sim.runner.run_scenario``
+  runs them (its ``References``), on every measurement except those a node reported
+  lost (made while no incarnation of it was running: nobody could fuse them);
 * the metrics are computed by the runner's own code, so the table, the JSON
   keys and the plot are those of ``dfusion simulate``; the JSON has one extra
   key, ``run``, with what only a multi-process run has (incarnations,
   rejected messages, lost measurements, wall-clock figures).
+
+Links that change at run time (``Scenario.dynamic``): every step publication also carries
+the node's view of the tree rule (:class:`~dfusion.run.common.TreeStatus`), and
+:func:`tree_metrics` rebuilds from them what ``simulate`` reports under ``metrics["links"]``:
+every change of the links (a link exists when both ends report it), whether it changed the
+agreed fusion tree, and how many send periods the rule took to settle after it
+(:func:`dfusion.fusion.tree.forest_settled` over the nodes' published states).
 """
 from __future__ import annotations
 
@@ -30,13 +38,16 @@ from typing import Any
 import numpy as np
 
 from dfusion.errors import MessageError
-from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.channel import time_key
 from dfusion.fusion.node import RejectionLog
-from dfusion.run.common import MAX_STATUS_BYTES, Status, add_tls_arguments, load_network_key, security_from_args
+from dfusion.fusion.tree import NodeTreeState, TreeEpoch, forest_settled
+from dfusion.run.common import (MAX_STATUS_BYTES, Status, TreeStatus, add_tls_arguments, load_network_key,
+                                security_from_args)
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
-from dfusion.sim.runner import NodeOutput, SimulationResult, compute_metrics
+from dfusion.sim.links import LinkChange
+from dfusion.scenario.build import build_front_ends
+from dfusion.sim.runner import NodeOutput, References, SimulationResult, compute_metrics, frames
 from dfusion.sim.world import simulate_world
 from dfusion.transport.base import TransportStats
 from dfusion.wire import FrameKey
@@ -74,6 +85,8 @@ class NodeRecord:
     out_mean: np.ndarray | None = None
     out_cov: np.ndarray | None = None
     out_source: list[str] | None = None
+    #: Links that change: the node's view of the tree at each step it published (None: none).
+    tree: list[TreeStatus | None] = field(default_factory=list)
 
 
 class Monitor:
@@ -106,7 +119,8 @@ class Monitor:
         self.key = None if network_key is None else FrameKey(bytes(network_key), network, run)
         K, n = sc.steps + 1, sc.target.motion.dim
         self.records = {
-            name: NodeRecord(name, np.full((K, n), np.nan), np.full((K, n, n), np.nan), np.zeros(K, bool))
+            name: NodeRecord(name, np.full((K, n), np.nan), np.full((K, n, n), np.nan), np.zeros(K, bool),
+                             tree=[None] * K)
             for name in sorted(sc.nodes)
         }
         self.rejected = 0
@@ -201,6 +215,8 @@ class Monitor:
             rec.ready = True
         elif st.phase in ("run", "final") and st.mean is not None and 0 <= st.k < len(rec.have):
             rec.mean[st.k], rec.cov[st.k], rec.have[st.k] = st.mean, st.cov, True
+            if st.tree is not None and rec.tree:
+                rec.tree[st.k] = st.tree
             for f in self.listeners:
                 f(rec.name, round(st.k * self.sc.dt, 9), st.mean, st.cov)
             if st.output is not None:
@@ -246,34 +262,39 @@ class Monitor:
             time.sleep(0.01)
 
 
-def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
-    """The centralized EKF as ``run_scenario`` runs it: ``(mean (K,n), cov (K,n,n), final mean)``.
+def centralized_references(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
+    """The two centralized references as ``run_scenario`` runs them (its
+    :class:`~dfusion.sim.runner.References` on the world's frames in time order): the *fair* one
+    (every detection of a frame through the front end's gate and clutter model) and the
+    *oracle* (false detections skipped). Returns ``(fair mean (K,n), fair cov (K,n,n), fair
+    final mean, oracle mean, oracle cov, oracle final mean)``.
 
     ``exclude`` holds ``(node, time_key)`` of measurements nobody received.
     """
-    motion = sc.target.motion
-    central = CentralizedEKF(motion, 0.0, sc.target.initial_mean, sc.target.initial_cov)
-    sensors = {name: spec.sensor for name, spec in sc.nodes.items()}
-    K, n = sc.steps + 1, motion.dim
+    refs = References(sc, build_front_ends(sc))
+    K, n = sc.steps + 1, sc.target.motion.dim
     times = np.round(sc.dt * np.arange(K), 9)
-    by_time = [m for m in world.measurements if (m.node, time_key(m.t)) not in exclude]
+    by_time = frames([m for m in world.measurements if (m.node, time_key(m.t)) not in exclude])
     c_mean, c_cov = np.empty((K, n)), np.empty((K, n, n))
-    c_mean[0], c_cov[0] = central.estimate(times[0])
+    o_mean, o_cov = np.empty((K, n)), np.empty((K, n, n))
+    (c_mean[0], c_cov[0]), (o_mean[0], o_cov[0]) = refs.estimate(times[0])
     ic = 0
     for k in range(1, K):
         t = float(times[k])
-        while ic < len(by_time) and by_time[ic].t <= t + 1e-9:
-            m = by_time[ic]
-            if not m.clutter:   # the reference knows which detections are false
-                central.add(m.t, m.z, sensors[m.node], seq=ic)
+        while ic < len(by_time) and by_time[ic][0].t <= t + 1e-9:
+            refs.add(by_time[ic], seq=ic)
             ic += 1
-        c_mean[k], c_cov[k] = central.estimate(times[k])
-    for m in by_time[ic:]:
-        if not m.clutter:
-            central.add(m.t, m.z, sensors[m.node], seq=ic)
+        (c_mean[k], c_cov[k]), (o_mean[k], o_cov[k]) = refs.estimate(times[k])
+    for frame in by_time[ic:]:
+        refs.add(frame, seq=ic)
         ic += 1
-    c_final, _ = central.estimate(float(times[-1]))
-    return c_mean, c_cov, c_final
+    (c_final, _), (o_final, _) = refs.estimate(float(times[-1]))
+    return c_mean, c_cov, c_final, o_mean, o_cov, o_final
+
+
+def centralized_reference(sc: Scenario, world, exclude: set[tuple[str, int]] = frozenset()):
+    """The fair centralized reference of :func:`centralized_references`: ``(mean (K,n), cov (K,n,n), final mean)``."""
+    return centralized_references(sc, world, exclude)[:3]
 
 
 def _filled(rec: NodeRecord, sc: Scenario) -> tuple[np.ndarray, np.ndarray, int]:
@@ -320,7 +341,7 @@ def build_result(
     """
     world = world if world is not None else simulate_world(sc)
     lost = {(name, time_key(t)) for name, st in finals.items() for t in st.lost}
-    c_mean, c_cov, c_final = centralized_reference(sc, world, lost)
+    c_mean, c_cov, c_final, o_mean, o_cov, o_final = centralized_references(sc, world, lost)
     K = sc.steps + 1
     times = np.round(sc.dt * np.arange(K), 9)
     truth = np.array([world.truth(t) for t in times])
@@ -371,10 +392,16 @@ def build_result(
             "cpu_s": total.get("cpu_ms", 0) / 1000,
             "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
         }
-    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs)
+    result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
+                              oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final)
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))
     result.metrics = compute_metrics(sc, result, views, c_final, net, len(world.measurements), refused)
+    links = tree_metrics(sc, records)
+    if links is not None:
+        links["epochs_started"] = int(sum(
+            sum(s.get("epochs_started", 0) for s in records[n].stats.values()) for n in records))
+        result.metrics["links"] = links
     # the counts of traffic_lines: built = published + dropped by link emulation; published =
     # delivered + not received (lost by the transport, or the receiver was down); delivered =
     # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers).
@@ -403,6 +430,76 @@ def build_result(
         **(extra or {}),
     }
     return result
+
+
+def _pair(a: str, b: str) -> tuple[str, str]:
+    return (a, b) if a < b else (b, a)
+
+
+def tree_metrics(sc: Scenario, records: dict[str, NodeRecord]) -> dict[str, Any] | None:
+    """Links that change: the changes of the links and the tree of a run, from the nodes' published
+    tree states (``metrics["links"]`` as ``simulate`` has it; None on a fixed tree).
+
+    At each grid step the nodes that published a tree state there are the network; a link
+    exists when both ends list it (each end keeps a link while the scenario allows it and it
+    sees the other's liveliness token); a node that published nothing at a step (down, or not
+    yet started) has no links then. A step whose links differ from the previous step's is a
+    change (``what``: links up and down, nodes gone and back); the tree has settled when
+    :func:`~dfusion.fusion.tree.forest_settled` holds for the published states on those links.
+    Information settling is not inspected here (``info_settled`` stays None: the nodes do
+    not publish their information blocks).
+    """
+    if not sc.dynamic:
+        return None
+    period = max(s.send_period for s in sc.nodes.values())
+    K = sc.steps + 1
+    changes: list[LinkChange] = []
+    prev_links: set[tuple[str, str]] | None = None
+    prev_nodes: set[str] = set()
+    settled_tree: set[tuple[str, str]] = set()
+    for k in range(K):
+        states = {n: r.tree[k] for n, r in records.items() if r.tree and r.tree[k] is not None}
+        if not states:
+            continue
+        t = round(k * sc.dt, 9)
+        links = {_pair(a, b) for a, s in states.items() for b in s.links if b in states and a in states[b].links}
+        edges = {_pair(a, b) for a, s in states.items() for b in s.tree_links
+                 if b in states and a in states[b].tree_links}
+        view = {n: NodeTreeState(n, TreeEpoch(s.term, s.root), s.parent, frozenset(s.tree_links))
+                for n, s in states.items()}
+        settled, _ = forest_settled(view, links)
+        if prev_links is not None and (links != prev_links or set(states) != prev_nodes):
+            what = [f"{n} gone" for n in sorted(prev_nodes - set(states))] + \
+                   [f"{n} back" for n in sorted(set(states) - prev_nodes)] + \
+                   [f"{a} - {b} down" for a, b in sorted(prev_links - links)] + \
+                   [f"{a} - {b} up" for a, b in sorted(links - prev_links)]
+            if what:
+                for c in changes:
+                    if c.tree_settled is None:
+                        c.overlapped = True
+                changes.append(LinkChange(t, what, set(settled_tree)))
+        if settled:
+            settled_tree = edges
+            for c in changes:
+                if c.tree_settled is None:
+                    c.tree_settled, c.tree_after = t, set(edges)
+        prev_links, prev_nodes = links, set(states)
+    rows = [c.as_dict(period) for c in changes]
+    done = [r for r in rows if r["tree_settled_send_periods"] is not None and not r["overlapped"]]
+    trees = [r for r in done if r["tree_changed"]]
+    v = [r["tree_settled_send_periods"] for r in trees]
+    none = {"median": None, "max": None}
+    return {
+        "send_period": period,
+        "link_changes": len(rows),
+        "tree_changes": sum(r["tree_changed"] for r in rows),
+        "changes": rows,
+        "settling_tree_changes": {"tree": {"median": float(np.median(v)) if v else None,
+                                           "max": float(np.max(v)) if v else None},
+                                  "information": none, "count": len(trees)},
+        "settling_other_changes": {"information": none},
+        "information_inspected": False,
+    }
 
 
 def run_table(result) -> str:
@@ -446,6 +543,10 @@ def run_table(result) -> str:
         why = ", ".join(f"{r} {c}" for r, c in sorted(run.get("monitor_rejections", {}).items(), key=lambda x: -x[1]))
         lines.append(f"  monitor: {run['monitor_rejected']} publications rejected" + (f" ({why})" if why else ""))
     head = "processes: " + ", ".join(bits)
+    if result.metrics.get("links", {}).get("information_inspected") is False:
+        cpu_lines.append("  links that change: a link exists while the scenario allows it and both ends see each "
+                         "other's liveliness token; settling measured from the tree states the nodes publish "
+                         "(information settling is not inspected in dfusion run: '-')")
     return "\n".join([head] + cpu_lines + lines)
 
 

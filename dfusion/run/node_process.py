@@ -55,11 +55,14 @@ from dfusion.errors import DfusionError, MessageError, OutsideWindowError
 from dfusion.run.common import (
     ROUND_TIMEOUT,
     Status,
+    TreeStatus,
     add_tls_arguments,
     final_rounds,
     load_network_key,
     security_from_args,
 )
+from dfusion.fusion.node import FusionNode
+from dfusion.fusion.tree import initial_parents
 from dfusion.run.links import EmulatedLinks, node_links
 from dfusion.run.measurements import (
     MeasurementLog,
@@ -71,6 +74,7 @@ from dfusion.run.measurements import (
     world_measurements,
 )
 from dfusion.scenario.build import build_front_end, build_node
+from dfusion.scenario.links import LinkSchedule, peers
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.run.supervision import (
@@ -194,7 +198,12 @@ class NodeProcess:
             raise DfusionError(f"speed must be a positive number, got {speed}")
         self._start_now = start is None and start_file is None   # start as soon as the session is open
         self.sc, self.name, self.network = sc, name, network
-        self.neighbors = sc.neighbors(name)
+        #: Links that change at run time (``docs/processes.md``): the scenario's rule of which links
+        #: are allowed when (None: a fixed tree).
+        self.schedule = LinkSchedule(sc) if sc.dynamic else None
+        #: The nodes this one may link to: its tree neighbours, or every possible peer when links change.
+        self.neighbors = peers(sc, name)
+        self._links_frozen = False
         self.zconfig = zconfig or ZenohConfig()
         self.speed = float(speed)
         self.start = start
@@ -218,8 +227,7 @@ class NodeProcess:
         self.front = build_front_end(sc, name)
         self.send_period = spec.send_period
         # a new epoch per incarnation: the clock, strictly newer than the last one recorded in the state dir
-        epoch = claim_epoch(state_dir, name) if state_dir is not None else None
-        self.node = build_node(sc, name, network_key=network_key, network=network, run=run_id or "", epoch=epoch)
+        self.node = self._build_node(joining=False)
         self._records_output = records_output(self.node.policy)
         self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
@@ -237,6 +245,27 @@ class NodeProcess:
         self.host_share = 1.0
         self._cpu_at_start: float | None = None
         self._stats_due = 0.0
+
+    def _build_node(self, *, joining: bool) -> FusionNode:
+        """This incarnation's :class:`FusionNode` (its incarnation epoch: the clock, strictly newer
+        than the last one claimed in the state directory, :func:`claim_epoch`).
+
+        Links that change: a node started on time begins on the tree the tree rule's
+        :func:`~dfusion.fusion.tree.initial_parents` picks among the links the scenario allows
+        at time 0 (the tree ``simulate`` starts on; the launcher starts the clock once every
+        node is up); a node that starts late (a restart) or joins later begins alone in the
+        lowest tree epoch and adopts its neighbours' (``docs/dynamic-topology.md``).
+        """
+        epoch = claim_epoch(self.state_dir, self.name) if self.state_dir is not None else None
+        kw = {"network_key": self.key, "network": self.network, "run": self.run_id or "", "epoch": epoch}
+        if self.schedule is None:
+            return build_node(self.sc, self.name, **kw)
+        present = self.schedule.present(0.0)
+        if joining or self.name not in present:
+            return build_node(self.sc, self.name, links=(), **kw)
+        links0 = self.schedule.links(0.0)
+        mine = [b if a == self.name else a for a, b in sorted(links0) if self.name in (a, b)]
+        return build_node(self.sc, self.name, links=mine, tree_start=initial_parents(sorted(present), links0), **kw)
 
     # ------------------------------------------------------------------ clocks and stopping
     def request_stop(self, reason: str) -> None:
@@ -266,9 +295,10 @@ class NodeProcess:
     def attach(self, tr: ZenohTransport) -> None:
         """Use ``tr`` (opened by the host) for messages, liveliness and monitor publications."""
         self.tr = tr
-        if self.emulate_links:
-            self.links = EmulatedLinks(self.name, node_links(self.sc.links, self.name), self.sc.seed, tr.send,
-                                       speed=self.speed)
+        if self.emulate_links:   # links that change: every link this node may have ([[links]], else [radio])
+            specs = node_links(self.sc.links, self.name) if self.schedule is None else {
+                nb: self.sc.link_spec(self.name, nb) for nb in self.neighbors}
+            self.links = EmulatedLinks(self.name, specs, self.sc.seed, tr.send, speed=self.speed)
         # garbage and forged copies are dropped in Zenoh's callback, before they take queue space
         tr.set_check(self.name, self.node.check_frame, self.node.max_message_bytes)
         self._monitor_key = monitor_key(self.network, self.name)
@@ -295,6 +325,8 @@ class NodeProcess:
         node its messages meanwhile (:meth:`receive`).
         """
         yield from self._wait_for_start()
+        if self.schedule is not None and self.t_started > 0:
+            self.node = self._build_node(joining=True)   # a restart joins the running network
         self._cpu_at_start = time.process_time()
         if self.state_dir is not None:
             self._mlog = MeasurementLog(self.state_dir, self.name, self.run_id or repr(self.start), fsync=self.fsync)
@@ -306,8 +338,9 @@ class NodeProcess:
             yield Wait(self.start + t / self.speed)
             self.node.predict(t)
             self._fuse_until(t)
+            self.sync_links(t)
             self.receive()
-            if t + EPS >= next_send:
+            if t + EPS >= next_send or (self.schedule is not None and self.node.urgent):
                 self._send_all(t)
                 while next_send <= t + EPS:
                     next_send += self.send_period
@@ -382,6 +415,34 @@ class NodeProcess:
             self.counters["measurements_refused"] += 1
             log.info("%s: measurement at t=%.3f arrived after it left the window", self.name, m.t)
 
+    def linked(self) -> tuple[str, ...]:
+        """The neighbours this node has a link to now: with links that change, those
+        :meth:`sync_links` keeps; on a fixed tree every tree neighbour."""
+        return tuple(self.node.neighbors) if self.schedule is not None else self.neighbors
+
+    def sync_links(self, t: float) -> tuple[list[str], list[str]]:
+        """Links that change: a link to ``j`` exists while the scenario allows it at ``t``
+        (:class:`~dfusion.scenario.links.LinkSchedule`: scripted links and events, radio ranges
+        over the nodes' known positions and paths) **and** ``j``'s liveliness token is seen;
+        tell the node which links appeared and went (:meth:`FusionNode.link_up`,
+        :meth:`FusionNode.link_down`: the tree rule). Frozen during the final phase (a
+        neighbour that ends its run is not a link break). Returns ``(up, down)``."""
+        if self.schedule is None or self._links_frozen:
+            return [], []
+        want = {j for j in self.schedule.neighbours(self.name, t) if self.tr.alive(j)}
+        have = set(self.node.neighbors)
+        down, up = sorted(have - want), sorted(want - have)
+        for j in down:
+            self.node.link_down(j)
+        for j in up:
+            self.node.link_up(j)
+        if up or down:
+            tree = self.node.tree
+            log.info("%s: t=%.2f links%s%s; tree epoch %s, parent %s, tree links %s", self.name, t,
+                     f" up {','.join(up)}" if up else "", f" down {','.join(down)}" if down else "",
+                     tree.epoch, tree.parent, ",".join(self.node.tree_links) or "-")
+        return up, down
+
     def receive(self) -> int:
         """Fuse every message that has arrived for this node; returns the blocks changed."""
         changed = 0
@@ -406,6 +467,13 @@ class NodeProcess:
 
     def _send_all(self, t: float, *, final: bool = False) -> None:
         emulate = self.links is not None and not final   # the final phase is lossless, as in simulate
+        if self.schedule is not None:   # links that change: fusion messages on tree links, beacons on the others
+            for nb, data in self.node.outgoing(sent_at=t):
+                if emulate:
+                    self.links.send(nb, data, t)
+                else:
+                    self.tr.send(self.name, nb, data, t)
+            return
         for nb in self.neighbors:
             if not self.tr.alive(nb):
                 self.counters["skipped_not_alive"] += 1
@@ -420,7 +488,7 @@ class NodeProcess:
 
     def _waiting_for(self, r: int) -> list[str]:
         """Live neighbours whose round ``r`` has not arrived yet."""
-        return [nb for nb in self.neighbors if self._round_seen.get(nb, 0) < r and self.tr.alive(nb)]
+        return [nb for nb in self.linked() if self._round_seen.get(nb, 0) < r and self.tr.alive(nb)]
 
     def _final_phase(self) -> Iterator[Wait]:
         """``diameter + 2`` (:func:`dfusion.topology.settling_rounds`) synchronized rounds without new measurements, then the final estimate.
@@ -432,6 +500,8 @@ class NodeProcess:
         holds everything: the in-process ``final_rounds`` over a real network.
         """
         T = float(self.times[-1])
+        self.sync_links(T)
+        self._links_frozen = True   # neighbours that end their run now do not break links
         self.tr.quiet_loss = True   # neighbours leaving now is the normal end
         if self.links is not None:
             self.links.flush()   # what is still in flight arrives before the rounds (simulate: net.flush())
@@ -470,6 +540,10 @@ class NodeProcess:
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
         out.update(self.counters)
+        if self.schedule is not None:
+            out.update(tree_changes=s.tree_changes, new_epochs=s.new_epochs, not_fused=s.not_fused,
+                       not_linked=s.not_linked, withdrawn_blocks=s.withdrawn_blocks,
+                       epochs_started=self.node.tree.epochs_started)
         out["cpu_ms"] = int(self.cpu * 1000)
         if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
             out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)
@@ -478,6 +552,14 @@ class NodeProcess:
             out.update(dropped_emulated=em["dropped"], delayed_emulated=em["delayed"],
                        duplicated_emulated=em["duplicated"])
         return out
+
+    def _tree_status(self) -> TreeStatus | None:
+        """This node's view of the tree (links that change), for the monitor."""
+        tree = self.node.tree
+        if tree is None:
+            return None
+        return TreeStatus(tree.epoch.term, tree.epoch.root, tree.parent, tuple(self.node.neighbors),
+                          tuple(self.node.tree_links))
 
     def _publish(self, phase: str, k: int) -> Status:
         if phase in ("ready", "stopped"):
@@ -495,7 +577,8 @@ class NodeProcess:
         if phase != "run" or now >= self._stats_due:   # the counters once a second, the estimate every step
             stats, self._stats_due = self.stats(), now + STATS_PERIOD
         st = Status(self.name, self.node.epoch, phase, k, t if math.isfinite(t) else 0.0, mean, cov,
-                    self.t_started, stats, list(self.lost) if phase == "final" else [], output)
+                    self.t_started, stats, list(self.lost) if phase == "final" else [], output,
+                    self._tree_status() if mean is not None else None)
         try:
             if phase == "final":
                 import zenoh

@@ -47,8 +47,8 @@ def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epo
     tree = None
     if sc.dynamic:
         if links is None:
-            raise ScenarioError(f"{sc.path}: links change at run time ([[events]], radio ranges): run it with "
-                                "dfusion simulate (dfusion run does not drive changing links yet)")
+            raise ScenarioError(f"{sc.path}: links change at run time ([[events]], radio ranges): build_node "
+                                "needs the node's links now (links=...)")
         links = sorted(links)
         if tree_start is None:
             tree = SpanningTree(name, links)

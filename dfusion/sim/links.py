@@ -6,7 +6,8 @@ radio ranges: two nodes with a range are linked while their distance is at most 
 of their two ranges (:func:`dfusion.topology.radio_links`), positions taken from the
 world's truth (fixed nodes where they stand, robots on their paths).
 
-:class:`LinkSchedule` says which links exist at a time. :class:`DynamicLinks` applies them
+:class:`~dfusion.scenario.links.LinkSchedule` says which links exist at a time (the rule
+``dfusion run``'s node processes evaluate too). :class:`DynamicLinks` applies them
 step by step to the fusion nodes (:meth:`FusionNode.link_up`, :meth:`FusionNode.link_down`,
 a joining node built with :func:`dfusion.scenario.build.build_joining_node`, a leaving node
 removed after a link break at each of its neighbours) and to the simulated network, and
@@ -34,8 +35,8 @@ from dfusion.fusion.channel import find_keys, time_key
 from dfusion.fusion.node import FusionNode
 from dfusion.fusion.tree import forest_settled, tree_components
 from dfusion.scenario.build import build_joining_node, build_nodes
+from dfusion.scenario.links import LinkSchedule
 from dfusion.scenario.spec import Scenario
-from dfusion.topology import radio_links
 from dfusion.transport.simulated import SimulatedNetwork
 
 __all__ = ["LinkSchedule", "DynamicLinks", "LinkChange", "agreed_edges", "information_settled", "INFO_RTOL"]
@@ -50,44 +51,6 @@ Pair = tuple[str, str]
 
 def _pair(a: str, b: str) -> Pair:
     return (a, b) if a < b else (b, a)
-
-
-class LinkSchedule:
-    """Which nodes are present and which links exist at time ``t`` (module docstring)."""
-
-    def __init__(self, sc: Scenario) -> None:
-        self.sc = sc
-        self.ranges = {n: s.radio_range for n, s in sc.nodes.items() if s.radio_range is not None}
-        self._scripted0 = {_pair(a, b) for a, b in sc.links}
-        self._link_events = [e for e in sc.events if e.kind in ("link_up", "link_down")]
-
-    def present(self, t: float) -> set[str]:
-        return {n for n, s in self.sc.nodes.items() if s.is_present(t)}
-
-    def positions(self, t: float) -> dict[str, np.ndarray]:
-        """``(x, y)`` of every node that has one (truth: fixed position or path)."""
-        out = {}
-        for n, s in self.sc.nodes.items():
-            p = s.position_at(t)
-            if p is not None:
-                out[n] = p
-        return out
-
-    def scripted(self, t: float) -> set[Pair]:
-        """``[[links]]`` with the link events up to ``t`` applied."""
-        up = set(self._scripted0)
-        for e in self._link_events:
-            if e.t > t + 1e-9:
-                break
-            (up.add if e.kind == "link_up" else up.discard)(e.nodes)
-        return up
-
-    def links(self, t: float) -> set[Pair]:
-        """The links that exist at ``t``: scripted or in radio range, between present nodes."""
-        present = self.present(t)
-        pos = {n: p for n, p in self.positions(t).items() if n in present}
-        ranged = radio_links(pos, {n: r for n, r in self.ranges.items() if n in present})
-        return {p for p in self.scripted(t) | ranged if p[0] in present and p[1] in present}
 
 
 def agreed_edges(nodes: dict[str, FusionNode]) -> set[Pair]:

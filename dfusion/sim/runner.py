@@ -599,7 +599,7 @@ def compute_metrics(sc, res: SimulationResult, nodes, c_final, net, n_meas, refu
         "nodes": {},
     }
     o_final = getattr(res, "oracle_final", None)
-    out["centralized_oracle"] = None   # a result without the oracle reference (dfusion run's, for now)
+    out["centralized_oracle"] = None   # a result without the oracle reference
     if getattr(res, "oracle_mean", None) is not None:
         out["centralized_oracle"] = {
             "rmse": rmse(res.oracle_mean, res.truth, axes),
