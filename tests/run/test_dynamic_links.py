@@ -23,6 +23,7 @@ from dfusion.run.monitor import run_table, tree_metrics  # noqa: E402
 from dfusion.scenario import load_scenario  # noqa: E402
 from dfusion.scenario.links import LinkSchedule, peers  # noqa: E402
 from dfusion.transport.zenoh import ZenohConfig  # noqa: E402
+from dfusion.wire import FrameKey  # noqa: E402
 
 HEAD = """
 duration = {duration}
@@ -111,7 +112,8 @@ def test_partition_schedule_cuts_and_heals(tmp_path):
 
 def test_tree_status_travels_in_the_monitor_message():
     st = Status("a", 7, "run", 3, 0.3, np.zeros(2), np.eye(2), tree=TreeStatus(2, "c", "d", ("b", "d"), ("d",)))
-    back = Status.decode(st.encode(b"k" * 16), b"k" * 16)
+    key = FrameKey(b"k" * 16, "net", "run-1")
+    back = Status.decode(st.encode(key), key)
     assert back.tree == st.tree
     assert Status.from_json(st.to_json()).tree == st.tree
     root = TreeStatus(1, "a", None, ("b",), ("b",))
