@@ -131,6 +131,8 @@ def plot_tree_frames(result, path: str | Path, *, times: list[float] | None = No
         ax.axhline(site[2], color="0.85", lw=0.6)
         ax.set_aspect("equal")
         ax.tick_params(labelsize=7)
+        ax.set_xlabel("x [m]", fontsize=8)
+        ax.set_ylabel("y [m]", fontsize=8)
     handles = [
         plt.Line2D([], [], color=TREE_COLOR, lw=3.2, label="fusion tree (agreed by both ends)"),
         plt.Line2D([], [], color=LINK_COLOR, lw=1.0, label="link that exists (radio range, wire)"),
