@@ -56,6 +56,8 @@ __all__ = [
     "encode",
     "decode",
     "check_frame",
+    "clear_caches",
+    "LAYOUT_CACHE_ENTRIES",
     "time_keys",
     "MAX_MESSAGE_BYTES",
     "MAX_BLOCKS",
@@ -234,6 +236,15 @@ def _unpack_index(n: int) -> Array:
 _LAYOUTS: dict[tuple[bytes, int], tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = {}
 #: Masks up to this many bytes have their layout cached (a node's messages repeat a few masks).
 _LAYOUT_CACHE_BYTES = 64
+#: At most this many layouts are cached (the cache is emptied when it is full): bounded memory
+#: whatever masks arrive, hostile ones included.
+LAYOUT_CACHE_ENTRIES = 256
+
+
+def clear_caches() -> None:
+    """Empty the decoder's layout cache (bounded by :data:`LAYOUT_CACHE_ENTRIES`; for memory
+    measurements that must not count it)."""
+    _LAYOUTS.clear()
 
 
 def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray | None]:
@@ -271,7 +282,7 @@ def _layout(mask_raw: bytes, m: int, n: int) -> tuple[int, np.ndarray, np.ndarra
         gather_info.flags.writeable = gather_vec.flags.writeable = False
         if diagonal is not None:
             diagonal.flags.writeable = False
-        if len(_LAYOUTS) >= 256:
+        if len(_LAYOUTS) >= LAYOUT_CACHE_ENTRIES:
             _LAYOUTS.clear()
         _LAYOUTS[mask_raw, n] = out
     return out
