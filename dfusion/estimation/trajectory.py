@@ -45,7 +45,10 @@ which the cache already holds (the base is kept in moment form for that).
     mu^s_k = mu_k + G_k (mu^s_{k+1} - mu^-_{k+1})
     P^s_k  = P_k + G_k (P^s_{k+1} - P^-_{k+1}) G_k^T
 
-costing O(m - k). Every inverse goes through a Cholesky factor.
+costing O(m - k). ``G_k`` depends on the factors up to ``x_{k+1}`` only, so it is cached with
+the forward terms of ``x_{k+1}`` (:meth:`TrajectoryInformation.gain`): a pass after a change
+at late states recomputes only their gains, and each step is then two small products.
+Every inverse goes through a Cholesky factor.
 """
 from __future__ import annotations
 
@@ -124,6 +127,9 @@ class _Filtered:
     pred_mean: Array | None = None   # mu^-_k (None for k = 0)
     pred_cov: Array | None = None    # P^-_k
     _pred_chol: Array | None = None
+    # the smoother gain G_{k-1} = P_{k-1} F_{k-1}^T (P^-_k)^-1 into this state: it depends on the
+    # states before x_k only, like the prediction, so it is valid as long as this entry is
+    _gain: Array | None = None
 
     def pred_chol(self, k: int) -> Array:
         """Cholesky factor of ``P^-_k``, computed on first use."""
@@ -238,6 +244,7 @@ class TrajectoryInformation:
                 kept, self._kept = self._kept, None
                 entry = self._filtered(k, kept.pred_mean, kept.pred_cov)
                 entry._pred_chol = kept._pred_chol
+                entry._gain = kept._gain
                 cache.append(entry)
             else:
                 prev = cache[k - 1]
@@ -289,18 +296,34 @@ class TrajectoryInformation:
         c = self._cache[m - 1]
         return c.mean, c.cov
 
+    def gain(self, k: int) -> Array:
+        """The smoother gain ``G_k = P_k F_k^T (P^-_{k+1})^-1`` (``k < m - 1``; the forward terms of
+        ``x_{k+1}`` must be valid), through the Cholesky factor of ``P^-_{k+1}``; cached with the
+        forward terms of ``x_{k+1}``: it depends on the factors before ``x_{k+1}`` only, so a
+        message that changes late states leaves the gains of earlier ones for the next smoothing."""
+        nxt = self._cache[k + 1]
+        G = nxt._gain
+        if G is None:
+            Cp = nxt.pred_chol(k + 1)
+            B = self.factors[k].F @ self._cache[k].cov      # F P_k = P^-_{k+1} G^T
+            with np.errstate(invalid="ignore", divide="ignore"):
+                Gt = _solve(Cp.T, _solve(Cp, B))
+            if not np.isfinite(Gt).all():
+                raise NotPositiveDefiniteError(f"the predicted covariance of window state {k + 1} is singular")
+            G = nxt._gain = np.ascontiguousarray(Gt.T)
+        return G
+
     def smoothed(self, k_from: int) -> tuple[list[Array], list[Array]]:
-        """Smoothed means and covariances of states ``k_from .. m-1`` (RTS backward pass)."""
+        """Smoothed means and covariances of states ``k_from .. m-1`` (RTS backward pass with the
+        cached gains, :meth:`gain`)."""
         m = len(self.L)
         self._forward(m)
         mu, P = self.latest()
         means, covs = [mu], [P]
+        cache = self._cache
         for k in range(m - 2, k_from - 1, -1):
-            ck, nxt = self._cache[k], self._cache[k + 1]
-            F = self.factors[k].F
-            # G = P_k F^T (P^-_{k+1})^-1 through the Cholesky factor of P^-_{k+1}
-            Cp = nxt.pred_chol(k + 1)
-            G = np.linalg.solve(Cp.T, np.linalg.solve(Cp, F @ ck.cov)).T
+            ck, nxt = cache[k], cache[k + 1]
+            G = self.gain(k)
             mu = ck.mean + G @ (mu - nxt.pred_mean)
             P = symmetrize(ck.cov + G @ (P - nxt.pred_cov) @ G.T)
             means.append(mu)
@@ -311,16 +334,14 @@ class TrajectoryInformation:
 
     def smoothed_means(self, k_from: int) -> list[Array]:
         """Smoothed means of states ``k_from .. m-1``: the mean recursion of :meth:`smoothed`
-        without the covariances, ``mu_k = mu_k|k + P_k F^T (P^-_{k+1})^-1 (mu_{k+1} - mu^-_{k+1})``."""
+        without the covariances, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})``."""
         m = len(self.L)
         self._forward(m)
         mu = self.latest()[0]
         means = [mu]
+        cache = self._cache
         for k in range(m - 2, k_from - 1, -1):
-            ck, nxt = self._cache[k], self._cache[k + 1]
-            Cp = nxt.pred_chol(k + 1)
-            r = np.linalg.solve(Cp.T, np.linalg.solve(Cp, mu - nxt.pred_mean))
-            mu = ck.mean + ck.cov @ (self.factors[k].F.T @ r)
+            mu = cache[k].mean + self.gain(k) @ (mu - cache[k + 1].pred_mean)
             means.append(mu)
         means.reverse()
         return means
