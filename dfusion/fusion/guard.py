@@ -168,7 +168,7 @@ def split_blocks(entries: list[tuple[float, Array, Array]]) -> tuple[list, list]
     routine per block as one call per block, without its per-call overhead)."""
     if not entries:
         return [], []
-    w = np.linalg.eigvalsh(np.stack([e[1] for e in entries]))
+    w = np.linalg.eigvalsh(np.array([e[1] for e in entries]))
     scale = np.max(np.abs(w), axis=1)
     psd = w[:, 0] >= -EIG_RTOL * scale
     add, other = [], []
@@ -192,24 +192,25 @@ def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[A
     """
     if not entries:
         return 0.0, 0
-    L = np.stack([e[1] for e in entries])
-    y = np.stack([e[2] for e in entries])
-    C0 = np.stack(P0)
+    L = np.array([e[1] for e in entries])
+    y = np.array([e[2] for e in entries])[:, :, None]
+    C0 = np.array(P0)
     w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    Vt = V.transpose(0, 2, 1)
     scale = np.max(np.abs(w), axis=1, keepdims=True)
     pos = (w > EIG_RTOL * scale) & (scale > 0)
-    Vy = np.einsum("bji,bj->bi", V, y)                          # V^T y
-    out = y - np.einsum("bij,bj->bi", V, np.where(pos, Vy, 0.0))
-    bad = np.einsum("bi,bij,bj->b", out, C0, out) > RANGE_TOL
-    signal = w * np.einsum("bji,bjk,bki->bi", V, C0, V)         # l_i v_i^T P0 v_i
+    Vy = (Vt @ y)[:, :, 0]                                       # V^T y
+    out = y - V @ np.where(pos, Vy, 0.0)[:, :, None]             # the part of y outside the range
+    bad = (out.transpose(0, 2, 1) @ C0 @ out).reshape(-1) > RANGE_TOL
+    signal = w * np.sum(V * (C0 @ V), axis=1)                    # l_i v_i^T P0 v_i
     use = pos & (signal > NEGLIGIBLE)
     if bad.any():
         i = int(np.argmax(bad))
         return math.inf, int(use[:i].sum()) + int(pos[i].sum())
     lu = np.where(use, w, 1.0)
     zc = Vy / lu                                                 # V^T z in the kept directions
-    a = zc - np.einsum("bji,bj->bi", V, np.stack(mu0))
-    b = zc - np.einsum("bji,bj->bi", V, np.stack(mu1))
+    a = zc - (Vt @ np.array(mu0)[:, :, None])[:, :, 0]
+    b = zc - (Vt @ np.array(mu1)[:, :, None])[:, :, 0]
     return float(np.sum(np.where(use, a * lu * b, 0.0))), int(use.sum())
 
 
