@@ -312,9 +312,8 @@ class TrajectoryInformation:
             if not ok.all():
                 bad = missing[int(np.argmin(ok))] + 1
                 raise NotPositiveDefiniteError(f"the predicted covariance of window state {bad} is not positive definite")
-            G = Gt.transpose(0, 2, 1).copy()
-            for i, k in enumerate(missing):
-                cache[k + 1]._gain = G[i]
+            for i, k in enumerate(missing):   # a copy each: a view would keep the whole stack alive
+                cache[k + 1]._gain = Gt[i].T.copy()
         return [cache[k + 1]._gain for k in range(k_from, m - 1)]
 
     def smoothed(self, k_from: int) -> tuple[list[Array], list[Array]]:
