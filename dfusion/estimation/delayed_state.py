@@ -487,7 +487,9 @@ class DelayedStateEIF:
         States are inserted for every entry time first (exact for linear models), so the
         moments before and after refer to the same trajectory; the window is enforced after
         the information is added, as in :meth:`add_information_batch`. Two smoothing passes
-        from the oldest entry: O(window). For consistency tests (:mod:`dfusion.fusion.guard`).
+        from the oldest entry: O(window), each step two small products with the cached smoother
+        gains (the pass after computes the gains of the states the entries changed, which the
+        next pass before reuses). For consistency tests (:mod:`dfusion.fusion.guard`).
         """
         self._require_init()
         if not entries:

@@ -45,7 +45,10 @@ which the cache already holds (the base is kept in moment form for that).
     mu^s_k = mu_k + G_k (mu^s_{k+1} - mu^-_{k+1})
     P^s_k  = P_k + G_k (P^s_{k+1} - P^-_{k+1}) G_k^T
 
-costing O(m - k). Every inverse goes through a Cholesky factor.
+costing O(m - k). ``G_k`` depends on the factors up to ``x_{k+1}`` only, so it is cached with
+the forward terms of ``x_{k+1}`` (:meth:`TrajectoryInformation.gains`): a pass after a change
+at late states recomputes only their gains, and each step is then two small products.
+Every inverse goes through a Cholesky factor.
 """
 from __future__ import annotations
 
@@ -123,13 +126,9 @@ class _Filtered:
     cov: Array                       # filtered covariance P_k
     pred_mean: Array | None = None   # mu^-_k (None for k = 0)
     pred_cov: Array | None = None    # P^-_k
-    _pred_chol: Array | None = None
-
-    def pred_chol(self, k: int) -> Array:
-        """Cholesky factor of ``P^-_k``, computed on first use."""
-        if self._pred_chol is None:
-            self._pred_chol = _chol(self.pred_cov, f"the predicted covariance of window state {k}")
-        return self._pred_chol
+    # the smoother gain G_{k-1} = P_{k-1} F_{k-1}^T (P^-_k)^-1 into this state: it depends on the
+    # states before x_k only, like the prediction, so it is valid as long as this entry is
+    _gain: Array | None = None
 
 
 class TrajectoryInformation:
@@ -237,7 +236,7 @@ class TrajectoryInformation:
             elif self._kept is not None:
                 kept, self._kept = self._kept, None
                 entry = self._filtered(k, kept.pred_mean, kept.pred_cov)
-                entry._pred_chol = kept._pred_chol
+                entry._gain = kept._gain
                 cache.append(entry)
             else:
                 prev = cache[k - 1]
@@ -289,20 +288,47 @@ class TrajectoryInformation:
         c = self._cache[m - 1]
         return c.mean, c.cov
 
+    def gains(self, k_from: int) -> list[Array]:
+        """The smoother gains ``G_k = P_k F_k^T (P^-_{k+1})^-1`` of states ``k_from .. m-2`` (the
+        forward terms must be valid up to ``x_{m-1}``), through the Cholesky factor of
+        ``P^-_{k+1}``. Each is cached with the forward terms of ``x_{k+1}``: it depends on the
+        factors before ``x_{k+1}`` only, so a change at late states leaves the gains of earlier
+        ones for the next smoothing; the missing ones are computed in one stacked call per step
+        (factor, two triangular solves: the LAPACK kernels of :func:`numpy.linalg.solve` on a
+        stack of 4 x 4 systems, without a Python call per state)."""
+        cache, factors = self._cache, self.factors
+        m = len(cache)
+        missing = [k for k in range(k_from, m - 1) if cache[k + 1]._gain is None]
+        if missing:
+            Pp = np.array([cache[k + 1].pred_cov for k in missing])
+            B = np.array([factors[k].F @ cache[k].cov for k in missing])     # F P_k = P^-_{k+1} G_k^T
+            with np.errstate(invalid="ignore", divide="ignore"):
+                try:
+                    C = _cholesky(Pp)
+                    Gt = _solve(C.transpose(0, 2, 1), _solve(C, B))
+                except np.linalg.LinAlgError:
+                    Gt = np.full_like(B, np.nan)
+            ok = np.isfinite(Gt).all(axis=(1, 2))
+            if not ok.all():
+                bad = missing[int(np.argmin(ok))] + 1
+                raise NotPositiveDefiniteError(f"the predicted covariance of window state {bad} is not positive definite")
+            for i, k in enumerate(missing):   # a copy each: a view would keep the whole stack alive
+                cache[k + 1]._gain = Gt[i].T.copy()
+        return [cache[k + 1]._gain for k in range(k_from, m - 1)]
+
     def smoothed(self, k_from: int) -> tuple[list[Array], list[Array]]:
-        """Smoothed means and covariances of states ``k_from .. m-1`` (RTS backward pass)."""
+        """Smoothed means and covariances of states ``k_from .. m-1`` (RTS backward pass with the
+        cached gains, :meth:`gains`)."""
         m = len(self.L)
         self._forward(m)
         mu, P = self.latest()
         means, covs = [mu], [P]
+        cache = self._cache
+        G = self.gains(k_from)
         for k in range(m - 2, k_from - 1, -1):
-            ck, nxt = self._cache[k], self._cache[k + 1]
-            F = self.factors[k].F
-            # G = P_k F^T (P^-_{k+1})^-1 through the Cholesky factor of P^-_{k+1}
-            Cp = nxt.pred_chol(k + 1)
-            G = np.linalg.solve(Cp.T, np.linalg.solve(Cp, F @ ck.cov)).T
-            mu = ck.mean + G @ (mu - nxt.pred_mean)
-            P = symmetrize(ck.cov + G @ (P - nxt.pred_cov) @ G.T)
+            ck, nxt, Gk = cache[k], cache[k + 1], G[k - k_from]
+            mu = ck.mean + Gk @ (mu - nxt.pred_mean)
+            P = symmetrize(ck.cov + Gk @ (P - nxt.pred_cov) @ Gk.T)
             means.append(mu)
             covs.append(P)
         means.reverse()
@@ -311,16 +337,15 @@ class TrajectoryInformation:
 
     def smoothed_means(self, k_from: int) -> list[Array]:
         """Smoothed means of states ``k_from .. m-1``: the mean recursion of :meth:`smoothed`
-        without the covariances, ``mu_k = mu_k|k + P_k F^T (P^-_{k+1})^-1 (mu_{k+1} - mu^-_{k+1})``."""
+        without the covariances, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})``."""
         m = len(self.L)
         self._forward(m)
         mu = self.latest()[0]
         means = [mu]
+        cache = self._cache
+        G = self.gains(k_from)
         for k in range(m - 2, k_from - 1, -1):
-            ck, nxt = self._cache[k], self._cache[k + 1]
-            Cp = nxt.pred_chol(k + 1)
-            r = np.linalg.solve(Cp.T, np.linalg.solve(Cp, mu - nxt.pred_mean))
-            mu = ck.mean + ck.cov @ (self.factors[k].F.T @ r)
+            mu = cache[k].mean + G[k - k_from] @ (mu - cache[k + 1].pred_mean)
             means.append(mu)
         means.reverse()
         return means

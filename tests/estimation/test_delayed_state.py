@@ -459,3 +459,49 @@ def test_add_information_moments_returns_the_smoothed_moments_before_and_after()
         assert_close_rel(m1, after.estimate(t)[0], 1e-10)
     for t in (0.0, 0.45, 1.1):
         assert_close_rel(f.estimate(t)[0], after.estimate(t)[0], 1e-12)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_smoothed_moments_with_cached_gains_equal_the_dense_solve_after_every_change(seed):
+    """The smoother gains are cached with the forward terms (trajectory.py): after any sequence of
+    changes (new states, updates at the newest and at older states, inserted states, a batch
+    tested and kept, one tried and undone, marginalized states) every window marginal equals
+    the dense solve of the window's information (``Omega^-1``, ``Omega^-1 eta``)."""
+    rng = np.random.default_rng(seed)
+    f = make_filter(window=15)
+    sensor = PositionSensor(2, 0.6)
+    t = 0.0
+
+    def check():
+        Om, eta = f.dense_information()
+        Sigma = np.linalg.solve(Om, np.eye(Om.shape[0]))
+        mu = Sigma @ eta
+        _, means, covs = f.trajectory()
+        for k, (m, P) in enumerate(zip(means, covs)):
+            assert_close_rel(m, mu[4 * k:4 * k + 4], 1e-8)
+            assert_close_rel(P, Sigma[4 * k:4 * k + 4, 4 * k:4 * k + 4], 1e-8)
+
+    for step in range(40):
+        t = round(t + 0.1, 9)
+        f.predict(t)
+        op = rng.integers(5)
+        times = f.times
+        if op == 0:
+            f.update(t, rng.normal(size=2) + [t, 0.0], sensor)
+        elif op == 1:   # a late measurement at an older state, or between two states
+            tm = float(times[rng.integers(len(times))]) - (0.05 if rng.random() < 0.5 and len(times) > 1 else 0.0)
+            if tm >= times[0]:
+                f.update(round(tm, 9), rng.normal(size=2) + [tm, 0.0], sensor)
+        elif op in (2, 3):   # a tested batch, kept (2) or tried and undone (3)
+            A = rng.normal(size=(2, 4))
+            L = A.T @ A
+            entries = [(float(s), L, L @ rng.normal(size=4)) for s in rng.choice(times, size=min(3, len(times)),
+                                                                                  replace=False)]
+            if op == 2:
+                f.add_information_moments(entries)
+            else:
+                with f.trial():
+                    f.add_information_moments(entries)
+        else:
+            f.estimate(float(times[rng.integers(len(times))]))
+        check()

@@ -81,6 +81,79 @@ def test_statistic_equals_the_joint_innovation_test_computed_densely(seed):
     assert stat == pytest.approx(ref, rel=1e-7)
 
 
+@pytest.mark.parametrize("seed", range(10, 22))
+def test_statistic_equals_the_dense_test_on_random_blocks(seed):
+    """Random messages: 1 to 6 blocks at random window states or between two, ranks 1 to 4, the
+    pseudo-measurement drawn from the belief or far from it; against the dense joint test."""
+    rng = np.random.default_rng(seed + 1000)
+    states = int(rng.integers(3, 12))
+    f = _random_filter(np.random.default_rng(seed), states=states)
+    times = f.times
+    blocks = []
+    for s in rng.choice(len(times), size=min(int(rng.integers(1, 7)), len(times)), replace=False):
+        t = float(times[s]) + (0.05 if rng.random() < 0.3 and s < len(times) - 1 else 0.0)
+        A = rng.normal(size=(int(rng.integers(1, 5)), 4)) * rng.uniform(0.3, 3.0)
+        L = A.T @ A
+        x = rng.normal(size=4) * (1.0 if rng.random() < 0.5 else 10.0)
+        blocks.append((round(t, 9), L, L @ x))
+    g = _random_filter(np.random.default_rng(seed), states=states)
+    for t, _, _ in blocks:
+        g.ensure_state(t)
+    ref, ref_dof = _dense_statistic(g, blocks)
+    mu0, P0_, mu1 = f.add_information_moments(blocks)
+    stat, dof = information_statistic(blocks, mu0, P0_, mu1)
+    assert dof == ref_dof
+    assert stat == pytest.approx(ref, rel=1e-7)
+
+
+def test_stacked_block_computations_equal_one_block_at_a_time():
+    """split_blocks and information_statistic work on all blocks at once; the same per block,
+    one eigendecomposition each (negligible directions, zero blocks, y outside the range,
+    removals), gives the same split, degrees of freedom and statistic."""
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        b = int(rng.integers(1, 7))
+        entries, mu0, P0_, mu1 = [], [], [], []
+        for _ in range(b):
+            kind = rng.integers(6)
+            A = rng.normal(size=(int(rng.integers(1, 5)), 4))
+            L = A.T @ A * (1e-12 if kind == 0 else 1.0)           # negligible for the receiver
+            if kind == 1:
+                L = -L                                               # a removal
+            if kind == 2:
+                L = np.zeros((4, 4))
+            y = L @ rng.normal(size=4) + (rng.normal(size=4) * 1e-2 if kind == 3 else 0.0)   # 3: out of range
+            entries.append((0.0, L, y))
+            B = rng.normal(size=(4, 4))
+            P0_.append(B @ B.T + 0.1 * np.eye(4))
+            mu0.append(rng.normal(size=4))
+            mu1.append(mu0[-1] + 0.1 * rng.normal(size=4))
+        add, other = split_blocks(entries)
+        ref_add = []
+        for e in entries:
+            w = np.linalg.eigvalsh(e[1])
+            if (np.abs(w).max() > 0 and w[0] >= -1e-9 * np.abs(w).max()) or (not np.abs(w).max() and np.any(e[2])):
+                ref_add.append(e)
+        assert [id(e) for e in add] == [id(e) for e in ref_add]
+        assert len(add) + len(other) == len(entries) - sum(1 for e in entries if not e[1].any() and not e[2].any())
+        # the statistic per block, as the module docstring defines it
+        ref, ref_dof = 0.0, 0
+        for (t, L, y), m0, C0, m1 in zip(entries, mu0, P0_, mu1):
+            w, V = np.linalg.eigh(L)
+            pos = w > 1e-9 * np.abs(w).max() if np.abs(w).max() > 0 else np.zeros(4, bool)
+            out = y - V[:, pos] @ (V[:, pos].T @ y)
+            if out @ C0 @ out > 1e-6:
+                ref, ref_dof = np.inf, ref_dof + int(pos.sum())
+                break
+            for lam, v in zip(w[pos], V[:, pos].T):
+                if lam * v @ C0 @ v > 1e-9:
+                    ref += (v @ y / lam - v @ m0) * lam * (v @ y / lam - v @ m1)
+                    ref_dof += 1
+        stat, dof = information_statistic(entries, mu0, P0_, mu1)
+        assert dof == ref_dof
+        assert stat == pytest.approx(ref, rel=1e-9, abs=1e-12)
+
+
 def test_information_outside_the_range_of_its_matrix_fails_and_removals_are_not_tested():
     f = _random_filter(np.random.default_rng(1))
     L = np.diag([4.0, 4.0, 0.0, 0.0])
