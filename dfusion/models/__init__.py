@@ -1,8 +1,9 @@
 """Motion and measurement models (``f, F, Q`` and ``h, H, R``), laser and odometry models."""
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.models.base import MeasurementModel, MotionModel, model_at
@@ -63,18 +64,4 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    """Import a public name on first use, so that importing the package loads nothing else."""
-    where = _WHERE.get(name)
-    if where is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    module, attribute = where
-    obj = importlib.import_module(module)
-    if attribute is not None:
-        obj = getattr(obj, attribute)
-    globals()[name] = obj
-    return obj
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _WHERE, globals(), __all__)
