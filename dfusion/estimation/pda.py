@@ -74,7 +74,7 @@ from typing import Any
 import numpy as np
 
 from dfusion.errors import ValidationError
-from dfusion.linalg import Array, cholesky, symmetrize
+from dfusion.linalg import Array, chi2_isf, cholesky, symmetrize
 
 __all__ = ["ClutterModel", "PDAResult", "PDAInformation", "pda_weights", "pda_update", "pda_information",
            "gate_threshold", "MU_TOL"]
@@ -89,7 +89,8 @@ def _logsumexp(a: Array) -> float:
 def gate_threshold(gate: float, dof: int = 2) -> float:
     """Chi-square quantile of probability ``gate``: ``-2 ln(1 - gate)`` for 2 degrees of freedom.
 
-    ``gate = 1`` gives ``inf`` (no gate). Other ``dof`` use :func:`scipy.stats.chi2.ppf`.
+    ``gate = 1`` gives ``inf`` (no gate). Other ``dof``: :func:`dfusion.linalg.chi2_isf` of
+    ``1 - gate`` (no scipy on a node's path).
     """
     if not (isinstance(gate, (int, float)) and not isinstance(gate, bool) and 0.0 < gate <= 1.0):
         raise ValidationError(f"gate must be a probability in (0, 1], got {gate!r}")
@@ -97,9 +98,7 @@ def gate_threshold(gate: float, dof: int = 2) -> float:
         return math.inf
     if dof == 2:
         return -2.0 * math.log1p(-gate)
-    from scipy.stats import chi2  # here, not at the top: a camera node needs only the 2-dof case
-
-    return float(chi2.ppf(gate, dof))
+    return chi2_isf(1.0 - gate, dof)
 
 
 @dataclass(frozen=True)

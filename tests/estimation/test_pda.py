@@ -10,7 +10,13 @@ import pytest
 from filterpy.kalman import KalmanFilter
 from scipy.stats import chi2, multivariate_normal
 
-from dfusion.estimation.pda import ClutterModel, pda_information, pda_update, pda_weights
+from dfusion.estimation.pda import (
+    ClutterModel,
+    gate_threshold,
+    pda_information,
+    pda_update,
+    pda_weights,
+)
 from dfusion.models import PositionSensor
 
 
@@ -170,3 +176,10 @@ def test_weights_limits():
     bb = lam * math.sqrt(np.linalg.det(2 * math.pi * S)) * (1 - pd * pg) / pd
     e = math.exp(-1.0)
     assert pda_weights(d2, S, lam, pd, pg)[0] == pytest.approx(bb / (bb + e), rel=1e-12)
+
+
+@pytest.mark.parametrize("dof", [1, 2, 3, 4, 6])
+@pytest.mark.parametrize("gate", [0.5, 0.9, 0.99, 0.999, 1 - 1e-6])
+def test_gate_threshold_is_scipys_chi_square_quantile(gate, dof):
+    """The gate against scipy.stats.chi2.ppf (independent), for every dof, without scipy on the node's path."""
+    assert gate_threshold(gate, dof) == pytest.approx(chi2.ppf(gate, dof), rel=1e-9)
