@@ -399,8 +399,12 @@ class ChannelFilter:
         top = self.applied_seq
         if seq > top:
             shift = seq - top
-            mask = (self._applied_mask << shift) | (1 << (shift - 1)) if top >= 0 else 0
-            self._applied_mask = mask & _MASK64
+            # a jump of more than the window leaves nothing of the old mask in it: never shift a
+            # Python integer by an unbounded (peer-chosen) number of bits
+            if top < 0 or shift > REPLAY_WINDOW:
+                self._applied_mask = 0
+            else:
+                self._applied_mask = ((self._applied_mask << shift) | (1 << (shift - 1))) & _MASK64
             self.applied_seq = seq
         elif seq < top and top - seq <= 64:
             self._applied_mask |= 1 << (top - seq - 1)
