@@ -48,8 +48,8 @@ FRAME_KEY = FrameKey(KEY, NETWORK, RUN)
 KEYS = {None: None, KEY: FRAME_KEY}
 #: mutated messages per key setting: in the bulk test (with a state digest after each one),
 #: and in the memory test (3,000 untraced, 1,500 traced for the warm-up, then MEMORY_RUN):
-#: 2 x 51,500 = 103,000 in all
-BULK = 42_000
+#: 2 x 59,500 = 119,000 in all, 100,000 of them with the digest check
+BULK = 50_000
 MEMORY_RUN = 5_000
 log = logging.getLogger(__name__)
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
