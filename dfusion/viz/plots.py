@@ -153,9 +153,14 @@ def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str 
         handles.append(Patch(color="tab:red", alpha=0.22, label="outage of a link of this node"))
     if any_other:
         handles.append(Patch(color="tab:red", alpha=0.08, label="outage of another link"))
-    fig.legend(handles=handles, loc="upper center", ncol=3, fontsize=7.5, frameon=False, bbox_to_anchor=(0.5, 0.975))
-    fig.suptitle(title, fontsize=10, y=0.995)
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.6 / fig.get_figheight()))
+    # the title's lines, then the legend's rows under them, then the axes (heights in inches)
+    height = fig.get_figheight()
+    title_h = 0.05 + 0.19 * (str(title).count("\n") + 1)
+    legend_h = 0.15 * math.ceil(len(handles) / 3)
+    fig.suptitle(title, fontsize=10, y=1 - 0.05 / height, va="top")
+    fig.legend(handles=handles, loc="upper center", ncol=3, fontsize=7.5, frameon=False,
+               bbox_to_anchor=(0.5, 1 - title_h / height))
+    fig.tight_layout(rect=(0, 0, 1, 1 - (title_h + legend_h) / height))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
