@@ -128,6 +128,8 @@ def child(cfg: dict) -> None:
                         out["arrivals"][repr(d.t_sent)] = (d.t_arrival, t1)
                 if node is not None and changed:   # the protocol's acknowledgement: a message back (after the timing)
                     tr.send(name, d.src, node.message_to(d.src), d.t_sent)
+            if node is not None:
+                node.settle()   # idle: the bookkeeping the messages left for later (FusionNode.settle)
         out.update(count=count, first=first, last=last, dropped=tr.stats.total.dropped)
         print(json.dumps(out), flush=True)
 
@@ -295,6 +297,8 @@ def per_hop(W: int, n: int, pause: float, minimal: bool = False) -> dict:
                 t_put = time.monotonic()
                 tr.send("a", "b", data, t)
                 t0s[repr(t)], tsend[repr(t)] = t0, t_put
+                if not minimal:
+                    a.settle()   # idle: the bookkeeping the message left for later (FusionNode.settle)
                 time.sleep(pause)
             time.sleep(0.3)
             res = kids[0].finish()
