@@ -111,7 +111,7 @@ class Entry:
     vec: Array
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)   # (not frozen: a frozen dataclass's __init__ costs a few us per message)
 class Plan:
     """What receiving one message changes (see :meth:`ChannelFilter.plan`); nothing is changed yet.
 
@@ -143,8 +143,29 @@ class Plan:
 
 
 def nonzero_blocks(info: Array, vec: Array) -> np.ndarray:
-    """Per block: does ``(info[i], vec[i])`` carry any information (a non-zero entry)?"""
+    """Per block: does ``(info[i], vec[i])`` carry any information (a non-zero entry)?
+
+    One block (a steady-state message) is tested on Python lists, which costs less than a
+    numpy reduction; the result is then a shared read-only array.
+    """
+    if info.shape[0] == 1:
+        return _ONE_TRUE if any(info.ravel().tolist()) or any(vec.ravel().tolist()) else _ONE_FALSE
     return info.any(axis=(1, 2)) | vec.any(axis=1)
+
+
+_ONE_TRUE = np.ones(1, dtype=bool)
+_ONE_FALSE = np.zeros(1, dtype=bool)
+_ONE_TRUE.flags.writeable = _ONE_FALSE.flags.writeable = False
+
+
+def all_of(flags: np.ndarray) -> bool:
+    """``flags.all()`` for a boolean array, without a numpy reduction for one element."""
+    return bool(flags[0]) if flags.shape[0] == 1 else bool(flags.all())
+
+
+def any_of(flags: np.ndarray) -> bool:
+    """``flags.any()`` for a boolean array, without a numpy reduction for one element."""
+    return bool(flags[0]) if flags.shape[0] == 1 else bool(flags.any())
 
 
 _NO_KEYS = np.zeros(0, dtype=np.int64)
@@ -384,6 +405,12 @@ class ChannelFilter:
             else:
                 self.keys, self.times, self.seqs, self.info, self.vec = plan.keys, plan.times, plan.seqs, plan.info, plan.vec
 
+    def _is_tail(self) -> bool:
+        """Whether the stored arrays are the views :meth:`_append` or :meth:`prune` made of the buffers."""
+        v = self._views
+        return (v is not None and self.keys is v[0] and self.times is v[1] and self.seqs is v[2]
+                and self.info is v[3] and self.vec is v[4])
+
     def _append(self, keys: np.ndarray, times: Array, seqs: np.ndarray, info: Array, vec: Array) -> None:
         """Store entries that come after every stored one.
 
@@ -396,10 +423,8 @@ class ChannelFilter:
         """
         m = keys.size
         old = (self.keys, self.times, self.seqs, self.info, self.vec)
-        v = self._views
         buf = self._buf
-        if (v is None or not all(a is b for a, b in zip(old, v)) or self._hi != self._fill
-                or self._hi + m > buf[0].shape[0]):
+        if not self._is_tail() or self._hi != self._fill or self._hi + m > buf[0].shape[0]:
             size = old[0].shape[0]
             cap = max(8, 2 * (size + m))
             buf = tuple(np.empty((cap,) + a.shape[1:], dtype=a.dtype) for a in old)
@@ -420,8 +445,7 @@ class ChannelFilter:
         if self.keys.size and self.keys[0] < oldest_key:
             # the keys are sorted: the entries kept are a tail (views; the arrays are only ever replaced)
             i = int(self.keys.searchsorted(oldest_key))
-            v = self._views
-            tail = v is not None and all(a is b for a, b in zip((self.keys, self.times, self.seqs, self.info, self.vec), v))
+            tail = self._is_tail()
             self.keys, self.times, self.seqs = self.keys[i:], self.times[i:], self.seqs[i:]
             self.info, self.vec = self.info[i:], self.vec[i:]
             if tail:   # still the buffers' views (a shorter tail of them): appends may go on in place

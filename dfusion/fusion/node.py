@@ -72,6 +72,8 @@ from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
 from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
 from dfusion.fusion.channel import (
+    all_of,
+    any_of,
     MAX_SEQ_JUMP,
     ChannelFilter,
     find_keys,
@@ -322,7 +324,7 @@ class _Blocks:
         n = self._info.shape[1]
         if len(self) and keys.size:
             found, pos = find_keys(self.keys, keys)
-            if found.all():   # (the usual case: a message's times are stored times)
+            if all_of(found):   # (the usual case: a message's times are stored times)
                 return self.info[pos], self.vec[pos]
             info = np.zeros((keys.size, n, n))
             vec = np.zeros((keys.size, n))
@@ -884,11 +886,11 @@ class FusionNode:
         if not len(ch) or not keys.size:
             return infos, vecs
         found, pos = ch.lookup(keys)
-        if not found.any():   # the neighbour sent nothing for these times (a new block)
+        if not any_of(found):   # the neighbour sent nothing for these times (a new block)
             return infos, vecs
         held = np.zeros(keys.size, dtype=bool)
         held[found] = nonzero_blocks(ch.info[pos[found]], ch.vec[pos[found]])
-        if held.any():
+        if any_of(held):
             m_info, m_vec = ch.info[pos[held]], ch.vec[pos[held]]
             scale = np.abs(infos[held]).max(axis=(1, 2))
             infos[held] = _clean_difference(infos[held] - m_info, scale)
@@ -923,7 +925,7 @@ class FusionNode:
             infos, vecs = self._values_for(ch, keys)
         times = keys / 1e9
         keep = nonzero_blocks(infos, vecs)
-        if keep.all():
+        if all_of(keep):
             cleared = np.zeros(0)
         else:
             cleared = times[~keep] if not full else np.zeros(0)
