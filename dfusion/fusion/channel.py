@@ -223,6 +223,10 @@ class ChannelFilter:
         Keys whose value for ``remote`` changed since the last message to it.
     """
 
+    #: Steady-state messages are planned as appends (:meth:`plan`); ``False`` (on the class or a
+    #: channel): the general plan for every message (the same results; for tests and comparisons).
+    append_plans: bool = True
+
     def __init__(self, local: str, remote: str, n: int) -> None:
         self.local = local
         self.remote = remote
@@ -312,7 +316,7 @@ class ChannelFilter:
         new_epoch = msg.epoch != self.epoch
         times, info, vec = msg.times, msg.info, msg.vec
         mkeys = time_keys(times)
-        if (not new_epoch and not msg.full and not msg.cleared.size and mkeys.size
+        if (self.append_plans and not new_epoch and not msg.full and not msg.cleared.size and mkeys.size
                 and (not self.keys.size or mkeys[0] > self.keys[-1]) and times[0] >= oldest - time_tol):
             # the steady state: new blocks after every stored one, nothing cleared, nothing older
             # than the window. Every block is new, so the differences are the blocks themselves

@@ -470,6 +470,11 @@ class FusionNode:
     guard : NeighbourGuard or None
     """
 
+    #: Steady-state messages take the critical path first (:meth:`settle`): ``False`` (on the
+    #: class or a node) makes every message take the general path, with all its work done at
+    #: once (the same results, bit for bit; for tests and comparisons).
+    critical_path_first: bool = True
+
     def __init__(
         self,
         name: str,
@@ -654,11 +659,11 @@ class FusionNode:
                 self._heard.pop(msg.src, None)
             else:
                 self._heard[msg.src] = heard
+            if not isinstance(exc, Exception):   # an interrupt: undone, not a rejected message
+                raise
             detail = f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}"
             self._reject("internal", detail)
             log.error("%s: the bookkeeping of a fused message failed; the message is undone: %s", self.name, detail)
-            if not isinstance(exc, Exception):
-                raise
             return
         self._total.release()
         self._own.release()
@@ -949,9 +954,11 @@ class FusionNode:
             **self._tree_fields(),
         )
         data = encode(msg, self.frame_key)
-        # recorded by settle() (the next call): the next message depends on it, this one does not
-        self._sent_pending.append((ch, msg.seq, keys, msg.full))
-        self._warm = self._deferred = True
+        if self.critical_path_first:   # recorded by settle() (the next call): the next message depends on it
+            self._sent_pending.append((ch, msg.seq, keys, msg.full))
+            self._warm = self._deferred = True
+        else:
+            ch.record_sent(msg.seq, keys, msg.full)
         self.stats.messages_sent += 1
         self.stats.bytes_sent += len(data)
         self.stats.full_messages_sent += int(msg.full)
@@ -1085,7 +1092,8 @@ class FusionNode:
         stored one, nothing cleared, nothing older than the window) may take
         :meth:`_apply_steady`: a newer message of the link's incarnation, every block at or before
         the newest state, no guard and a fixed tree (their tests and holds stay on the general path)."""
-        if self.guard is not None or self.tree is not None or self._tree_held or msg.seq <= ch.last_seq:
+        if (not self.critical_path_first or self.guard is not None or self.tree is not None or self._tree_held
+                or msg.seq <= ch.last_seq):
             return False
         latest = self.filter.latest_time + self.filter.time_tol
         return all(d[0] <= latest for d in deltas)
