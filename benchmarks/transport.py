@@ -297,9 +297,9 @@ def per_hop(W: int, n: int, pause: float, minimal: bool = False) -> dict:
                 t_put = time.monotonic()
                 tr.send("a", "b", data, t)
                 t0s[repr(t)], tsend[repr(t)] = t0, t_put
-                if not minimal:
-                    a.settle()   # idle: the bookkeeping the message left for later (FusionNode.settle)
                 time.sleep(pause)
+                if not minimal:   # idle, after the hop (not beside its transit on 2 cores): the bookkeeping
+                    a.settle()    # the message left for later (FusionNode.settle)
             time.sleep(0.3)
             res = kids[0].finish()
         arr = res["arrivals"]
