@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import transport as T  # noqa: E402  (make_node, MinimalHop, the models: the same hop as section 3)
+import transport as T  # the same hop as transport.py section 3: make_node, MinimalHop, the models
 
-from dfusion.fusion import FusionNode  # noqa: E402
+from dfusion.fusion import FusionNode
 
 STAGES = ("a.predict", "a.update", "a.message_to", "b.predict", "b.receive", "b.estimate", "minimal")
 

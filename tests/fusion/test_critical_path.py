@@ -22,7 +22,14 @@ from hypothesis import strategies as st
 
 from dfusion.fusion import ChannelFilter, FusionNode
 from dfusion.models import ConstantVelocity, PositionSensor
-from tests.helpers.fusion_harness import PRIOR, Schedule, Trace, random_tree, run_network, state_digest
+from tests.helpers.fusion_harness import (
+    PRIOR,
+    Schedule,
+    Trace,
+    random_tree,
+    run_network,
+    state_digest,
+)
 
 
 def recorded_run(monkeypatch, graph, s: Schedule, general: bool) -> tuple[list, list]:
