@@ -593,8 +593,10 @@ class FusionNode:
     # ------------------------------------------------------------------ deferred bookkeeping
     def settle(self) -> None:
         """Do the work that the last message received or sent left for later now (a node may call
-        it when idle; every method but :meth:`estimate`, :meth:`output` and :meth:`check_frame`
-        does it first, and so does reading :attr:`channels`). What a caller waits for is done
+        it when idle; every method that reads or changes what is left does it first, and so does
+        reading :attr:`channels`; :meth:`estimate`, :meth:`output`, :meth:`check_frame`,
+        :meth:`is_quarantined`, :meth:`health` and :meth:`report_source` read none of it and
+        leave it for later). What a caller waits for is done
         first, the rest after; no caller sees the node in between: every observable is the same,
         bit for bit, as if all of it had been done at once.
 
