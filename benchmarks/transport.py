@@ -128,6 +128,8 @@ def child(cfg: dict) -> None:
                         out["arrivals"][repr(d.t_sent)] = (d.t_arrival, t1)
                 if node is not None and changed:   # the protocol's acknowledgement: a message back (after the timing)
                     tr.send(name, d.src, node.message_to(d.src), d.t_sent)
+            if node is not None:
+                node.settle()   # idle: the bookkeeping the messages left for later (FusionNode.settle)
         out.update(count=count, first=first, last=last, dropped=tr.stats.total.dropped)
         print(json.dumps(out), flush=True)
 
@@ -296,6 +298,8 @@ def per_hop(W: int, n: int, pause: float, minimal: bool = False) -> dict:
                 tr.send("a", "b", data, t)
                 t0s[repr(t)], tsend[repr(t)] = t0, t_put
                 time.sleep(pause)
+                if not minimal:   # idle, after the hop (not beside its transit on 2 cores): the bookkeeping
+                    a.settle()    # the message left for later (FusionNode.settle)
             time.sleep(0.3)
             res = kids[0].finish()
         arr = res["arrivals"]

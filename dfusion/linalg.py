@@ -25,6 +25,14 @@ Array = NDArray[np.float64]
 SYMMETRY_RTOL = 1e-9
 
 
+def _all_finite(a: np.ndarray) -> bool:
+    """``np.isfinite(a).all()``; small arrays are tested on Python floats, which costs less than a
+    numpy reduction (the same decision)."""
+    if a.size <= 64:
+        return all(map(math.isfinite, a.ravel().tolist()))
+    return bool(np.isfinite(a).all())
+
+
 def as_vector(x: ArrayLike, n: int | None = None, name: str = "vector") -> Array:
     """Return ``x`` as a finite float64 vector of length ``n`` (a copy).
 
@@ -43,7 +51,7 @@ def as_vector(x: ArrayLike, n: int | None = None, name: str = "vector") -> Array
         raise ShapeError(f"{name} must be a vector, got shape {np.shape(x)}")
     if n is not None and a.shape[0] != n:
         raise ShapeError(f"{name} must have length {n}, got {a.shape[0]}")
-    if not np.isfinite(a).all():
+    if not _all_finite(a):
         raise NonFiniteError(f"{name} contains NaN or inf")
     return a
 
@@ -60,7 +68,7 @@ def as_matrix(m: ArrayLike, shape: tuple[int, int] | None = None, name: str = "m
         raise ShapeError(f"{name} must be a matrix, got shape {a.shape}")
     if shape is not None and a.shape != shape:
         raise ShapeError(f"{name} must have shape {shape}, got {a.shape}")
-    if not np.isfinite(a).all():
+    if not _all_finite(a):
         raise NonFiniteError(f"{name} contains NaN or inf")
     return a
 

@@ -98,6 +98,8 @@ PSD_SCALED_ATOL = 1e-6
 MAX_ABS_INFO = 1e12
 MAX_ABS_VEC = 1e18
 _DOMINANCE_RTOL = 1e-9
+#: Arrays of at most this many numbers are tested on Python floats (a numpy reduction costs more).
+_SMALL = 64
 
 _F8 = np.dtype("<f8")
 _I8 = np.dtype("<i8")
@@ -107,7 +109,12 @@ _CRC_STRUCT = struct.Struct("<I")
 
 def time_keys(times: Array) -> np.ndarray:
     """Integer nanoseconds of an array of times (round half to even): the keys blocks are stored under."""
-    return np.rint(np.asarray(times, dtype=float) * 1e9).astype(np.int64)
+    a = np.asarray(times, dtype=float)
+    if a.shape == (1,):   # one time (a steady-state message): Python's round is half to even too
+        k = float(a[0]) * 1e9
+        if abs(k) < 2.0**62:
+            return np.array([round(k)], dtype=np.int64)
+    return np.rint(a * 1e9).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -297,19 +304,45 @@ def _encode_times(keys: np.ndarray) -> tuple[bytes, bool]:
     return head + gaps.astype(_I8 if wide else _U4).tobytes(), wide
 
 
+@lru_cache(maxsize=16)
+def _triu_flat(n: int) -> tuple[int, ...]:
+    """Row-major indices in an ``n x n`` block of its upper triangle, row by row (the order on the wire)."""
+    iu = _triu(n)
+    return tuple((iu[0] * n + iu[1]).tolist())
+
+
+def _one_block(info: Array, vec: Array, n: int) -> tuple[bytes, bytes]:
+    """``(mask, values)`` of a message of one block, on Python floats: the same bytes as the
+    array path of :func:`encode` (``!= 0.0`` per number, bits little-endian, float64
+    little-endian), without its joins and reductions, which cost more than one block."""
+    flat = info.ravel().tolist()
+    row = [flat[i] for i in _triu_flat(n)] + vec.ravel().tolist()
+    mask = bytearray((len(row) + 7) // 8)
+    values = []
+    for i, v in enumerate(row):
+        if v != 0.0:
+            mask[i >> 3] |= 1 << (i & 7)
+            values.append(v)
+    return bytes(mask), struct.pack(f"<{len(values)}d", *values)
+
+
 def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
     """The frame of ``msg``; keyed (with a MAC) when ``key`` is given."""
     m, n = msg.vec.shape
-    iu = _triu(n)
-    rows = np.concatenate([msg.info[:, iu[0], iu[1]], msg.vec], axis=1) if m else np.zeros((0, iu[0].size + n))
-    mask = rows != 0.0
-    keys = time_keys(msg.times)
-    times, wide = _encode_times(keys)
+    key1 = float(msg.times[0]) * 1e9 if m == 1 else math.nan
+    if abs(key1) < 2.0**62:   # the steady-state message: one block (at a time whose key fits)
+        mask_b, values_b = _one_block(msg.info, msg.vec, n)
+        times, wide = struct.pack("<q", round(key1)), False   # round half to even, as time_keys
+    else:
+        iu = _triu(n)
+        rows = np.concatenate([msg.info[:, iu[0], iu[1]], msg.vec], axis=1) if m else np.zeros((0, iu[0].size + n))
+        mask = rows != 0.0
+        times, wide = _encode_times(time_keys(msg.times))
+        mask_b = np.packbits(mask, axis=1, bitorder="little").tobytes()
+        values_b = np.ascontiguousarray(rows[mask], dtype=_F8).tobytes()
     body = msgpack.packb(
         [msg.src, msg.dst, int(msg.epoch), int(msg.dst_epoch), int(msg.seq), int(msg.ack), int(msg.ack_mask), int(n),
-         float(msg.start), float(msg.sent_at), times,
-         np.packbits(mask, axis=1, bitorder="little").tobytes(),
-         np.ascontiguousarray(rows[mask], dtype=_F8).tobytes(),
+         float(msg.start), float(msg.sent_at), times, mask_b, values_b,
          time_keys(msg.cleared).astype(_I8).tobytes() if len(msg.cleared) else b"",
          int(msg.tree_term), msg.tree_root, msg.parent],
         use_bin_type=True,
@@ -519,9 +552,15 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
     if len(values_raw) != 8 * count:
         raise _reject("malformed", f"field 'values' has {len(values_raw)} bytes, expected {8 * count}")
     values = np.frombuffer(values_raw, dtype=_F8)
-    vmax = float(np.abs(values).max()) if count else 0.0
-    if not math.isfinite(vmax):
-        raise _reject("malformed", "field 'values' contains NaN or inf")
+    if count <= _SMALL:   # (on Python floats: cheaper than numpy's reductions; the same decision)
+        listed = values.tolist()
+        if not all(map(math.isfinite, listed)):
+            raise _reject("malformed", "field 'values' contains NaN or inf")
+        vmax = max(map(abs, listed)) if count else 0.0
+    else:
+        vmax = float(np.abs(values).max()) if count else 0.0
+        if not math.isfinite(vmax):
+            raise _reject("malformed", "field 'values' contains NaN or inf")
     # every number in place: the values, then a zero for the entries the mask leaves out
     padded = np.empty(count + 1)
     padded[:count] = values
@@ -566,7 +605,8 @@ def _not_psd(info: Array, diagonal: Array | None = None) -> int | None:
     it (diagonal blocks, such as position measurements, are the common case).
     The decision is the same as testing every block.
     """
-    if not len(info) or (diagonal is not None and not (diagonal < 0).any()):
+    if not len(info) or (diagonal is not None and not (
+            min(diagonal.tolist(), default=0.0) < 0 if diagonal.size <= _SMALL else (diagonal < 0).any())):
         return None
     rows = np.abs(info).sum(axis=2)
     d = np.diagonal(info, axis1=1, axis2=2)

@@ -1062,3 +1062,35 @@ def test_worked_example_of_the_docs():
     assert keyed[:3] == data[:3] and keyed[4:len(data) - 4] == data[4:-4]
     assert keyed[-16:] == reference_mac(keyed[:-16], network_key, network, run)
     assert decode(keyed, FrameKey(network_key, network, run)).ack_mask == 3
+
+
+def test_one_block_is_encoded_as_the_array_path_encodes_it():
+    """A message of one block (the steady state) is encoded on Python floats: its mask, values
+    and time are the bytes the array path gives for the same block, which a message of that
+    block twice (two blocks: the array path) carries twice. Zeros, negative zeros, tiny and
+    huge numbers, times on and between nanoseconds, every state dimension up to 6."""
+    rng = np.random.default_rng(15)
+    for trial in range(400):
+        n = int(rng.integers(1, 7))
+        A = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-8, 6)
+        L = A @ A.T
+        L[rng.random((n, n)) < 0.3] = 0.0
+        L = np.triu(L) + np.triu(L, 1).T
+        v = rng.normal(size=n) * 10.0 ** rng.integers(-8, 9)
+        v[rng.random(n) < 0.3] = 0.0
+        if trial % 5 == 0:
+            L[:] = 0.0
+        if trial % 7 == 0:
+            v[0] = -0.0
+        t = float(rng.uniform(-1e6, 1e6)) if trial % 2 else round(float(rng.uniform(0, 1e4)), 9)
+        # (naive: the blocks need not be positive semi-definite to be decoded back)
+        one = InfoMessage("a", "b", 1, 2, t - 1.0, 3.0, np.array([t]), L[None], v[None], full=False, naive=True)
+        two = InfoMessage("a", "b", 1, 2, t - 1.0, 3.0, np.array([t, t + 1.0]), np.stack([L, L]), np.stack([v, v]),
+                          full=False, naive=True)
+        b1 = msgpack.unpackb(encode(one)[4:-4])
+        b2 = msgpack.unpackb(encode(two)[4:-4])
+        assert b1[10] == b2[10][:8] == time_keys(np.array([t])).astype("<i8").tobytes()
+        assert b1[11] * 2 == b2[11] and b1[12] * 2 == b2[12]
+        back = decode(encode(one))
+        assert back.times.tobytes() == (time_keys(np.array([t])) / 1e9).tobytes()
+        assert np.array_equal(back.info[0], L) and np.array_equal(back.vec[0], v)

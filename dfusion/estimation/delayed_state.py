@@ -96,7 +96,7 @@ def measurement_information(
     :class:`~dfusion.errors.NonFiniteError` or :class:`~dfusion.errors.NotPositiveDefiniteError` on bad input.
     """
     zv = as_vector(z, sensor.dim_z, "measurement z")
-    if sensor.is_linear and not x_lin.any():
+    if sensor.is_linear and not any(x_lin.tolist()):   # (a list test: cheaper than a numpy reduction)
         return _linear_information(sensor, zv, x_lin)
     W = _whitener(sensor.R, sensor.dim_z)
     H = as_matrix(sensor.H(x_lin), (sensor.dim_z, x_lin.shape[0]), "measurement Jacobian H")

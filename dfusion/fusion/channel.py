@@ -111,7 +111,7 @@ class Entry:
     vec: Array
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)   # (not frozen: a frozen dataclass's __init__ costs a few us per message)
 class Plan:
     """What receiving one message changes (see :meth:`ChannelFilter.plan`); nothing is changed yet.
 
@@ -125,6 +125,10 @@ class Plan:
         Keys whose stored value changed (the receiver's other links must send them).
     outside : int
         Blocks with information that were older than the receiver's window (ignored).
+    append : bool
+        The steady-state message (:meth:`ChannelFilter.plan`): ``keys .. vec`` are only the
+        message's entries, which go after every stored one; the stored entries stay as they
+        are (:meth:`ChannelFilter.commit` appends them in place, without copying the channel).
     """
 
     deltas: list[tuple[float, Array, Array]]
@@ -135,11 +139,33 @@ class Plan:
     vec: Array
     changed: np.ndarray
     outside: int
+    append: bool = False
 
 
 def nonzero_blocks(info: Array, vec: Array) -> np.ndarray:
-    """Per block: does ``(info[i], vec[i])`` carry any information (a non-zero entry)?"""
+    """Per block: does ``(info[i], vec[i])`` carry any information (a non-zero entry)?
+
+    One block (a steady-state message) is tested on Python lists, which costs less than a
+    numpy reduction; the result is then a shared read-only array.
+    """
+    if info.shape[0] == 1:
+        return _ONE_TRUE if any(info.ravel().tolist()) or any(vec.ravel().tolist()) else _ONE_FALSE
     return info.any(axis=(1, 2)) | vec.any(axis=1)
+
+
+_ONE_TRUE = np.ones(1, dtype=bool)
+_ONE_FALSE = np.zeros(1, dtype=bool)
+_ONE_TRUE.flags.writeable = _ONE_FALSE.flags.writeable = False
+
+
+def all_of(flags: np.ndarray) -> bool:
+    """``flags.all()`` for a boolean array, without a numpy reduction for one element."""
+    return bool(flags[0]) if flags.shape[0] == 1 else bool(flags.all())
+
+
+def any_of(flags: np.ndarray) -> bool:
+    """``flags.any()`` for a boolean array, without a numpy reduction for one element."""
+    return bool(flags[0]) if flags.shape[0] == 1 else bool(flags.any())
 
 
 _NO_KEYS = np.zeros(0, dtype=np.int64)
@@ -197,6 +223,10 @@ class ChannelFilter:
         Keys whose value for ``remote`` changed since the last message to it.
     """
 
+    #: Steady-state messages are planned as appends (:meth:`plan`); ``False`` (on the class or a
+    #: channel): the general plan for every message (the same results; for tests and comparisons).
+    append_plans: bool = True
+
     def __init__(self, local: str, remote: str, n: int) -> None:
         self.local = local
         self.remote = remote
@@ -219,6 +249,11 @@ class ChannelFilter:
         self.messages_in = 0
         self.messages_out = 0
         self.duplicates = 0
+        # the buffers the stored arrays are views of after an append (:meth:`_append`): the
+        # five buffers, the views handed out and where they are, and how far the buffers are written
+        self._buf: tuple | None = None
+        self._views: tuple | None = None
+        self._lo = self._hi = self._fill = 0
 
     def __repr__(self) -> str:
         return (f"ChannelFilter({self.local!r} <- {self.remote!r}, entries={len(self.keys)}, "
@@ -279,9 +314,19 @@ class ChannelFilter:
         are counted in ``outside`` and ignored.
         """
         new_epoch = msg.epoch != self.epoch
-        seqs_now = np.full(self.keys.size, -1, dtype=np.int64) if new_epoch else self.seqs
         times, info, vec = msg.times, msg.info, msg.vec
         mkeys = time_keys(times)
+        if (self.append_plans and not new_epoch and not msg.full and not msg.cleared.size and mkeys.size
+                and (not self.keys.size or mkeys[0] > self.keys[-1]) and times[0] >= oldest - time_tol):
+            # the steady state: new blocks after every stored one, nothing cleared, nothing older
+            # than the window. Every block is new, so the differences are the blocks themselves
+            # and nothing stored moves: what the general plan below decides, without its joins
+            # and copies (the same deltas, bit for bit: the same array rows)
+            moved = nonzero_blocks(info, vec)
+            deltas = [(float(times[j]), info[j], vec[j]) for j in np.flatnonzero(moved).tolist()]
+            return Plan(deltas, mkeys, times, np.full(mkeys.size, msg.seq, dtype=np.int64), info, vec,
+                        mkeys[moved], 0, append=True)
+        seqs_now = np.full(self.keys.size, -1, dtype=np.int64) if new_epoch else self.seqs
         first = int(times.searchsorted(oldest - time_tol))
         outside = int(np.count_nonzero(nonzero_blocks(info[:first], vec[:first]))) if first else 0
         if first:
@@ -359,15 +404,57 @@ class ChannelFilter:
             self.note_applied(msg.seq)
         self.messages_in += 1
         if plan is not None:
-            self.keys, self.times, self.seqs, self.info, self.vec = plan.keys, plan.times, plan.seqs, plan.info, plan.vec
+            if plan.append:
+                self._append(plan.keys, plan.times, plan.seqs, plan.info, plan.vec)
+            else:
+                self.keys, self.times, self.seqs, self.info, self.vec = plan.keys, plan.times, plan.seqs, plan.info, plan.vec
+
+    def _is_tail(self) -> bool:
+        """Whether the stored arrays are the views :meth:`_append` or :meth:`prune` made of the buffers."""
+        v = self._views
+        return (v is not None and self.keys is v[0] and self.times is v[1] and self.seqs is v[2]
+                and self.info is v[3] and self.vec is v[4])
+
+    def _append(self, keys: np.ndarray, times: Array, seqs: np.ndarray, info: Array, vec: Array) -> None:
+        """Store entries that come after every stored one.
+
+        The stored arrays are then views ``[lo, hi)`` of buffers with room to grow: when they
+        still are the views the last append or prune made and nothing was written after
+        them, the entries go into the spare room and the views grow, copying nothing. A
+        snapshot (:meth:`state`) holds views that end at or before ``hi``, which are never
+        written again, so it stays valid; after anything else replaced the arrays (a general
+        plan, :meth:`restore`), they are copied into new buffers first.
+        """
+        m = keys.size
+        old = (self.keys, self.times, self.seqs, self.info, self.vec)
+        buf = self._buf
+        if not self._is_tail() or self._hi != self._fill or self._hi + m > buf[0].shape[0]:
+            size = old[0].shape[0]
+            cap = max(8, 2 * (size + m))
+            buf = tuple(np.empty((cap,) + a.shape[1:], dtype=a.dtype) for a in old)
+            for b, a in zip(buf, old):
+                b[:size] = a
+            self._buf, self._lo, self._hi = buf, 0, size
+        lo, hi = self._lo, self._hi
+        for b, a in zip(buf, (keys, times, seqs, info, vec)):
+            b[hi:hi + m] = a
+        hi += m
+        self._hi = self._fill = hi
+        views = tuple(b[lo:hi] for b in buf)
+        self.keys, self.times, self.seqs, self.info, self.vec = views
+        self._views = views
 
     def prune(self, oldest_key: int) -> None:
         """Forget entries of states older than the window (already in the base)."""
         if self.keys.size and self.keys[0] < oldest_key:
             # the keys are sorted: the entries kept are a tail (views; the arrays are only ever replaced)
             i = int(self.keys.searchsorted(oldest_key))
+            tail = self._is_tail()
             self.keys, self.times, self.seqs = self.keys[i:], self.times[i:], self.seqs[i:]
             self.info, self.vec = self.info[i:], self.vec[i:]
+            if tail:   # still the buffers' views (a shorter tail of them): appends may go on in place
+                self._lo += i
+                self._views = (self.keys, self.times, self.seqs, self.info, self.vec)
         if self.dirty and min(self.dirty) < oldest_key:
             self.dirty = {k for k in self.dirty if k >= oldest_key}
 

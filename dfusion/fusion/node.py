@@ -72,6 +72,8 @@ from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
 from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
 from dfusion.fusion.channel import (
+    all_of,
+    any_of,
     MAX_SEQ_JUMP,
     ChannelFilter,
     find_keys,
@@ -322,7 +324,7 @@ class _Blocks:
         n = self._info.shape[1]
         if len(self) and keys.size:
             found, pos = find_keys(self.keys, keys)
-            if found.all():   # (the usual case: a message's times are stored times)
+            if all_of(found):   # (the usual case: a message's times are stored times)
                 return self.info[pos], self.vec[pos]
             info = np.zeros((keys.size, n, n))
             vec = np.zeros((keys.size, n))
@@ -468,6 +470,11 @@ class FusionNode:
     guard : NeighbourGuard or None
     """
 
+    #: Steady-state messages take the critical path first (:meth:`settle`): ``False`` (on the
+    #: class or a node) makes every message take the general path, with all its work done at
+    #: once (the same results, bit for bit; for tests and comparisons).
+    critical_path_first: bool = True
+
     def __init__(
         self,
         name: str,
@@ -519,6 +526,13 @@ class FusionNode:
         self.epoch = time.time_ns() if epoch is None else int(epoch)
         if not 0 < self.epoch < 2**63:
             raise ValidationError(f"epoch must be in (0, 2^63), got {self.epoch}")
+        #: The bookkeeping of the last steady-state message, done by :meth:`settle` (:meth:`receive`).
+        self._pending: tuple | None = None
+        #: The records of messages sent, and whether the filter's estimate may be brought up to date,
+        #: done by :meth:`settle` (:meth:`message_to`).
+        self._sent_pending: list[tuple[ChannelFilter, int, np.ndarray, bool]] = []
+        self._warm = False
+        self._deferred = False   # any of the three
         self.filter = DelayedStateEIF(motion, window, horizon=horizon, time_tol=time_tol)
         t0, mean, cov = prior
         self.filter.initialize(t0, mean, cov)
@@ -560,6 +574,103 @@ class FusionNode:
     def __repr__(self) -> str:
         return f"FusionNode({self.name!r}, neighbors={list(self.neighbors)}, {self.filter!r})"
 
+    def __getstate__(self) -> dict:
+        self._settle()
+        return self.__dict__
+
+    @property
+    def channels(self) -> dict[str, ChannelFilter]:
+        """The channel filter of every fusion link (``{neighbour: ChannelFilter}``), settled
+        (:meth:`settle`)."""
+        if self._deferred:
+            self._settle()
+        return self._channels
+
+    @channels.setter
+    def channels(self, value: dict[str, ChannelFilter]) -> None:
+        self._channels = value
+
+    # ------------------------------------------------------------------ deferred bookkeeping
+    def settle(self) -> None:
+        """Do the work that the last message received or sent left for later now (a node may call
+        it when idle; every method that reads or changes what is left does it first, and so does
+        reading :attr:`channels`; :meth:`estimate`, :meth:`output`, :meth:`check_frame`,
+        :meth:`is_quarantined`, :meth:`health` and :meth:`report_source` read none of it and
+        leave it for later). What a caller waits for is done
+        first, the rest after; no caller sees the node in between: every observable is the same,
+        bit for bit, as if all of it had been done at once.
+
+        * :meth:`receive` fuses a steady-state message into the filter at once (the estimate
+          changes) and leaves what the estimate does not need: storing the blocks in the
+          channel filter and the node's total information, marking them for the other links,
+          the acknowledgement the message carries, pruning. A failure of this bookkeeping (a
+          defect; nothing in it depends on the message's values) undoes the whole message, the
+          filter's part too, and counts and logs it as an ``"internal"`` rejection.
+        * :meth:`message_to` returns the message and leaves the record of what it carried
+          (:meth:`ChannelFilter.record_sent`), and the filter's forward pass up to the newest
+          state (its estimate: the next :meth:`predict` that marginalizes the oldest state
+          needs part of it; nothing else changes).
+        """
+        if self._deferred:
+            self._settle()
+
+    def _settle(self) -> None:
+        if not self._deferred:
+            return
+        self._deferred = False
+        if self._sent_pending:
+            sent, self._sent_pending = self._sent_pending, []
+            for ch, seq, keys, full in sent:
+                ch.record_sent(seq, keys, full)
+        if self._pending is not None:
+            self._settle_receive()
+        if self._warm:
+            self._warm = False
+            try:
+                self.filter.estimate()
+            except DfusionError:   # an improper belief: the operation that needs it reports it
+                pass
+
+    def _settle_receive(self) -> None:
+        p = self._pending
+        self._pending = None
+        msg, ch, plan, deltas, cp_filter, heard = p
+        cp_total = self._total.mark()
+        cp_channels = {j: c.state() for j, c in self._channels.items()}
+        pruned_at = self._pruned_at
+        cp_own, cp_held, cp_tree_held = self._own.mark(), self._held.mark(), dict(self._tree_held)
+        try:
+            ch.commit(msg, plan)
+            if deltas:
+                self._total.add_many(deltas)
+            self._mark_dirty(plan.changed.tolist(), skip=msg.src)
+            if msg.dst_epoch == self.epoch:
+                ch.acknowledged(msg.ack, msg.ack_mask)
+            self._prune()
+        except BaseException as exc:
+            self.filter.restore(cp_filter)
+            self._total.rollback(cp_total)
+            self._own.rollback(cp_own)
+            self._held.rollback(cp_held)
+            self._tree_held = cp_tree_held
+            for j, c in self._channels.items():
+                c.restore(cp_channels[j])
+            self._pruned_at = pruned_at
+            self.stats.messages_received -= 1
+            if heard is None:
+                self._heard.pop(msg.src, None)
+            else:
+                self._heard[msg.src] = heard
+            if not isinstance(exc, Exception):   # an interrupt: undone, not a rejected message
+                raise
+            detail = f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}"
+            self._reject("internal", detail)
+            log.error("%s: the bookkeeping of a fused message failed; the message is undone: %s", self.name, detail)
+            return
+        self._total.release()
+        self._own.release()
+        self._held.release()
+
     # ------------------------------------------------------------------ local filter
     @property
     def motion(self) -> MotionModel:
@@ -571,6 +682,7 @@ class FusionNode:
 
     def predict(self, t: float, u: ArrayLike | None = None) -> None:
         """Advance the trajectory to ``t`` (or add a state at a past ``t`` in the window)."""
+        self._settle()
         f = self.filter
         t = as_time(t)
         if t <= f.latest_time + f.time_tol:
@@ -597,6 +709,7 @@ class FusionNode:
         it is fused here but held back from the neighbours until
         :meth:`share_local_information` (or removed by :meth:`withdraw_local_information`).
         """
+        self._settle()
         f = self.filter
         t = as_time(t)
         if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
@@ -622,6 +735,7 @@ class FusionNode:
         instance) until :meth:`share_local_information`, or removed by
         :meth:`withdraw_local_information`.
         """
+        self._settle()
         f = self.filter
         t = as_time(t)
         if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
@@ -643,6 +757,7 @@ class FusionNode:
         held-back store to what the node shares, and its time is marked changed on every link,
         so the next (partial) messages carry it. Returns False (nothing to share) when ``t`` has
         left the window."""
+        self._settle()
         f = self.filter
         t = as_time(t)
         if t < f.oldest_time - f.time_tol:
@@ -665,6 +780,7 @@ class FusionNode:
         over-confident. Returns False (and changes nothing) when ``t`` is outside the window:
         older information is marginalized into the window's base and stays.
         """
+        self._settle()
         f = self.filter
         t = as_time(t)
         if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
@@ -697,6 +813,7 @@ class FusionNode:
         guard (:mod:`dfusion.fusion.guard`) the wider belief only makes the neighbours'
         information pass its test more easily (``docs/robots.md``).
         """
+        self._settle()
         self.filter.add_process_noise(t, Q_extra)
         log.info("%s: process noise added at t=%.3f (trace %.3g)", self.name, float(t),
                  float(np.trace(np.asarray(Q_extra, dtype=float))))
@@ -710,6 +827,7 @@ class FusionNode:
         message lost on the way is resent with the next messages once an acknowledgement
         shows the loss (:mod:`dfusion.fusion.channel`), so over a lossy link it may still be
         under way."""
+        self._settle()
         live = [j for j in self.neighbors if not self.is_quarantined(j)]
         if not live:
             return float("inf")
@@ -720,6 +838,7 @@ class FusionNode:
         states with ``t0 <= t <= t1``, oldest first: the total (own shared plus received;
         what a quarantine withdrew is not in it) minus the own shared part
         (``own - held``)."""
+        self._settle()
         tol = self.filter.time_tol
         own = {time_key(t): (L, y) for t, L, y in self._own.between(t0 - tol, t1 + tol)}
         held = {time_key(t): (L, y) for t, L, y in self._held.between(t0 - tol, t1 + tol)}
@@ -774,11 +893,11 @@ class FusionNode:
         if not len(ch) or not keys.size:
             return infos, vecs
         found, pos = ch.lookup(keys)
-        if not found.any():   # the neighbour sent nothing for these times (a new block)
+        if not any_of(found):   # the neighbour sent nothing for these times (a new block)
             return infos, vecs
         held = np.zeros(keys.size, dtype=bool)
         held[found] = nonzero_blocks(ch.info[pos[found]], ch.vec[pos[found]])
-        if held.any():
+        if any_of(held):
             m_info, m_vec = ch.info[pos[held]], ch.vec[pos[held]]
             scale = np.abs(infos[held]).max(axis=(1, 2))
             infos[held] = _clean_difference(infos[held] - m_info, scale)
@@ -792,6 +911,7 @@ class FusionNode:
         the neighbour has been sent a full message, else the whole window
         (:mod:`dfusion.fusion.channel`).
         """
+        self._settle()
         ch = self.channels.get(neighbor)
         if ch is None:
             if self.tree is not None and neighbor in self.tree.links:
@@ -812,7 +932,7 @@ class FusionNode:
             infos, vecs = self._values_for(ch, keys)
         times = keys / 1e9
         keep = nonzero_blocks(infos, vecs)
-        if keep.all():
+        if all_of(keep):
             cleared = np.zeros(0)
         else:
             cleared = times[~keep] if not full else np.zeros(0)
@@ -836,7 +956,11 @@ class FusionNode:
             **self._tree_fields(),
         )
         data = encode(msg, self.frame_key)
-        ch.record_sent(msg.seq, keys, msg.full)
+        if self.critical_path_first:   # recorded by settle() (the next call): the next message depends on it
+            self._sent_pending.append((ch, msg.seq, keys, msg.full))
+            self._warm = self._deferred = True
+        else:
+            ch.record_sent(msg.seq, keys, msg.full)
         self.stats.messages_sent += 1
         self.stats.bytes_sent += len(data)
         self.stats.full_messages_sent += int(msg.full)
@@ -870,6 +994,7 @@ class FusionNode:
         """Count copies a transport rejected on arrival with :meth:`check_frame` (``{reason: count}``):
         in ``stats.messages_rejected``, ``stats.rejections``, ``stats.rejected_on_arrival`` and the
         rate-limited rejection log."""
+        self._settle()
         for reason, count in counts.items():
             if count <= 0:
                 continue
@@ -918,6 +1043,7 @@ class FusionNode:
         non-neighbour, addressed to another node, of another state dimension, of an earlier
         incarnation, too far ahead in its sequence numbers, or not fusable.
         """
+        self._settle()
         self._tree_undo = None
         try:
             msg = decode(data, self.frame_key, self.max_message_bytes)
@@ -957,7 +1083,47 @@ class FusionNode:
             raise   # counted by _check (and the tree rule's changes undone by _reject)
         except Exception as exc:   # nothing changed yet (the tree rule's changes are undone by _reject)
             raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
+        if plan is not None and plan.append and not too_far and self._steady(msg, ch, deltas):
+            return self._apply_steady(msg, ch, plan, deltas)
         self._apply(msg, ch, plan, deltas, changed, too_far, outside)
+        self._tree_undo = None
+        return len(deltas)
+
+    def _steady(self, msg: InfoMessage, ch: ChannelFilter, deltas: list) -> bool:
+        """Whether a message planned as an append (:meth:`ChannelFilter.plan`: new blocks after every
+        stored one, nothing cleared, nothing older than the window) may take
+        :meth:`_apply_steady`: a newer message of the link's incarnation, every block at or before
+        the newest state, no guard and a fixed tree (their tests and holds stay on the general path)."""
+        if (not self.critical_path_first or self.guard is not None or self.tree is not None or self._tree_held
+                or msg.seq <= ch.last_seq):
+            return False
+        latest = self.filter.latest_time + self.filter.time_tol
+        return all(d[0] <= latest for d in deltas)
+
+    def _apply_steady(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list) -> int:
+        """:meth:`_apply` of a steady-state message (:meth:`_steady`), the critical path first: the
+        blocks go into the filter (and its estimate is brought up to date, which also tests
+        that the belief stays proper) at once; the rest is left to :meth:`settle`. Every
+        result is the same, bit for bit, as :meth:`_apply`'s."""
+        f = self.filter
+        cp_filter = f.checkpoint()
+        if deltas:
+            try:
+                f.add_information_batch(deltas, validate=False)
+                f.estimate()   # the belief must still be proper
+            except BaseException as exc:
+                f.restore(cp_filter)
+                if isinstance(exc, DfusionError):
+                    raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
+                if isinstance(exc, Exception):
+                    raise self._reject("internal",
+                                       f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
+                raise
+        heard = self._heard.get(msg.src)
+        self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
+        self.stats.messages_received += 1
+        self._pending = (msg, ch, plan, deltas, cp_filter, heard)
+        self._deferred = True
         self._tree_undo = None
         return len(deltas)
 
@@ -1000,7 +1166,8 @@ class FusionNode:
         latest = time_key(f.latest_time + f.time_tol)
         if not plan.keys.size or plan.keys[-1] <= latest:   # (sorted keys: nothing ahead)
             return []
-        ahead = plan.keys[plan.keys > latest]
+        keys = np.concatenate([ch.keys, plan.keys]) if plan.append else plan.keys   # (the entries after it)
+        ahead = keys[keys > latest]
         if not ahead.size:
             return []
         new = ahead[~find_keys(ch.keys, ahead)[0]]
@@ -1226,6 +1393,7 @@ class FusionNode:
     def outgoing(self, sent_at: float | None = None) -> list[tuple[str, bytes]]:
         """``(neighbour, message)`` for every link: a fusion message on a tree link, a beacon on
         the others (links that change); every neighbour's message on a fixed tree."""
+        self._settle()
         self._sent_tree_changes = self.stats.tree_changes
         return [(j, self.message_to(j, sent_at)) for j in self.neighbors]
 
@@ -1236,6 +1404,7 @@ class FusionNode:
 
     def link_up(self, neighbor: str) -> None:
         """A link to ``neighbor`` now exists (links that change; the transport saw it appear)."""
+        self._settle()
         self._tree_required()
         if neighbor == self.name or (self.peers is not None and neighbor not in self.peers):
             raise ValidationError(f"{self.name!r} cannot link to {neighbor!r}")
@@ -1243,6 +1412,7 @@ class FusionNode:
 
     def link_down(self, neighbor: str) -> None:
         """The link to ``neighbor`` is gone (it broke, or ``neighbor`` left): see the tree rule."""
+        self._settle()
         self._tree_required()
         self._follow(self.tree.link_down(neighbor))
 
@@ -1450,6 +1620,7 @@ class FusionNode:
         (copies), its own and what it received (also blocks held back for times ahead of its
         newest state), or with ``own`` its own only; both without the own information it fused
         but does not share yet (``share=False``)."""
+        self._settle()
         if not own:
             return self._total.keys.copy(), self._total.info.copy(), self._total.vec.copy()
         keys = self._own.keys.copy()
@@ -1465,6 +1636,7 @@ class FusionNode:
 
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""
+        self._settle()
         return [(e.t, e.info, e.vec) for _, e in self._own.items()]
 
     def flush_log(self) -> None:

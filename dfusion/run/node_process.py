@@ -485,6 +485,7 @@ class NodeProcess:
                 self.links.send(nb, data, t)
             else:
                 self.tr.send(self.name, nb, data, t)
+        self.node.settle()   # the bookkeeping the messages left for later, now that they are out
 
     def _waiting_for(self, r: int) -> list[str]:
         """Live neighbours whose round ``r`` has not arrived yet."""

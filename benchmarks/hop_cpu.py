@@ -1,0 +1,104 @@
+"""CPU of one hop in one process, stage by stage, against the minimal hop measured beside it.
+
+The hop of ``benchmarks/transport.py`` section 3 without the transport: node ``a`` predicts,
+fuses a measurement and builds its message (the *sender*); node ``b`` predicts to the
+sender's time, fuses the message and reads its estimate (the *receiver*); then, outside
+the timing, ``b`` acknowledges, ``a`` fuses the acknowledgement and both nodes do the
+bookkeeping they left for later (``FusionNode.settle``, as an idle node does; skipped
+for code without it). Same nodes as transport.py (4-state constant velocity, a full
+window with one measurement per state, steady state: one new block per message).
+
+Each hop is followed by the minimal hop of transport.py (``MinimalHop``: msgpack and one
+small solve per side, about 10 numpy calls) with the same measurement, so that both see
+the same machine: on a shared 2-core VM absolute times vary 2-3x from minute to minute,
+the ratios far less. Printed: medians over the hops (us) and each part divided by the
+median minimal hop.
+
+Usage: python benchmarks/hop_cpu.py [--hops N] [--windows 10,100]
+Another checkout's code: run that checkout's interpreter on this script
+(``/path/to/other/.venv/bin/python benchmarks/hop_cpu.py``): it imports ``dfusion`` from
+that interpreter and ``transport.py`` from beside this file.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import transport as T  # the same hop as transport.py section 3: make_node, MinimalHop, the models
+
+from dfusion.fusion import FusionNode
+
+STAGES = ("a.predict", "a.update", "a.message_to", "b.predict", "b.receive", "b.estimate", "minimal")
+
+
+def settle(node: FusionNode) -> None:
+    """The node's deferred bookkeeping (``FusionNode.settle``), if the code has it."""
+    getattr(node, "settle", lambda: None)()
+
+
+def run(W: int, hops: int, warm: int = 50) -> dict[str, float]:
+    a = T.make_node("a", ["b"], W, fill=True)
+    b = FusionNode("b", ["a"], T.MOTION, window=W, prior=T.PRIOR, epoch=7)
+    mini = T.MinimalHop(W)
+    rng = np.random.default_rng(1)
+    times: dict[str, list[float]] = {s: [] for s in STAGES}
+    pc = time.perf_counter
+    for i in range(hops + warm):
+        t = round((W + 1 + i) * T.DT, 9)
+        z = rng.normal(size=2)
+        t0 = pc()
+        a.predict(t)
+        t1 = pc()
+        a.update(t, z, T.SENSOR)
+        t2 = pc()
+        data = a.message_to("b", sent_at=t)
+        t3 = pc()
+        settle(a)   # idle after the send (transport.py does the same)
+        t4 = pc()
+        if t > b.latest_time + 1e-9:
+            b.predict(t)
+        t5 = pc()
+        b.receive(data)
+        t6 = pc()
+        b.estimate()
+        t7 = pc()
+        a.receive(b.message_to("a", sent_at=t))   # the acknowledgement, outside the timing
+        settle(b)
+        settle(a)
+        t8 = pc()
+        mini.receive(mini.send(z))
+        t9 = pc()
+        if i >= warm:
+            for s, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t5 - t4, t6 - t5, t7 - t6, t9 - t8)):
+                times[s].append(dt)
+    return {s: float(np.median(v)) * 1e6 for s, v in times.items()}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--hops", type=int, default=2000)
+    ap.add_argument("--windows", default="10,100")
+    args = ap.parse_args()
+    print(f"hop CPU in one process, medians of {args.hops} hops (us; x = / minimal hop of the same run)")
+    head = ["window", "sender", "x", "receiver", "x", "both", "x", "minimal"] + list(STAGES[:-1])
+    rows = []
+    for W in (int(w) for w in args.windows.split(",")):
+        m = run(W, args.hops)
+        snd = m["a.predict"] + m["a.update"] + m["a.message_to"]
+        rcv = m["b.predict"] + m["b.receive"] + m["b.estimate"]
+        mn = m["minimal"]
+        rows.append([W, f"{snd:.0f}", f"{snd / mn:.2f}", f"{rcv:.0f}", f"{rcv / mn:.2f}", f"{snd + rcv:.0f}",
+                     f"{(snd + rcv) / mn:.2f}", f"{mn:.0f}"] + [f"{m[s]:.0f}" for s in STAGES[:-1]])
+    print(T.table(rows, head))
+    print("sender = a.predict + a.update + a.message_to; receiver = b.predict + b.receive + b.estimate;\n"
+          "minimal = MinimalHop send + receive (benchmarks/transport.py 3b.)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
