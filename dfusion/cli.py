@@ -253,8 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _send_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sends", choices=("event", "periodic"), default=None,
-                   help="override when nodes send: 'event' (default: news at once, rate-limited per link, plus the "
-                        "periodic heartbeat) or 'periodic' (every send period only); docs/dynamic-topology.md")
+                   help="override when nodes send: 'event' (news at once, rate-limited per link, plus the periodic "
+                        "heartbeat) or 'periodic' (every send period only; the default); docs/dynamic-topology.md")
     p.add_argument("--min-send-interval", type=float, default=None, metavar="S",
                    help="override the least seconds between two messages of a node on one link (event sends; "
                         "default 0.05)")

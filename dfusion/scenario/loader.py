@@ -369,7 +369,7 @@ def load_scenario(
     if fu not in FUSION_MODES:
         raise _fail(src, "fusion", f"must be one of {FUSION_MODES}, got {fu!r}")
 
-    se = raw.get("sends", "event") if sends is None else sends
+    se = raw.get("sends", "periodic") if sends is None else sends
     if se not in SEND_MODES:
         raise _fail(src, "sends", f"must be one of {SEND_MODES}, got {se!r}")
     msi = _num(src, "min_send_interval", raw.get("min_send_interval", MIN_SEND_INTERVAL)

@@ -4,6 +4,7 @@ filter as the independent reference."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,8 @@ from dfusion.models import ConstantVelocity, PositionSensor
 from dfusion.scenario import load_scenario
 from dfusion.sim import run_scenario
 import dfusion.sim.runner as runner
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def chain(**over) -> dict:
@@ -108,7 +111,7 @@ def test_the_minimum_interval_per_link_holds_in_a_storm_of_news(monkeypatch):
     d = chain(duration=3.0, dt=0.01, window=400, min_send_interval=0.07)
     d["nodes"][0]["rate"] = 100.0
     d["nodes"][2] = {"name": "c", "sensor": "position", "std": 0.3, "rate": 100.0, "send_period": 0.5}
-    res = run_scenario(load_scenario(d))
+    res = run_scenario(load_scenario(d, sends="event"))
     assert set(sent) == {("a", "b"), ("b", "a"), ("b", "c"), ("c", "b")}
     for link, times in sent.items():
         gaps = np.diff(times)
@@ -170,10 +173,12 @@ def test_schedule_refuses_bad_settings(args):
 
 def test_scenario_keys_and_defaults():
     sc = load_scenario(chain())
-    assert (sc.sends, sc.min_send_interval) == ("event", MIN_SEND_INTERVAL)
-    sc = load_scenario(chain(sends="periodic", min_send_interval=0.2))
-    assert (sc.sends, sc.min_send_interval) == ("periodic", 0.2)
-    assert load_scenario(chain(), sends="periodic", min_send_interval=0.0).sends == "periodic"
+    assert (sc.sends, sc.min_send_interval) == ("periodic", MIN_SEND_INTERVAL)
+    sc = load_scenario(chain(sends="event", min_send_interval=0.2))
+    assert (sc.sends, sc.min_send_interval) == ("event", 0.2)
+    assert load_scenario(chain(sends="event"), sends="periodic", min_send_interval=0.0).sends == "periodic"
+    urus = load_scenario(ROOT / "topologies" / "urus-mobile.scenario.toml")
+    assert (urus.sends, urus.min_send_interval) == ("event", MIN_SEND_INTERVAL)
     with pytest.raises(ScenarioError, match="sends"):
         load_scenario(chain(sends="often"))
     with pytest.raises(ScenarioError, match="min_send_interval"):
