@@ -506,7 +506,8 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
 
 
 def send_metrics(sc: Scenario, links: dict, event_messages: int) -> dict[str, Any]:
-    """How the nodes sent (``metrics["sends"]``): the mode, the minimum interval, the messages
+    """How the nodes sent (``metrics["sends"]``; ``dfusion run`` has the mode and the interval
+    only, the other keys None or empty): the mode, the minimum interval, the messages
     sent because of news, and per link (both directions, ``"a-b"``) the bytes and messages per
     second over the run (what went over the network; the final lossless rounds apart), with
     their median and largest over the links that carried anything."""
@@ -531,9 +532,12 @@ def send_lines(m: dict[str, Any]) -> list[str]:
     se = m.get("sends")
     if se is None:
         return []
+    events = "" if se["event_messages"] is None else f"; {se['event_messages']} event messages"
     how = (f"event-triggered (news at once, at least {se['min_interval']:g} s apart per link, plus the periodic "
-           f"heartbeat; {se['event_messages']} event messages)" if se["mode"] == "event" else "periodic only")
+           f"heartbeat{events})" if se["mode"] == "event" else "periodic only")
     b, n = se["bytes_per_link_per_s"], se["messages_per_link_per_s"]
+    if b is None:   # dfusion run: no counts per link
+        return [f"sends: {how}"]
     return [(f"sends: {how}; per link (both directions): median {b['median']:.0f} B/s, max {b['max']:.0f} B/s; "
              f"median {n['median']:.1f} msgs/s, max {n['max']:.1f} msgs/s")]
 
