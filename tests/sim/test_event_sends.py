@@ -15,8 +15,7 @@ from dfusion.fusion import FusionNode
 from dfusion.fusion.sending import MIN_SEND_INTERVAL, SendSchedule
 from dfusion.models import ConstantVelocity, PositionSensor
 from dfusion.scenario import load_scenario
-from dfusion.sim import run_scenario
-import dfusion.sim.runner as runner
+from dfusion.sim import run_scenario, runner
 
 ROOT = Path(__file__).resolve().parents[2]
 
