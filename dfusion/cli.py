@@ -32,7 +32,8 @@ def _simulate(args: argparse.Namespace) -> int:
     from dfusion.sim.runner import run_scenario
 
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin,
-                       protection=False if args.no_protection else None)
+                       protection=False if args.no_protection else None, sends=args.sends,
+                       min_send_interval=args.min_send_interval)
     live = None
     if args.foxglove is not None:
         from dfusion.viz.foxglove import LiveView
@@ -123,7 +124,7 @@ def _run(args: argparse.Namespace) -> int:
             round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
-            nodes_per_process=args.nodes_per_process,
+            nodes_per_process=args.nodes_per_process, sends=args.sends, min_send_interval=args.min_send_interval,
         )
         launcher = Launcher(opts)
         if stop:
@@ -168,6 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     s.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     _output_options(s)
+    _send_options(s)
     s.add_argument("--frames", metavar="OUT.png", help="links that change: write top-down frames of the fusion tree "
                                                        "over time, with the robots and the person "
                                                        "(docs/dynamic-topology.md)")
@@ -190,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     r.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
     _output_options(r)
+    _send_options(r)
     r.add_argument("--nodes-per-process", type=int, default=1, metavar="N",
                    help="run up to N nodes in each OS process, over one Zenoh session (default 1: a process per "
                         "node; docs/processes.md)")
@@ -246,6 +249,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_replay)
     return p
+
+
+def _send_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sends", choices=("event", "periodic"), default=None,
+                   help="override when nodes send: 'event' (news at once, rate-limited per link, plus the periodic "
+                        "heartbeat) or 'periodic' (every send period only; the default); docs/dynamic-topology.md")
+    p.add_argument("--min-send-interval", type=float, default=None, metavar="S",
+                   help="override the least seconds between two messages of a node on one link (event sends; "
+                        "default 0.05)")
 
 
 def _output_options(p: argparse.ArgumentParser) -> None:

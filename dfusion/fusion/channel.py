@@ -221,6 +221,8 @@ class ChannelFilter:
         Newest of this node's messages ``remote`` acknowledged (-1: none).
     dirty : set of int
         Keys whose value for ``remote`` changed since the last message to it.
+    ack_lag : int
+        Acknowledgements more than this many messages behind count as stalled (:data:`ACK_LAG`).
     """
 
     #: Steady-state messages are planned as appends (:meth:`plan`); ``False`` (on the class or a
@@ -244,6 +246,10 @@ class ChannelFilter:
         self.need_full = True
         self.acked = -1
         self.dirty: set[int] = set()
+        #: Messages the acknowledgement may lag behind before partial messages carry everything
+        #: since the newest acknowledged one (:data:`ACK_LAG`; more with event-triggered sends,
+        #: :class:`dfusion.fusion.sending.SendSchedule`).
+        self.ack_lag = ACK_LAG
         self._resend = np.zeros(0, dtype=np.int64)
         self._sent: dict[int, tuple[np.ndarray, bool]] = {}   # seq -> (keys it may have changed, full?)
         self.messages_in = 0
@@ -528,10 +534,10 @@ class ChannelFilter:
         """Times a partial message must carry: changed since the last message, or carried by a
         message that turned out lost; and, while nothing was acknowledged yet or
         acknowledgements have stalled (the newest acknowledged message is more than
-        :data:`ACK_LAG` messages old: a link outage, say), every time carried since the
+        ``ack_lag`` messages old: a link outage, say), every time carried since the
         newest acknowledged message (sorted keys from ``oldest_key`` on)."""
         parts = [self._resend]
-        if self.acked < 0 or self.seq_out - 1 - self.acked > ACK_LAG:
+        if self.acked < 0 or self.seq_out - 1 - self.acked > self.ack_lag:
             parts += [keys for keys, _ in self._sent.values()]
         parts = [p for p in parts if p.size]
         if not parts:   # the steady state: what changed since the last message only

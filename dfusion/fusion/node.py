@@ -72,6 +72,7 @@ from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
 from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
 from dfusion.fusion.channel import (
+    ACK_LAG,
     all_of,
     any_of,
     MAX_SEQ_JUMP,
@@ -543,7 +544,8 @@ class FusionNode:
         #: The newest incarnation heard from each node (links that change).
         self.incarnations: dict[str, int] = {}
         fusing = nbrs if tree is None else sorted(tree.tree_links())
-        self.channels: dict[str, ChannelFilter] = {j: ChannelFilter(name, j, n) for j in fusing}
+        self._ack_lag = ACK_LAG
+        self.channels: dict[str, ChannelFilter] = {j: self._channel(j) for j in fusing}
         self.stats = NodeStats()
         self.sources: dict[str, Estimate] = {}
         self.max_message_bytes = int(max_message_bytes)
@@ -1390,12 +1392,15 @@ class FusionNode:
         self.stats.bytes_sent += len(data)
         return data
 
-    def outgoing(self, sent_at: float | None = None) -> list[tuple[str, bytes]]:
+    def outgoing(self, sent_at: float | None = None, only: Iterable[str] | None = None) -> list[tuple[str, bytes]]:
         """``(neighbour, message)`` for every link: a fusion message on a tree link, a beacon on
-        the others (links that change); every neighbour's message on a fixed tree."""
+        the others (links that change); every neighbour's message on a fixed tree. ``only``:
+        those of the links only (the others are sent later: a minimum interval per link,
+        :class:`dfusion.fusion.sending.SendSchedule`). Clears :attr:`urgent`."""
         self._settle()
         self._sent_tree_changes = self.stats.tree_changes
-        return [(j, self.message_to(j, sent_at)) for j in self.neighbors]
+        pick = None if only is None else set(only)
+        return [(j, self.message_to(j, sent_at)) for j in self.neighbors if pick is None or j in pick]
 
     @property
     def tree_links(self) -> tuple[str, ...]:
@@ -1426,17 +1431,16 @@ class FusionNode:
         self.neighbors = tuple(sorted(self.tree.links))
         if change:
             self.stats.tree_changes += 1
-            n = self.filter.n
             if change.new_epoch:
                 self.stats.new_epochs += 1
                 self._tree_withdraw(list(self.channels.values()), everything=True)
-                self.channels = {j: ChannelFilter(self.name, j, n) for j in sorted(self.tree.tree_links())}
+                self.channels = {j: self._channel(j) for j in sorted(self.tree.tree_links())}
             else:
                 lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
                 if lost:
                     self._tree_withdraw(lost)
                 for j in sorted(change.gained):
-                    self.channels[j] = ChannelFilter(self.name, j, n)
+                    self.channels[j] = self._channel(j)
         if self.guard is not None:
             # a record per link that exists (after the withdrawal, which asks whether a link was
             # quarantined); a quarantine outlives changes of the tree while the link exists
@@ -1626,6 +1630,40 @@ class FusionNode:
         keys = self._own.keys.copy()
         held = self._held.values_at(keys)
         return keys, self._own.info - held[0], self._own.vec - held[1]
+
+    def _channel(self, j: str) -> ChannelFilter:
+        ch = ChannelFilter(self.name, j, self.filter.n)
+        ch.ack_lag = self._ack_lag
+        return ch
+
+    @property
+    def ack_lag(self) -> int:
+        """Messages an acknowledgement may lag behind before partial messages to that neighbour
+        carry everything since the newest acknowledged one (:data:`dfusion.fusion.channel.ACK_LAG`,
+        2: two send periods when every message is periodic). Event-triggered sends
+        (:class:`dfusion.fusion.sending.SendSchedule`) send up to ``period / min_interval``
+        messages per period on a link while the neighbour acknowledges with its own (fewer)
+        messages: they set it to two periods' worth, so that the rule still means "no
+        acknowledgement for two send periods" (a link outage)."""
+        return self._ack_lag
+
+    @ack_lag.setter
+    def ack_lag(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValidationError(f"ack_lag must be a non-negative integer, got {value!r}")
+        self._ack_lag = value
+        for ch in self.channels.values():
+            ch.ack_lag = value
+
+    def news(self) -> tuple[str, ...]:
+        """The tree neighbours this node has information for that they do not have yet: a time of
+        its window whose value ``V_j(t) = T(t) - M_j(t)`` changed since its last message to ``j``
+        (a new own measurement, or a received message that changed ``T`` and must be relayed;
+        the channel's ``dirty`` times). Losses are not news: they are resent with the next
+        message, periodic or not (:mod:`dfusion.fusion.channel`). Event-triggered sends
+        (:class:`dfusion.fusion.sending.SendSchedule`) send to these at once."""
+        oldest = time_key(self.filter.oldest_time) - 1
+        return tuple(j for j, ch in sorted(self.channels.items()) if ch.dirty and max(ch.dirty) >= oldest)
 
     @property
     def urgent(self) -> bool:

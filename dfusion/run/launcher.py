@@ -139,6 +139,9 @@ class RunOptions:
     fusion: str | None = None
     duration: float | None = None
     speed: float = 1.0
+    #: Override the scenario's ``sends`` ("event" or "periodic") and ``min_send_interval``.
+    sends: str | None = None
+    min_send_interval: float | None = None
     run_dir: str | None = None
     network: str | None = None
     network_key_file: str | None = None
@@ -189,7 +192,7 @@ class Launcher:
             raise DfusionError(f"--speed must be a positive number, got {opts.speed}")
         self.opts = opts
         self.sc = load_scenario(opts.scenario, seed=opts.seed, fusion=opts.fusion, duration=opts.duration,
-                                plugins=opts.plugins)
+                                plugins=opts.plugins, sends=opts.sends, min_send_interval=opts.min_send_interval)
         for name in self.sc.nodes:
             check_name(name)
         if isinstance(opts.nodes_per_process, bool) or not isinstance(opts.nodes_per_process, int) \
@@ -281,6 +284,10 @@ class Launcher:
             cmd += ["--fusion", o.fusion]
         if o.duration is not None:
             cmd += ["--duration", repr(o.duration)]
+        if o.sends is not None:
+            cmd += ["--sends", o.sends]
+        if o.min_send_interval is not None:
+            cmd += ["--min-send-interval", repr(o.min_send_interval)]
         if o.emulate_links:
             cmd.append("--emulate-links")
         tls = self.security.tls_files(nodes[0])   # one session per host: its first node's certificate

@@ -402,6 +402,9 @@ def build_result(
         links["epochs_started"] = int(sum(
             sum(s.get("epochs_started", 0) for s in records[n].stats.values()) for n in records))
         result.metrics["links"] = links
+    # how the nodes sent; the nodes do not count bytes per link (per node: metrics["nodes"])
+    result.metrics["sends"] = {"mode": sc.sends, "min_interval": sc.min_send_interval, "event_messages": None,
+                               "links": {}, "bytes_per_link_per_s": None, "messages_per_link_per_s": None}
     # the counts of traffic_lines: built = published + dropped by link emulation; published =
     # delivered + not received (lost by the transport, or the receiver was down); delivered =
     # fused + rejected + ignored (copies a node already had: naive fusion's old sequence numbers).

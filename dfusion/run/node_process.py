@@ -75,6 +75,7 @@ from dfusion.run.measurements import (
 )
 from dfusion.scenario.build import build_front_end, build_node
 from dfusion.scenario.links import LinkSchedule, peers
+from dfusion.fusion.sending import SendSchedule
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.run.supervision import (
@@ -245,6 +246,9 @@ class NodeProcess:
         self.host_share = 1.0
         self._cpu_at_start: float | None = None
         self._stats_due = 0.0
+        #: When the node sends (:class:`~dfusion.fusion.sending.SendSchedule`); set when the run starts.
+        self.sched = SendSchedule(self.send_period, sc.min_send_interval, sc.sends)
+        self._sending = False
 
     def _build_node(self, *, joining: bool) -> FusionNode:
         """This incarnation's :class:`FusionNode` (its incarnation epoch: the clock, strictly newer
@@ -332,7 +336,9 @@ class NodeProcess:
             self._mlog = MeasurementLog(self.state_dir, self.name, self.run_id or repr(self.start), fsync=self.fsync)
         k = self._catch_up()
         self._publish("run", k)
-        next_send = self.send_period * (math.floor(self.t_started / self.send_period + EPS) + 1)
+        self.sched = SendSchedule(self.send_period, self.sc.min_send_interval, self.sc.sends,
+                                  first=self.send_period * (math.floor(self.t_started / self.send_period + EPS) + 1))
+        self._sending = True   # event sends between steps (Host._loop: send_news)
         for k in range(k + 1, len(self.times)):
             t = float(self.times[k])
             yield Wait(self.start + t / self.speed)
@@ -340,15 +346,47 @@ class NodeProcess:
             self._fuse_until(t)
             self.sync_links(t)
             self.receive()
-            if t + EPS >= next_send or (self.schedule is not None and self.node.urgent):
-                self._send_all(t)
-                while next_send <= t + EPS:
-                    next_send += self.send_period
+            self._send_due(t)
             self._publish("run", k)
             lag = (time.time() - self.start) - t / self.speed   # wall seconds behind the schedule
             if lag * 1000 > self.counters["max_lag_ms"]:
                 self.counters["max_lag_ms"] = int(lag * 1000)
+        self._sending = False
         yield from self._final_phase()
+
+    def _send_due(self, t: float) -> None:
+        """Send what :class:`~dfusion.fusion.sending.SendSchedule` says is due at scenario time ``t``:
+        every link at the send period or after a change of the tree, news at once (event sends,
+        at least ``min_send_interval`` apart per link). On a fixed tree a neighbour that is not
+        alive is skipped (counted; with emulated links the draws are made, as ``simulate`` makes
+        them for every send)."""
+        skip = () if self.schedule is not None else tuple(nb for nb in self.neighbors if not self.tr.alive(nb))
+        msgs = self.sched.due(self.node, t, skip=skip)
+        for nb in self.sched.skipped:
+            self.counters["skipped_not_alive"] += 1
+            if self.links is not None:
+                self.links.send(nb, b"", t, deliver=False)
+        for nb, data in msgs:
+            if self.links is not None:
+                self.links.send(nb, data, t)
+            else:
+                self.tr.send(self.name, nb, data, t)
+
+    def send_news(self) -> None:
+        """Between steps: send the news that messages brought (event sends), if their links' minimum
+        intervals have passed; the time is scenario time now, at most the run's end."""
+        if not self._sending or self.start is None:
+            return
+        t = min(self.now(), float(self.times[-1]))
+        if self.sched.next_event(self.node) <= t + EPS:
+            self._send_due(t)
+
+    def next_send_due(self) -> float:
+        """Wall time of this node's next event send (``inf``: none waits)."""
+        if not self._sending or self.start is None:
+            return math.inf
+        te = self.sched.next_event(self.node)
+        return -math.inf if te == -math.inf else (math.inf if te == math.inf else self.start + te / self.speed)
 
     def _wait_for_start(self) -> Iterator[Wait]:
         """Wait for the start time; publish "ready" once the neighbours are seen."""
@@ -698,14 +736,21 @@ class Host:
                     now = time.time()
             if not programs:
                 return
+            for name, p in procs.items():   # event sends whose minimum interval has passed
+                if name in programs and p.next_send_due() <= now:
+                    c0 = cpu()
+                    p.send_news()
+                    p.cpu += cpu() - c0
             due = min([w.deadline for w in waits.values()]
-                      + [p.links.next_due() for p in self.procs if p.links is not None])
+                      + [p.links.next_due() for p in self.procs if p.links is not None]
+                      + [p.next_send_due() for name, p in procs.items() if name in programs])
             if tr.wait(max(0.0, min(due - time.time(), POLL))):
                 for name, p in procs.items():
                     if tr.pending(name):
                         if name in programs:
                             c0 = cpu()
                             p.receive()
+                            p.send_news()   # relay at once what changed the node's belief
                             p.cpu += cpu() - c0
                         else:
                             tr.receive(name)   # after its final estimate a node fuses nothing more
@@ -725,6 +770,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     p.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     p.add_argument("--duration", type=float, default=None, help="override the scenario's duration")
+    p.add_argument("--sends", choices=("event", "periodic"), default=None,
+                   help="override when the nodes send (event: news at once, rate-limited per link, plus the periodic "
+                        "heartbeat; periodic: every send period only)")
+    p.add_argument("--min-send-interval", type=float, default=None, metavar="S",
+                   help="override the least seconds between two messages on one link (event sends)")
     p.add_argument("--network", default="dfusion", help="network name: the Zenoh key space dfusion/NETWORK/...")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
@@ -860,7 +910,7 @@ def main(argv: list[str] | None = None) -> int:
                 return joined
             watch, locks = joined
         sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration,
-                           plugins=args.plugin)
+                           plugins=args.plugin, sends=args.sends, min_send_interval=args.min_send_interval)
         if args.record:
             path = save_recording(args.record, args.node[0], world_measurements(sc, args.node[0]))
             print(f"wrote {path}")

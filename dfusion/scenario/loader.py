@@ -29,6 +29,7 @@ from dfusion.policies.base import Policy
 from dfusion.scenario.kinds import builtin_kinds
 from dfusion.scenario.plugins import load_plugins
 from dfusion.fusion.guard import GuardConfig
+from dfusion.fusion.sending import MIN_SEND_INTERVAL, SEND_MODES
 from dfusion.scenario.security import security_options
 from dfusion.scenario.spec import (
     CLUTTER_MODELS,
@@ -52,7 +53,8 @@ __all__ = ["load_scenario", "build_policy", "node_policies", "TOP_LEVEL_KEYS", "
 log = logging.getLogger(__name__)
 
 #: Keys of the top level of a scenario file.
-TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "spanning_tree", "plugins",
+TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "sends", "min_send_interval",
+                            "spanning_tree", "plugins",
                             "target", "nodes", "links", "security", "protection", "events", "radio"})
 #: Keys of ``[target]`` every motion model takes (each motion adds its own, e.g. ``q``).
 TARGET_KEYS = frozenset({"motion", "initial_mean", "initial_cov_diag"})
@@ -307,10 +309,13 @@ def load_scenario(
     plugins: Iterable[str] = (),
     kinds: Kinds | None = None,
     protection: bool | None = None,
+    sends: str | None = None,
+    min_send_interval: float | None = None,
 ) -> Scenario:
     """Read and validate a scenario file (or an already parsed mapping).
 
-    ``seed``, ``fusion`` and ``duration`` override the file's values; ``protection``
+    ``seed``, ``fusion``, ``duration``, ``sends`` and ``min_send_interval`` override the
+    file's values; ``protection``
     overrides ``protection.enabled`` (``False``: no clutter model at the cameras, no
     consistency test of neighbours: ``dfusion simulate --no-protection``). ``plugins`` names
     plug-in modules beyond those the file names (``dfusion simulate --plugin``);
@@ -364,6 +369,12 @@ def load_scenario(
     if fu not in FUSION_MODES:
         raise _fail(src, "fusion", f"must be one of {FUSION_MODES}, got {fu!r}")
 
+    se = raw.get("sends", "periodic") if sends is None else sends
+    if se not in SEND_MODES:
+        raise _fail(src, "sends", f"must be one of {SEND_MODES}, got {se!r}")
+    msi = _num(src, "min_send_interval", raw.get("min_send_interval", MIN_SEND_INTERVAL)
+               if min_send_interval is None else min_send_interval, nonneg=True)
+
     target = _target(src, raw, kinds)
     sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw, kinds=kinds,
                   protection=_protection(src, raw, protection))
@@ -384,6 +395,7 @@ def load_scenario(
         except DfusionError as exc:
             raise _fail(src, f"links[{i}] ({a} - {b})", str(exc)) from None
         sc.links[(a, b)] = spec
+    sc.sends, sc.min_send_interval = se, msi
     sc.radio = _radio(src, raw.get("radio", {}), kinds)
     sc.events = _events(src, raw.get("events", []), sc)
     _warn_degenerate(sc)

@@ -334,6 +334,11 @@ class Scenario:
     protection: Protection = field(default_factory=Protection)
     events: list[LinkEvent] = field(default_factory=list)
     radio: LinkSpec = field(default_factory=LinkSpec)
+    #: When nodes send (``docs/dynamic-topology.md``, :mod:`dfusion.fusion.sending`): ``"event"``
+    #: (news at once, rate-limited per link, plus the periodic heartbeat) or ``"periodic"``.
+    sends: str = "periodic"
+    #: Least seconds between two messages of a node on one link (event sends).
+    min_send_interval: float = 0.05
 
     @property
     def dynamic(self) -> bool:

@@ -67,6 +67,7 @@ import numpy as np
 from dfusion.errors import MessageError, OutsideWindowError
 from dfusion.estimation.centralized import CentralizedEKF
 from dfusion.fusion.node import FusionNode
+from dfusion.fusion.sending import SendSchedule
 from dfusion.linalg import Array
 from dfusion.metrics import chi2_interval, nees, rmse
 from dfusion.models.base import model_at
@@ -83,6 +84,10 @@ if TYPE_CHECKING:
     import networkx as nx
 
 log = logging.getLogger(__name__)
+
+#: Bound on the rounds of message deliveries and sends between two steps (event sends); a
+#: minimum interval of ``m`` allows at most ``dt / m + 1`` sends per link per step.
+MAX_EVENTS_PER_STEP = 10_000
 
 
 @dataclass
@@ -205,6 +210,7 @@ class SimulationResult:
                      f"{m['steps']} independent steps [{a_lo:.2f}, {a_hi:.2f}] (successive steps are correlated, so "
                      f"expect more spread). Far above {dim}: overconfident; far below: too cautious.")
         lines.extend(traffic_lines(m))
+        lines.extend(send_lines(m))
         if diag:
             lines.append("NIS: mean consistency statistic per degree of freedom of the neighbours' information "
                          "(expected 1); gated: own detections outside the gate; quar.: quarantined neighbours "
@@ -354,7 +360,7 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
             add_output(nm)
     by_arrival = frames(sorted(world.measurements, key=lambda m: (m.arrival, m.t, m.node)))
     by_time = frames(world.measurements)  # already in time order
-    next_send = {nm: sc.nodes[nm].send_period for nm in names}
+    sched = {nm: SendSchedule(sc.nodes[nm].send_period, sc.min_send_interval, sc.sends) for nm in names}
     ia = ic = 0
     refused = 0
     events: list[dict[str, Any]] = []
@@ -393,6 +399,25 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         except MessageError as exc:  # a simulated network never corrupts; log anyway
             counts["rejected"] += 1
             log.warning("%s: %s", dst, exc)
+
+    def between_steps(t0: float, t1: float) -> None:
+        """Event sends: the messages that arrive in ``(t0, t1)``, in arrival order, and the sends
+        they and the minimum intervals trigger (:class:`SendSchedule`); the nodes' states stay at
+        ``t0`` (the next step predicts)."""
+        for _ in range(MAX_EVENTS_PER_STEP):
+            here = [nm for nm in names if nm in nodes]
+            tau = min(net.next_arrival(here), min((sched[nm].next_event(nodes[nm]) for nm in here), default=math.inf))
+            tau = max(tau, t0)
+            if tau > t1 - 1e-9:
+                return
+            for nm in here:
+                for d in net.receive(nm, tau + 1e-12):
+                    deliver(nm, d.data)
+            for nm in here:
+                for nb, data in sched[nm].due(nodes[nm], tau):
+                    net.send(nm, nb, data, tau)
+        log.warning("more than %d send events between t=%.3f and %.3f: the rest waits for the next step",
+                    MAX_EVENTS_PER_STEP, t0, t1)
 
     seen = [0]
 
@@ -433,16 +458,14 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
                     deliver(nm, d.data)
         for nm in names:
             node = nodes.get(nm)
-            if node is None:
-                continue
-            if t + 1e-9 >= next_send[nm] or node.urgent:
-                for nb, data in node.outgoing(sent_at=t):
+            if node is not None:
+                for nb, data in sched[nm].due(node, t):
                     net.send(nm, nb, data, t)
-                while next_send[nm] <= t + 1e-9:
-                    next_send[nm] += sc.nodes[nm].send_period
         if dyn is not None:
             dyn.observe(t)
         record(k)
+        if sc.sends == "event" and k + 1 < K:
+            between_steps(t, float(times[k + 1]))
 
     # the end: every message in flight, every late measurement, then lossless rounds
     T = float(times[-1])
@@ -478,7 +501,45 @@ def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = 
         "fused": counts["fused"], "rejected": counts["rejected"], "final_rounds": counts["final_rounds"],
     }
     result.metrics["measurements_detail"] = {"fused": counts["used"], "rejected": counts["dropped_by_front_end"]}
+    result.metrics["sends"] = send_metrics(sc, net.stats.links, sum(s.event_messages for s in sched.values()))
     return result
+
+
+def send_metrics(sc: Scenario, links: dict, event_messages: int) -> dict[str, Any]:
+    """How the nodes sent (``metrics["sends"]``; ``dfusion run`` has the mode and the interval
+    only, the other keys None or empty): the mode, the minimum interval, the messages
+    sent because of news, and per link (both directions, ``"a-b"``) the bytes and messages per
+    second over the run (what went over the network; the final lossless rounds apart), with
+    their median and largest over the links that carried anything."""
+    per: dict[str, dict[str, float]] = {}
+    for (a, b), st in links.items():
+        key = "-".join(sorted((a, b)))
+        e = per.setdefault(key, {"bytes_per_s": 0.0, "messages_per_s": 0.0})
+        e["bytes_per_s"] += st.bytes_sent / sc.duration
+        e["messages_per_s"] += st.sent / sc.duration
+    used = [v for v in per.values() if v["messages_per_s"] > 0]
+    bps = sorted(v["bytes_per_s"] for v in used)
+    mps = sorted(v["messages_per_s"] for v in used)
+    return {"mode": sc.sends, "min_interval": sc.min_send_interval, "event_messages": int(event_messages),
+            "links": dict(sorted(per.items())),
+            "bytes_per_link_per_s": {"median": float(np.median(bps)) if bps else 0.0, "max": bps[-1] if bps else 0.0},
+            "messages_per_link_per_s": {"median": float(np.median(mps)) if mps else 0.0,
+                                        "max": mps[-1] if mps else 0.0}}
+
+
+def send_lines(m: dict[str, Any]) -> list[str]:
+    """The ``sends`` metrics as a table line."""
+    se = m.get("sends")
+    if se is None:
+        return []
+    events = "" if se["event_messages"] is None else f"; {se['event_messages']} event messages"
+    how = (f"event-triggered (news at once, at least {se['min_interval']:g} s apart per link, plus the periodic "
+           f"heartbeat{events})" if se["mode"] == "event" else "periodic only")
+    b, n = se["bytes_per_link_per_s"], se["messages_per_link_per_s"]
+    if b is None:   # dfusion run: no counts per link
+        return [f"sends: {how}"]
+    return [(f"sends: {how}; per link (both directions): median {b['median']:.0f} B/s, max {b['max']:.0f} B/s; "
+             f"median {n['median']:.1f} msgs/s, max {n['max']:.1f} msgs/s")]
 
 
 def frames(measurements: list) -> list[list]:

@@ -340,6 +340,12 @@ class SimulatedNetwork(Transport):
             out.append(self._deliver(heapq.heappop(queue)))
         return out
 
+    def next_arrival(self, nodes: Iterable[str] | None = None) -> float:
+        """The earliest arrival time of a copy in flight (to one of ``nodes``, or to any node);
+        ``inf`` if none."""
+        queues = self._queues.values() if nodes is None else [self._queues[n] for n in nodes if n in self._queues]
+        return min((q[0][0] for q in queues if q), default=math.inf)
+
     def flush(self) -> list[Delivery]:
         """Deliver everything in flight, for all nodes, in arrival order (ties by send order)."""
         entries = sorted(e for queue in self._queues.values() for e in queue)

@@ -59,6 +59,30 @@ def test_property_never_over_confident_and_exact_after_the_last_change(seed, n, 
     assert_exact(run)
 
 
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(3, 7),
+    change_prob=st.floats(0.1, 0.8),
+    drop=st.floats(0.0, 0.4),
+    duplicate=st.floats(0.0, 0.3),
+    max_latency=st.floats(0.0, 0.5),
+    send_every=st.integers(1, 5),
+    min_interval=st.sampled_from([0.0, 0.1, 0.2, 0.35]),
+)
+def test_property_event_sends_never_over_confident_and_exact_after_the_last_change(
+        seed, n, change_prob, drop, duplicate, max_latency, send_every, min_interval):
+    """The same properties with event-triggered sends (dfusion.fusion.sending.SendSchedule): news
+    at once, rate-limited per link, the heartbeat every ``send_every`` steps."""
+    s = DynamicSchedule(seed=seed, n=n, steps=30, change_prob=change_prob, joiners=1, leavers=1, drop=drop,
+                        duplicate=duplicate, max_latency=max_latency, send_every=send_every, sends="event",
+                        min_interval=min_interval)
+    run = run_dynamic(s)
+    assert run.worst_overconfidence >= -1e-9, run.worst_overconfidence
+    assert run.worst_block >= -1e-10, run.worst_block
+    assert_exact(run)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_many_changes_over_a_radio_graph_with_cycles(seed):
     """Eight nodes, dense radio graphs (cycles everywhere), a change at most steps, two joins and

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dfusion.fusion import FusionNode
+from dfusion.fusion.sending import SendSchedule
 from dfusion.fusion.tree import SpanningTree, forest_settled, initial_parents, tree_components
 from dfusion.models import ConstantVelocity, PositionSensor
 from tests.helpers.fusion_harness import P0, Q_PSD, central_kalman, cv_F, cv_Q, deliver_measurement
@@ -37,6 +38,11 @@ class DynamicSchedule:
     window: int = 5000
     check_every_step: bool = True
     stds: dict = field(default_factory=dict)
+    #: "periodic": every node sends over every link every ``send_every`` steps; "event": by
+    #: :class:`dfusion.fusion.sending.SendSchedule` (news at once, at least ``min_interval`` apart
+    #: per link, the heartbeat every ``send_every`` steps)
+    sends: str = "periodic"
+    min_interval: float = 0.0
 
 
 @dataclass
@@ -150,6 +156,7 @@ def run_dynamic(s: DynamicSchedule, reference_every_step: bool = True) -> Dynami
     worst_block = np.inf
     changes = 0
     t = 0.0
+    schedules: dict[tuple[str, int], SendSchedule] = {}
 
     def drop_link(a: str, b: str) -> None:
         links.discard(_pair(a, b))
@@ -207,7 +214,18 @@ def run_dynamic(s: DynamicSchedule, reference_every_step: bool = True) -> Dynami
         for _, _, dst, data in arrived:
             if dst in present:   # also over a link that went down meanwhile: the node ignores it
                 nodes[dst].receive(data)
-        if k % s.send_every == 0:
+        if s.sends == "event":
+            for n in sorted(present):
+                key = (n, nodes[n].epoch)   # a new schedule per incarnation
+                if key not in schedules:
+                    period = s.send_every * s.dt
+                    schedules[key] = SendSchedule(period, s.min_interval, "event", first=period)
+                for dst, data in schedules[key].due(nodes[n], t):
+                    if rng.random() < s.drop:
+                        continue
+                    for _ in range(2 if rng.random() < s.duplicate else 1):
+                        in_flight.append((t + rng.uniform(0, s.max_latency), next(counter), dst, data))
+        elif k % s.send_every == 0:
             for n in sorted(present):
                 for dst, data in nodes[n].outgoing():
                     if rng.random() < s.drop:
