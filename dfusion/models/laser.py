@@ -306,9 +306,10 @@ class LikelihoodFieldModel:
         self._far = float(self.point_log_likelihood(self.random_distance(self.max_range), self.max_range))
 
     def random_distance(self, max_range: float) -> float:
-        """``r`` with ``z_hit N(r; 0, sigma_hit^2) = z_rand / max_range`` (m): beyond it an end
-        point is more likely a random reading than a hit; ``max_distance`` if the terms never
-        cross before it."""
+        """``r = sigma_hit sqrt(2 ln(z_hit max_range / (z_rand sigma_hit sqrt(2 pi))))`` (m), the
+        root of ``z_hit N(r; 0, sigma_hit^2) = z_rand / max_range``: beyond it an end point is
+        more likely a random reading than a hit (Thrun et al. 2005, table 6.3 mixture). 0 if
+        the hit term never exceeds the random one; at most ``max_distance``."""
         s = self.sigma_hit
         if self.z_rand <= 0:
             return self.max_distance
@@ -362,7 +363,7 @@ class LikelihoodFieldModel:
         if z.size == 0:
             return np.zeros(n), 0
         vals = self._table.take(self._cell_index(laser_grid_poses, z, angles))
-        if self.short_skip:
+        if self.short_skip and n > 0:
             th = laser_grid_poses[:, 2]
             mean = np.array([laser_grid_poses[:, 0].mean(), laser_grid_poses[:, 1].mean(),
                              math.atan2(np.sin(th).mean(), np.cos(th).mean())])
