@@ -56,9 +56,12 @@ sorting by them reorders the MIT log -- the scan index is the time):
    ``--laser-range`` (``beam_selection="valid"``; ``docs/localization.md`` has why and
    the numbers), odometry motion model with
    ``alpha = ((2 * 0.05)^2, (2 * 0.02)^2, (2 * 0.05)^2, 0.01)``, i.e. about twice the
-   simulated noise) is started from the first localization scan's true pose with
-   0.1 m / 0.05 rad uncertainty (pose tracking) and updated with every odometry pose and
-   every localization scan; its estimate after each scan is compared with the truth.
+   simulated noise; beams that end in free space short of the map's surface at the
+   cloud's mean pose -- an object the map does not hold -- are left out of every
+   particle's product: ``LikelihoodFieldModel(short_skip=True)``) is started from the
+   first localization scan's true pose with 0.1 m / 0.05 rad uncertainty (pose
+   tracking) and updated with every odometry pose and every localization scan; its
+   estimate after each scan is compared with the truth.
    Its lock-out monitor (one-sided test of each scan's predictive likelihood against its
    usual level, window and run tests at ``MONITOR_ALPHA``) counts rejected scans
    ("gated") and alarms. Relocalization on alarms is *off* here
@@ -154,8 +157,9 @@ MONITOR_ALPHA = 1e-4
 #: MCL relocalization on an alarm ("local", "uniform" or "none": detection and counting only;
 #: see the module docstring for why the CARMEN logs use "none")
 MCL_RECOVERY_SAMPLER = "none"
-#: likelihood-field sensor model of MCL
-LIKELIHOOD_SETTINGS: dict = {}
+#: likelihood-field sensor model of MCL: beams short against the map at the cloud's mean
+#: (an object the map does not hold in front of the mapped surface) leave the product
+LIKELIHOOD_SETTINGS: dict = {"short_skip": True}
 #: MCL's odometry motion noise: this factor times the simulated one (standard deviations)
 MCL_NOISE_FACTOR = 2.0
 #: ICP: point-to-line against the map's surface points

@@ -219,6 +219,28 @@ class LikelihoodFieldModel:
         given (unweighted, as AMCL; after resampling the particles are equally weighted).
     beam_skip_distance, beam_skip_threshold, beam_skip_error_threshold : float
         AMCL's defaults: 0.5 m, 0.3, 0.9.
+    short_skip : bool
+        Leave out the beams that are *short* against the map: the reading ends in free
+        space well before the surface the map puts on that ray, i.e. something the map does
+        not hold stands in front of it (the ``z_short`` cause of the beam model, Thrun et
+        al. 2005, sec. 6.3). The test is made once per scan at the mean pose of the
+        particles given ``x_bar`` (unweighted, circular mean heading): beam ``j`` is short if
+
+            z_j < zhat_j(x_bar)   and   dist(e_j(x_bar)) > r
+
+        with ``zhat_j`` the exact ray-cast range (:func:`~dfusion.maps.raycast.cast_rays`,
+        unknown cells block), ``dist(e_j)`` the end point's distance to the nearest surface
+        and ``r`` the distance where the two terms of the mixture are equal,
+        ``z_hit N(r; 0, sigma_hit^2) = z_rand / z_max``, i.e.
+        ``r = sigma_hit sqrt(2 ln(z_hit z_max / (z_rand sigma_hit sqrt(2 pi))))`` (0.75 m for
+        the defaults and a 30 m laser): beyond it the end point is more likely a random
+        reading than a hit of the map. (The surface the ray meets at ``zhat_j`` is at most
+        ``zhat_j - z_j`` from the end point, so a short beam ends at least ``r`` in front of
+        it.) A short beam gets the same likelihood for every particle, i.e. it leaves the
+        product; unlike ``beam_skip`` the test does not ask whether the particles agree, so
+        a beam ending near (or behind) a mapped surface is kept even when the cloud is off.
+        If more than ``beam_skip_error_threshold`` of the beams would be left out, all are
+        used.
     """
 
     def __init__(
@@ -234,8 +256,10 @@ class LikelihoodFieldModel:
         beam_skip_distance: float = 0.5,
         beam_skip_threshold: float = 0.3,
         beam_skip_error_threshold: float = 0.9,
+        short_skip: bool = False,
     ) -> None:
         self.surface = bool(surface)
+        self.short_skip = bool(short_skip)
         self.beam_skip = bool(beam_skip)
         self.beam_skip_distance = float(beam_skip_distance)
         self.beam_skip_threshold = float(beam_skip_threshold)
@@ -245,7 +269,10 @@ class LikelihoodFieldModel:
             raise ValidationError("need beam_skip_distance > 0, 0 <= beam_skip_threshold < 1, "
                                   "0 < beam_skip_error_threshold <= 1")
         #: beams left out by the beam skipping of the latest scan, and scans where it gave up
+        #: (``short_skip``: ``short_beams`` of the latest scan, ``short_beams_total`` of all)
         self.skipped_beams = 0
+        self.short_beams = 0
+        self.short_beams_total = 0
         self.beam_skip_errors = 0
         self.sigma_hit = float(sigma_hit)
         self.z_hit = float(z_hit)
@@ -275,16 +302,22 @@ class LikelihoodFieldModel:
         self._Wp, self._Hp = W + 2, H + 2
         # an end point within beam_skip_distance of an obstacle scores above this
         self._explained = float(self.point_log_likelihood(self.beam_skip_distance, self.max_range))
+        # short_skip: end points farther than r from every surface score below this
+        self._far = float(self.point_log_likelihood(self.random_distance(self.max_range), self.max_range))
 
-    def log_likelihood(self, laser_grid_poses: Array, z: Array, angles: Array) -> tuple[Array, int]:
-        """``(sum over beams of log p, number of beams used)``; max-range beams are skipped."""
-        if self.grid is None:
-            raise NotInitializedError("LikelihoodFieldModel.prepare was not called")
-        use = z < self.max_range
-        z, angles = z[use], angles[use]
-        n = laser_grid_poses.shape[0]
-        if z.size == 0:
-            return np.zeros(n), 0
+    def random_distance(self, max_range: float) -> float:
+        """``r = sigma_hit sqrt(2 ln(z_hit max_range / (z_rand sigma_hit sqrt(2 pi))))`` (m), the
+        root of ``z_hit N(r; 0, sigma_hit^2) = z_rand / max_range``: beyond it an end point is
+        more likely a random reading than a hit (Thrun et al. 2005, table 6.3 mixture). 0 if
+        the hit term never exceeds the random one; at most ``max_distance``."""
+        s = self.sigma_hit
+        if self.z_rand <= 0:
+            return self.max_distance
+        q = self.z_hit * max_range / (self.z_rand * s * math.sqrt(2 * math.pi))
+        return min(s * math.sqrt(2 * math.log(q)), self.max_distance) if q > 1 else 0.0
+
+    def _cell_index(self, laser_grid_poses: Array, z: Array, angles: Array) -> np.ndarray:
+        """Flat index into the padded log-likelihood table of every end point, ``(N, B)``."""
         inv = 1.0 / self.grid.resolution
         lx = (z * np.cos(angles) * inv).astype(np.float32)[None, :]
         ly = (z * np.sin(angles) * inv).astype(np.float32)[None, :]
@@ -305,7 +338,44 @@ class LikelihoodFieldModel:
         np.clip(i, 0, self._Hp - 1, out=i)
         i *= self._Wp
         i += j
-        vals = self._table.take(i)
+        return i
+
+    def short_beams_at(self, laser_grid_pose: ArrayLike, z: ArrayLike, angles: ArrayLike) -> np.ndarray:
+        """Boolean mask of the beams that are short against the map seen from one grid-frame
+        laser pose (the test of ``short_skip``); ``z`` below ``max_range``."""
+        if self.grid is None:
+            raise NotInitializedError("LikelihoodFieldModel.prepare was not called")
+        p = np.asarray(laser_grid_pose, dtype=float).reshape(1, 3)
+        z = np.asarray(z, dtype=float).reshape(-1)
+        angles = np.asarray(angles, dtype=float).reshape(-1)
+        world = np.concatenate([self.grid.grid_to_world(p[:, :2])[0], [p[0, 2] + self.grid.origin[2]]])
+        zhat = cast_rays(self.grid, world, angles, self.max_range)[0]
+        far = self._table.take(self._cell_index(p, z, angles))[0] < self._far
+        return (z < zhat) & far
+
+    def log_likelihood(self, laser_grid_poses: Array, z: Array, angles: Array) -> tuple[Array, int]:
+        """``(sum over beams of log p, number of beams used)``; max-range beams are skipped."""
+        if self.grid is None:
+            raise NotInitializedError("LikelihoodFieldModel.prepare was not called")
+        use = z < self.max_range
+        z, angles = z[use], angles[use]
+        n = laser_grid_poses.shape[0]
+        if z.size == 0:
+            return np.zeros(n), 0
+        vals = self._table.take(self._cell_index(laser_grid_poses, z, angles))
+        if self.short_skip and n > 0:
+            th = laser_grid_poses[:, 2]
+            mean = np.array([laser_grid_poses[:, 0].mean(), laser_grid_poses[:, 1].mean(),
+                             math.atan2(np.sin(th).mean(), np.cos(th).mean())])
+            short = self.short_beams_at(mean, z, angles)
+            n_short = int(np.count_nonzero(short))
+            if 0 < n_short < self.beam_skip_error_threshold * z.size:
+                self.short_beams = n_short
+                self.short_beams_total += n_short
+                keep = ~short
+                z, angles, vals = z[keep], angles[keep], vals[:, keep]
+            else:
+                self.short_beams = 0
         if self.beam_skip and n > 0:
             explained = (vals >= self._explained).mean(axis=0)
             keep = explained > self.beam_skip_threshold

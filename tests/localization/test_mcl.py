@@ -233,6 +233,79 @@ def test_likelihood_field_beam_skip_against_direct_computation(world):
     np.testing.assert_allclose(ll_all, plain.log_likelihood(lp, z, angles)[0], rtol=1e-6)
 
 
+def test_likelihood_field_random_distance_closed_form():
+    """``r`` of ``short_skip`` is where the two mixture terms are equal:
+    ``z_hit N(r; 0, sigma_hit^2) = z_rand / z_max`` (checked with scipy's normal density)."""
+    from scipy.stats import norm
+
+    for sigma, z_hit, z_rand, z_max in ((0.2, 0.95, 0.05, 30.0), (0.1, 0.5, 0.5, 10.0), (0.3, 0.9, 0.1, 5.0)):
+        m = LikelihoodFieldModel(sigma, z_hit, z_rand, max_distance=5.0)
+        r = m.random_distance(z_max)
+        assert z_hit * norm.pdf(r, scale=sigma) == pytest.approx(z_rand / z_max, rel=1e-9)
+    assert LikelihoodFieldModel().random_distance(30.0) == pytest.approx(0.7503, abs=1e-4)
+    # the Gaussian never exceeds the uniform term: every end point is "random"
+    assert LikelihoodFieldModel(1.0, 0.01, 0.99).random_distance(1.0) == 0.0
+    # no uniform term: capped at max_distance
+    assert LikelihoodFieldModel(0.2, 1.0, 0.0).random_distance(30.0) == 2.0
+
+
+def test_likelihood_field_short_skip_against_brute_force(world):
+    """``short_skip`` written out: at the particles' mean pose (unweighted, circular mean
+    heading) a beam is short if its reading is shorter than the range to the first blocking
+    cell along the ray (found here by stepping 1 mm along it) and its end point is more
+    than ``r`` from the map's surface; short beams leave every particle's product."""
+    g, path, _, _ = world
+    rng = np.random.default_rng(11)
+    true = path[30]
+    angles = LASER.angles[::6]
+    z = cast_rays(g, true[None], angles, 10.0)[0] + rng.normal(0, 0.01, angles.size)
+    sd = g.surface_distance_field()
+
+    def surface_distance(pose, ranges):
+        e = pose[:2] + ranges[:, None] * np.column_stack([np.cos(pose[2] + angles), np.sin(pose[2] + angles)])
+        i, j = g.world_to_cell(e)
+        inside = g.in_bounds(i, j)
+        return np.where(inside, sd[np.clip(i, 0, sd.shape[0] - 1), np.clip(j, 0, sd.shape[1] - 1)], 2.0)
+
+    # unmapped obstacles: some beams end half-way, more than 1 m from any mapped surface
+    occluded = np.flatnonzero(surface_distance(true, 0.5 * z) > 1.0)[:6]
+    assert occluded.size >= 3
+    z[occluded] *= 0.5
+    # the cloud 0.3 m off the true pose: beams ending at walls must still be kept
+    off = true + np.array([0.25, -0.15, 0.03])
+    poses = off + rng.normal(0, [0.05, 0.05, 0.02], (200, 3))
+    mean = np.array([poses[:, 0].mean(), poses[:, 1].mean(),
+                     math.atan2(np.sin(poses[:, 2]).mean(), np.cos(poses[:, 2]).mean())])
+    steps = np.arange(0.0, 10.0, 0.001)
+    zhat = np.empty(angles.size)
+    for b, a in enumerate(angles):
+        pts = mean[:2] + steps[:, None] * np.array([math.cos(mean[2] + a), math.sin(mean[2] + a)])
+        hit = np.flatnonzero(g.is_blocked(pts))
+        zhat[b] = steps[hit[0]] if hit.size else 10.0
+    plain = LikelihoodFieldModel()
+    plain.prepare(g, 10.0)
+    r = plain.random_distance(10.0)
+    dist = surface_distance(mean, z)
+    short = (z < zhat) & (dist > r)
+    # no beam within the brute force's 1 mm (or a cell's rounding of the distance) of a boundary
+    assert np.all((np.abs(z - zhat) > 0.002) | ~(dist > r)) and np.all(np.abs(dist - r) > 0.01)
+    assert set(occluded) <= set(np.flatnonzero(short)) and short.sum() == occluded.size
+    model = LikelihoodFieldModel(short_skip=True)
+    model.prepare(g, 10.0)
+    lp = g.pose_to_grid(poses)
+    np.testing.assert_array_equal(model.short_beams_at(g.pose_to_grid(mean[None])[0], z, angles), short)
+    ll, n = model.log_likelihood(lp, z, angles)
+    ref, n_ref = plain.log_likelihood(lp, z[~short], angles[~short])
+    assert n == n_ref == angles.size - short.sum() and model.short_beams == short.sum()
+    np.testing.assert_allclose(ll, ref, rtol=1e-6)
+    # when at least beam_skip_error_threshold of the beams would be left out, all are used
+    strict = LikelihoodFieldModel(short_skip=True, beam_skip_error_threshold=0.5 * short.sum() / angles.size)
+    strict.prepare(g, 10.0)
+    ll_all, n_all = strict.log_likelihood(lp, z, angles)
+    assert n_all == angles.size and strict.short_beams == 0
+    np.testing.assert_allclose(ll_all, plain.log_likelihood(lp, z, angles)[0], rtol=1e-6)
+
+
 def test_beam_selection_valid_spreads_the_budget_over_usable_beams(world):
     """``beam_selection="valid"``: ``max_beams`` evenly spaced indices among the beams with a
     reading below ``max_range`` (the others never reach the sensor model)."""
