@@ -37,11 +37,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.linalg import solve_triangular
 from scipy.stats import chi2
 
 from dfusion.errors import ShapeError, ValidationError
 from dfusion.geometry import wrap_angle
-from dfusion.linalg import Array, as_vector
+from dfusion.linalg import Array, as_vector, cholesky, spd_inverse
 from dfusion.maps import OccupancyGrid
 from dfusion.models import LikelihoodFieldModel
 
@@ -98,9 +99,9 @@ def enclosing_covariance(A: ArrayLike, B: ArrayLike) -> Array:
     B = np.asarray(B, dtype=float)
     if A.shape != B.shape or A.ndim != 2 or A.shape[0] != A.shape[1]:
         raise ShapeError("A and B must be square matrices of one shape")
-    L = np.linalg.cholesky(0.5 * (A + A.T))
-    Li_B = np.linalg.solve(L, 0.5 * (B + B.T))
-    M = np.linalg.solve(L, Li_B.T)  # L^-1 B L^-T (symmetric)
+    L = cholesky(0.5 * (A + A.T), "A")
+    Li_B = solve_triangular(L, 0.5 * (B + B.T), lower=True)
+    M = solve_triangular(L, Li_B.T, lower=True)  # L^-1 B L^-T (symmetric)
     lam, V = np.linalg.eigh(0.5 * (M + M.T))
     LV = L @ V
     C = (LV * np.maximum(lam, 1.0)) @ LV.T
@@ -276,7 +277,7 @@ class CorrelativeScanMatcher:
                 raise ShapeError("prior_cov must be 3 x 3")
             c0, s0 = math.cos(self.grid.origin[2]), math.sin(self.grid.origin[2])
             Rg = np.array([[c0, s0, 0.0], [-s0, c0, 0.0], [0.0, 0.0, 1.0]])  # world -> grid axes
-            A = np.linalg.inv(0.5 * (Rg @ P @ Rg.T + (Rg @ P @ Rg.T).T))
+            A = spd_inverse(0.5 * (Rg @ P @ Rg.T + (Rg @ P @ Rg.T).T), "prior_cov")
             X, Y, T = ox[None, None, :], oy[None, :, None], oth[:, None, None]
             quad = (A[0, 0] * X * X + A[1, 1] * Y * Y + A[2, 2] * T * T
                     + 2.0 * (A[0, 1] * X * Y + A[0, 2] * X * T + A[1, 2] * Y * T))
