@@ -6,6 +6,7 @@ Usage::
     python examples/carmen_localization.py LOG.gz [--json OUT] [--plot DIR] [--max-scans N] [--seed S] [-v]
     python examples/carmen_localization.py --bag BAG ...   (scans and poses from a ROS bag)
     python examples/carmen_localization.py --all DIR [--seeds 0,1,2] [--jobs N] [--json OUT] [-v]
+    python examples/carmen_localization.py ... --only scan_matching   (or mcl: one localizer alone)
 
 ``LOG`` is a CARMEN log with corrected poses, e.g. ``DATA/carmen/intel-corrected.log.gz``
 (where to get it: ``tests/data/carmen/README.md``; the slice
@@ -74,13 +75,20 @@ sorting by them reorders the MIT log -- the scan index is the time):
    :class:`~dfusion.localization.OdometryEKF` (survey eq. 5-8) predicting with the
    odometry increments split into a turn and a move (noise 1.5 times the simulated one:
    ``k_d = 0.075``, ``k_theta = 0.075``, ``k_dtheta = 0.03``, floors 1 cm and 5 mrad); at each
-   localization scan point-to-line ICP (:meth:`~dfusion.localization.ScanMatcher.from_grid`,
-   0.5 m correspondence gate, Cauchy M-estimator with the scale ``1.4826 MAD`` of the
-   residuals) starts from the prediction; the match, with the Newey-West (HAC) covariance
-   of its residuals plus ``MATCH_COV_FLOOR_SD`` = (5 cm, 5 cm, 0.02 rad) for what the
-   residuals of one scan cannot show (ICP from the true pose ends 4-7 cm / 0.3-0.7 deg
-   RMS from it on these logs, while residual-based covariances say a few mm), updates the
-   EKF unless ICP fails or the chi-square gate (3 dof, 99.9 %) rejects it. Lock-outs are
+   localization scan a correlative scan matcher
+   (:class:`~dfusion.localization.correlative.CorrelativeScanMatcher`, Olson 2009;
+   ``CORRELATIVE_SETTINGS``: likelihood field with ``sigma_hit`` = 0.1 m, 120 of the scan's
+   points) scores every pose of a lattice (5 cm cells, headings in steps of one cell at
+   the farthest point) over the box around the 99 % region of the prediction, capped at
+   +-1 m / +-0.3 rad, and point-to-line ICP
+   (:meth:`~dfusion.localization.ScanMatcher.from_grid`, 0.5 m correspondence gate, Cauchy
+   M-estimator with the scale ``1.4826 MAD`` of the residuals) starts from its best pose;
+   the match, with the Newey-West (HAC) covariance of its residuals plus
+   ``MATCH_COV_FLOOR_SD`` = (5 cm, 5 cm, 0.02 rad) for what the residuals of one scan cannot
+   show (ICP from the true pose ends 4-7 cm / 0.3-0.7 deg RMS from it on these logs, while
+   residual-based covariances say a few mm), enlarged in every direction to the spread of
+   the scan's likelihood over the lattice about the match (large along a corridor),
+   updates the EKF unless ICP fails or the chi-square gate (3 dof, 99.9 %) rejects it. Lock-outs are
    detected from the NIS window and the run of rejected matches and recovered from by a
    widened search confirmed by two scans (``ScanMatchingEKF``).
 
@@ -110,6 +118,7 @@ from dfusion.errors import DfusionError, ValidationError
 from dfusion.estimation.innovation import LockoutDetector
 from dfusion.geometry import se2_between, se2_compose, wrap_angle
 from dfusion.localization import MonteCarloLocalization, OdometryEKF, ScanMatcher, ScanMatchingEKF, scan_to_points
+from dfusion.localization.correlative import CorrelativeScanMatcher
 from dfusion.localization.odometry_ekf import predict_odometry_step
 from dfusion.maps.mapping import grid_from_scans
 from dfusion.models import LaserConfig, LikelihoodFieldModel, OdometryMotionModel
@@ -173,6 +182,11 @@ EKF_GATE_PROBABILITY = 0.999
 SM_SEEDS_FROM_MCL = False
 #: added to every match covariance (m, m, rad): error the residuals of one scan cannot show
 MATCH_COV_FLOOR_SD = (0.05, 0.05, 0.02)
+#: correlative scan matcher (Olson 2009) before ICP: options of CorrelativeScanMatcher (None: off)
+CORRELATIVE_SETTINGS: dict | None = {"sigma_hit": 0.1, "max_points": 120}
+#: its search window: the box of this probability region of the prediction, capped (m, m, rad)
+CORRELATIVE_PROBABILITY = 0.99
+CORRELATIVE_CAP = (1.0, 1.0, 0.3)
 
 
 def settings() -> dict:
@@ -181,7 +195,9 @@ def settings() -> dict:
             "likelihood": LIKELIHOOD_SETTINGS, "mcl_noise_factor": MCL_NOISE_FACTOR, "mcl_recovery_sampler": MCL_RECOVERY_SAMPLER,
             "monitor_window": MONITOR_WINDOW, "monitor_alpha": MONITOR_ALPHA, "icp": ICP_SETTINGS,
             "ekf_noise_factor": EKF_NOISE_FACTOR, "ekf_gate_probability": EKF_GATE_PROBABILITY,
-            "match_cov_floor_sd": MATCH_COV_FLOOR_SD, "sm_seeds_from_mcl": SM_SEEDS_FROM_MCL}
+            "match_cov_floor_sd": MATCH_COV_FLOOR_SD, "sm_seeds_from_mcl": SM_SEEDS_FROM_MCL,
+            "correlative": CORRELATIVE_SETTINGS, "correlative_probability": CORRELATIVE_PROBABILITY,
+            "correlative_cap": CORRELATIVE_CAP}
 
 
 def load_log(args: argparse.Namespace):
@@ -269,7 +285,11 @@ def run_scan_matching(grid, angles, odom, ranges, times, loc_idx, x0, P0, odom_n
     f = EKF_NOISE_FACTOR
     ekf = OdometryEKF(x0, P0, k_d=f * k_s, k_theta=f * k_r, k_dtheta=f * k_rd, s_d=0.01, s_theta=0.005,
                       gate=float(chi2.ppf(EKF_GATE_PROBABILITY, 3)))
-    loc = ScanMatchingEKF(matcher, ekf, cov_floor=np.diag(MATCH_COV_FLOOR_SD) ** 2, monitor=make_monitor(3))
+    corr = None if CORRELATIVE_SETTINGS is None else CorrelativeScanMatcher(grid, max_range=laser_range,
+                                                                            **CORRELATIVE_SETTINGS)
+    loc = ScanMatchingEKF(matcher, ekf, cov_floor=np.diag(MATCH_COV_FLOOR_SD) ** 2, monitor=make_monitor(3),
+                          correlative=corr, correlative_probability=CORRELATIVE_PROBABILITY,
+                          correlative_cap=CORRELATIVE_CAP)
     k0 = int(loc_idx[0])
     est, cov, events = [], [], []
     for k in range(k0, len(times)):
@@ -301,10 +321,15 @@ def build_map(poses: np.ndarray, ranges: np.ndarray, angles: np.ndarray, resolut
 
 def run_log(log_path: Path | str | None, seed: int = 0, *, log=None, max_scans: int | None = None,
             resolution: float = 0.05, map_range: float = 30.0, laser_range: float = 30.0, odom_noise: float = 1.0,
-            keep_errors: bool = False, series: bool = True, keep_grid: bool = False, grid=None) -> dict:
+            keep_errors: bool = False, series: bool = True, keep_grid: bool = False, grid=None,
+            only: str | None = None) -> dict:
     """The protocol of the module docstring on one log (``log``: already read; default:
     :func:`dfusion.datasets.read_carmen` of ``log_path`` in file order); the result dictionary.
-    ``grid``: the map from :func:`build_map` for these scans (it does not depend on the seed)."""
+    ``grid``: the map from :func:`build_map` for these scans (it does not depend on the seed).
+    ``only``: ``"mcl"`` or ``"scan_matching"`` runs that localizer alone (the other's key is
+    then missing from the result)."""
+    if only not in (None, *KEYS):
+        raise ValidationError(f"only must be one of {KEYS}, got {only!r}")
     t_wall = time.perf_counter()
     if log is None:
         log = read_carmen(log_path, sort=False)
@@ -326,17 +351,21 @@ def run_log(log_path: Path | str | None, seed: int = 0, *, log=None, max_scans: 
     P0 = np.diag(P0_SD) ** 2
     truth = poses[loc_idx]
 
-    t0 = time.perf_counter()
-    mcl_est, mcl_cov, mcl_stats = run_mcl(grid, laser, odom, ranges, times, loc_idx, poses[k0], P0, seed, odom_noise)
-    t_mcl = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    sm_est, sm_cov, sm_stats = run_scan_matching(grid, angles, odom, ranges, times, loc_idx, poses[k0], P0,
-                                                 odom_noise, laser_range, mcl_est if SM_SEEDS_FROM_MCL else None)
-    t_sm = time.perf_counter() - t0
-
     n = loc_idx.size
-    mcl_err = pose_errors(mcl_est, truth)
-    sm_err = pose_errors(sm_est, truth)
+    runs: dict[str, tuple] = {}  # key -> (estimates, covariances, counters, seconds)
+    mcl_est = None
+    if only in (None, "mcl") or SM_SEEDS_FROM_MCL:
+        t0 = time.perf_counter()
+        mcl_est, mcl_cov, mcl_stats = run_mcl(grid, laser, odom, ranges, times, loc_idx, poses[k0], P0, seed,
+                                              odom_noise)
+        if only in (None, "mcl"):
+            runs["mcl"] = (mcl_est, mcl_cov, mcl_stats, time.perf_counter() - t0)
+    if only in (None, "scan_matching"):
+        t0 = time.perf_counter()
+        sm_est, sm_cov, sm_stats = run_scan_matching(grid, angles, odom, ranges, times, loc_idx, poses[k0], P0,
+                                                     odom_noise, laser_range, mcl_est if SM_SEEDS_FROM_MCL else None)
+        runs["scan_matching"] = (sm_est, sm_cov, sm_stats, time.perf_counter() - t0)
+    errs = {key: pose_errors(r[0], truth) for key, r in runs.items()}
     out = {
         "log": str(log_path),
         "scans": int(poses.shape[0]),
@@ -345,18 +374,17 @@ def run_log(log_path: Path | str | None, seed: int = 0, *, log=None, max_scans: 
         "map": {"resolution": grid.resolution, "width": grid.width, "height": grid.height,
                 "occupied_cells": int(grid.occupied.sum()), "seconds": t_map},
         "odometry": {**pose_summary(odo_pos, odo_head), "noise": [odom_noise * a for a in ODOM_NOISE]},
-        "mcl": {**pose_summary(*mcl_err), **mcl_stats, "seconds": t_mcl, "ms_per_scan": 1e3 * t_mcl / n},
-        "scan_matching": {**pose_summary(*sm_err), **sm_stats, "seconds": t_sm, "ms_per_scan": 1e3 * t_sm / n},
+        **{key: {**pose_summary(*errs[key]), **r[2], "seconds": r[3], "ms_per_scan": 1e3 * r[3] / n}
+           for key, r in runs.items()},
         "seed": int(seed),
     }
     if series:
         # per localized scan: time (scan index), truth and each localizer's pose (x m, y m,
         # theta rad) with its 3x3 covariance
         out["series"] = {"t": times[loc_idx].tolist(), "truth": truth.tolist(), "odometry": odom[loc_idx].tolist(),
-                         "mcl": {"mean": mcl_est.tolist(), "cov": mcl_cov.tolist()},
-                         "scan_matching": {"mean": sm_est.tolist(), "cov": sm_cov.tolist()}}
+                         **{key: {"mean": r[0].tolist(), "cov": r[1].tolist()} for key, r in runs.items()}}
     if keep_errors:
-        out["errors"] = {"mcl": mcl_err[0].tolist(), "scan_matching": sm_err[0].tolist()}
+        out["errors"] = {key: e[0].tolist() for key, e in errs.items()}
     out["runtime_s"] = time.perf_counter() - t_wall
     if keep_grid:
         out["_plot"] = {"grid": grid, "map_poses": poses[map_idx]}   # for the figures; not written to JSON
@@ -369,10 +397,17 @@ def run(args: argparse.Namespace, log=None) -> dict:
     name = args.bag if getattr(args, "bag", None) else args.log
     return run_log(name, args.seed, log=log, max_scans=args.max_scans, resolution=args.resolution,
                    map_range=args.map_range, laser_range=args.laser_range, odom_noise=args.odom_noise,
-                   keep_grid=True)
+                   keep_grid=True, only=getattr(args, "only", None))
 
 
 LOCALIZERS = (("mcl", "MCL (likelihood field)"), ("scan_matching", "ICP + odometry EKF"))
+KEYS = tuple(k for k, _ in LOCALIZERS)
+
+
+def present(results: dict | list[dict]) -> tuple:
+    """The ``LOCALIZERS`` that ran (all of them unless ``--only``)."""
+    r = results[0] if isinstance(results, list) else results
+    return tuple((k, lab) for k, lab in LOCALIZERS if k in r)
 
 
 def figures(res: dict, grid, out: Path) -> list[Path]:
@@ -410,7 +445,7 @@ def print_table(res: dict) -> None:
           f"{res['localized_scans']} scans localized")
     print(f"{'localizer':<26}{'RMSE m':>9}{'median':>9}{'95 %':>8}{'max':>8}{'max>10':>8}{'heading RMSE rad':>18}"
           f"{'recoveries':>11}{'alarms':>7}{'gated':>7}{'ms/scan':>9}")
-    for key, label in (("odometry", "odometry (dead reckoning)"),) + LOCALIZERS:
+    for key, label in (("odometry", "odometry (dead reckoning)"),) + present(res):
         v = res[key]
         ms = f"{v['ms_per_scan']:.1f}" if "ms_per_scan" in v else "-"
         rec = str(v["recoveries"]) if "recoveries" in v else "-"
@@ -418,14 +453,16 @@ def print_table(res: dict) -> None:
         gated = str(v["gated"]) if "gated" in v else "-"
         print(f"{label:<26}{v['rmse']:>9.3f}{v['median']:>9.3f}{v['p95']:>8.3f}{v['max']:>8.3f}{v['max_after']:>8.3f}"
               f"{v['heading_rmse']:>18.4f}{rec:>11}{alarms:>7}{gated:>7}{ms:>9}")
-    sm = res["scan_matching"]
-    print(f"ICP failures {sm['icp_failures']}, gated out {sm['gated_out']}; run time {res['runtime_s']:.1f} s")
+    if "scan_matching" in res:
+        sm = res["scan_matching"]
+        print(f"ICP failures {sm['icp_failures']}, gated out {sm['gated_out']}", end="; ")
+    print(f"run time {res['runtime_s']:.1f} s")
 
 
 def pooled(results: list[dict]) -> dict:
     """Figures over all scans of all runs (needs ``keep_errors``)."""
     out = {}
-    for key, _ in LOCALIZERS:
+    for key, _ in present(results):
         e = np.concatenate([np.asarray(r["errors"][key]) for r in results])
         after = np.concatenate([np.asarray(r["errors"][key])[SKIP_SCANS:] for r in results])
         n = np.array([r["localized_scans"] for r in results])
@@ -451,7 +488,7 @@ def per_log(results: list[dict]) -> list[dict]:
     for name in dict.fromkeys(r["log"] for r in results):
         runs = [r for r in results if r["log"] == name]
         row = {"log": name, "seeds": [r["seed"] for r in runs]}
-        for key, _ in LOCALIZERS:
+        for key, _ in present(runs):
             rm = [r[key]["rmse"] for r in runs]
             row[key] = {"rmse_mean": float(np.mean(rm)), "rmse_worst": float(np.max(rm)),
                         "max_after_worst": float(max(r[key]["max_after"] for r in runs)),
@@ -475,21 +512,22 @@ def short_name(log: str) -> str:
 
 def print_all_table(results: list[dict], pool: dict, logs: list[dict] | None = None) -> None:
     w = len(SUB)
-    print(f"{'log':<20}{'seed':>5}{'scans':>6} | " + " | ".join(f"{lab:<{w}}" for _, lab in LOCALIZERS))
-    print(f"{'':<31} | " + " | ".join(f"{SUB:<{w}}" for _ in LOCALIZERS))
+    locs = present(results)
+    print(f"{'log':<20}{'seed':>5}{'scans':>6} | " + " | ".join(f"{lab:<{w}}" for _, lab in locs))
+    print(f"{'':<31} | " + " | ".join(f"{SUB:<{w}}" for _ in locs))
     for r in results:
         print(f"{short_name(r['log']):<20}{r['seed']:>5}{r['localized_scans']:>6} | "
-              + " | ".join(_cells(r[key]) for key, _ in LOCALIZERS))
+              + " | ".join(_cells(r[key]) for key, _ in locs))
     n = sum(r["localized_scans"] for r in results)
-    print(f"{'pooled':<25}{n:>6} | " + " | ".join(_cells(pool[key]) for key, _ in LOCALIZERS))
+    print(f"{'pooled':<25}{n:>6} | " + " | ".join(_cells(pool[key]) for key, _ in locs))
     if logs:
         print(f"\nover the seeds: {'log':<20} | " + " | ".join(
-            f"{lab + ': RMSE mean / worst, max>10 worst':<44}" for _, lab in LOCALIZERS))
+            f"{lab + ': RMSE mean / worst, max>10 worst':<44}" for _, lab in locs))
         for row in logs:
             print(f"{'':<16}{short_name(row['log']):<20} | " + " | ".join(
                 f"{row[k]['rmse_mean']:>8.3f} / {row[k]['rmse_worst']:.3f}, {row[k]['max_after_worst']:>6.3f}{'':<21}"
-                for k, _ in LOCALIZERS))
-    print("worst RMSE per localizer: " + ", ".join(f"{lab} {pool[k]['worst_rmse']:.3f} m" for k, lab in LOCALIZERS))
+                for k, _ in locs))
+    print("worst RMSE per localizer: " + ", ".join(f"{lab} {pool[k]['worst_rmse']:.3f} m" for k, lab in locs))
 
 
 def _run_seeds(job: tuple) -> list[dict]:
@@ -545,6 +583,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--map-range", type=float, default=30.0, help="readings below this are hits when mapping (m)")
     ap.add_argument("--laser-range", type=float, default=30.0, help="readings at or above this are ignored (m)")
     ap.add_argument("--odom-noise", type=float, default=1.0, help="scale of the simulated odometry noise")
+    ap.add_argument("--only", choices=KEYS, default=None,
+                    help="run one localizer alone (e.g. scan_matching while tuning it); the other is not run")
     ap.add_argument("-v", "--verbose", action="store_true", help="log recoveries (INFO)")
     return ap
 
@@ -555,8 +595,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     if sum(x is not None for x in (args.log, args.bag, args.all)) != 1:
         ap.error("give one of LOG, --bag BAG or --all DIR")
+    if args.only and args.plot:
+        ap.error("--plot needs both localizers (no --only)")
     kw = {"max_scans": args.max_scans, "resolution": args.resolution, "map_range": args.map_range,
-          "laser_range": args.laser_range, "odom_noise": args.odom_noise}
+          "laser_range": args.laser_range, "odom_noise": args.odom_noise, "only": args.only}
     try:
         if args.all is not None:
             seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else [args.seed]

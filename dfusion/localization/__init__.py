@@ -1,4 +1,4 @@
-"""Localizers and trackers, each an :class:`~dfusion.estimation.Estimator`: MCL, ICP, odometry EKF, landmark EKF, environmental camera, WSN tracker; radio maps and their calibration; scan similarity."""
+"""Localizers and trackers, each an :class:`~dfusion.estimation.Estimator`: MCL, ICP, correlative scan matching, odometry EKF, landmark EKF, environmental camera, WSN tracker; radio maps and their calibration; scan similarity."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.localization.correlative import CorrelativeResult, CorrelativeScanMatcher, enclosing_covariance
     from dfusion.localization.env_camera import EnvironmentCameraLocalizer
     from dfusion.localization.scan_matching import (
         ICPResult,
@@ -51,6 +52,9 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.localization.wsn_tracker import MOTIONS, WSNTracker
 
 __all__ = [
+    "CorrelativeResult",
+    "CorrelativeScanMatcher",
+    "enclosing_covariance",
     "EnvironmentCameraLocalizer",
     "ICPResult",
     "ScanMatcher",
@@ -93,6 +97,9 @@ __all__ = [
 ]
 
 _WHERE = {
+    "CorrelativeResult": ("dfusion.localization.correlative", 'CorrelativeResult'),
+    "CorrelativeScanMatcher": ("dfusion.localization.correlative", 'CorrelativeScanMatcher'),
+    "enclosing_covariance": ("dfusion.localization.correlative", 'enclosing_covariance'),
     "EnvironmentCameraLocalizer": ("dfusion.localization.env_camera", 'EnvironmentCameraLocalizer'),
     "ICPResult": ("dfusion.localization.scan_matching", 'ICPResult'),
     "ScanMatcher": ("dfusion.localization.scan_matching", 'ScanMatcher'),

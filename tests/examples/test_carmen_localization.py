@@ -119,3 +119,26 @@ def test_all_mode_tables_every_log_with_pooled_figures(tmp_path):
 def test_all_mode_needs_logs(tmp_path, capsys):
     assert carmen.main(["--all", str(tmp_path)]) == 1
     assert "no CARMEN logs" in capsys.readouterr().err
+
+
+def test_only_runs_one_localizer_with_the_same_numbers(tmp_path):
+    """--only scan_matching: the scan matcher alone, its figures those of the run of both."""
+    both = carmen.run_log(SLICE, 1, max_scans=60, series=False)
+    alone = carmen.run_log(SLICE, 1, max_scans=60, series=False, only="scan_matching")
+    assert "mcl" not in alone
+    assert alone["scan_matching"]["rmse"] == both["scan_matching"]["rmse"]
+    assert alone["scan_matching"]["max_after"] == both["scan_matching"]["max_after"]
+    out = tmp_path / "only.json"
+    folder = tmp_path / "logs"
+    folder.mkdir()
+    (folder / "a.log.gz").write_bytes(SLICE.read_bytes())
+    proc = subprocess.run([sys.executable, str(EXAMPLE), "--all", str(folder), "--seeds", "1", "--max-scans", "60",
+                           "--only", "scan_matching", "--json", str(out)], capture_output=True, text=True, cwd=ROOT,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "ICP + odometry EKF" in proc.stdout and "MCL" not in proc.stdout
+    res = json.loads(out.read_text())
+    assert set(res["pooled"]) == {"scan_matching"}
+    assert res["runs"][0]["scan_matching"]["rmse"] == both["scan_matching"]["rmse"]
+    with pytest.raises(carmen.ValidationError, match="only must be"):
+        carmen.run_log(SLICE, 1, max_scans=60, only="ekf")
