@@ -601,6 +601,11 @@ class NodeProcess:
             out.update(tree_changes=s.tree_changes, new_epochs=s.new_epochs, not_fused=s.not_fused,
                        not_linked=s.not_linked, withdrawn_blocks=s.withdrawn_blocks,
                        epochs_started=self.node.tree.epochs_started)
+        guard = getattr(self.node, "guard", None)
+        if guard is not None:   # the consistency test of the neighbours' information (docs/clutter.md)
+            g = guard.summary()
+            out.update(guard_tests=g["tests"], guard_failures=g["failures"], quarantines=g["quarantines"],
+                       quarantined_now=len(g["quarantined"]))
         out["cpu_ms"] = int(self.cpu * 1000)
         if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
             out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)
