@@ -390,6 +390,10 @@ def build_result(
             "liveliness_losses": rec.losses,
             "max_lag_wall_s": max((s.get("max_lag_ms", 0) for s in per_epoch), default=0) / 1000,
             "cpu_s": total.get("cpu_ms", 0) / 1000,
+            # the consistency test of the neighbours' information (docs/clutter.md), summed over incarnations
+            "guard_tests": total.get("guard_tests", 0),
+            "guard_failures": total.get("guard_failures", 0),
+            "quarantines": total.get("quarantines", 0),
             "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
         }
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
@@ -520,6 +524,9 @@ def run_table(result) -> str:
             bits.append(f"{v['messages_rejected']} messages rejected" + (f" ({why})" if why else ""))
         if v["liveliness_losses"]:
             bits.append(f"lost {v['liveliness_losses']}x")
+        if v.get("quarantines"):
+            bits.append(f"{v['quarantines']} quarantines of a neighbour by the consistency test "
+                        f"({v['guard_failures']} of {v['guard_tests']} tests failed)")
         if not v["finished"]:
             bits.append("did not finish")
         if bits:

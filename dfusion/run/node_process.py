@@ -227,8 +227,10 @@ class NodeProcess:
         # the same front end as in `dfusion simulate` (EIF update, camera gate, WSN particle filter...)
         self.front = build_front_end(sc, name)
         self.send_period = spec.send_period
-        # a new epoch per incarnation: the clock, strictly newer than the last one recorded in the state dir
-        self.node = self._build_node(joining=False)
+        # a new epoch per incarnation: the clock, strictly newer than the last one recorded in the state dir;
+        # a restart whose start time has passed joins the running network (built once, one epoch claimed)
+        self._joins = self._starts_late()
+        self.node = self._build_node(joining=self._joins)
         self._records_output = records_output(self.node.policy)
         self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
@@ -250,9 +252,19 @@ class NodeProcess:
         self.sched = SendSchedule(self.send_period, sc.min_send_interval, sc.sends)
         self._sending = False
 
-    def _build_node(self, *, joining: bool) -> FusionNode:
-        """This incarnation's :class:`FusionNode` (its incarnation epoch: the clock, strictly newer
-        than the last one claimed in the state directory, :func:`claim_epoch`).
+    def _starts_late(self) -> bool:
+        """Whether the common start time is known already and more than half a step past (a
+        restart): a node whose links change then joins the running network. The start read from
+        the start file is kept (it does not change)."""
+        if self.schedule is None:
+            return False
+        if self.start is None:
+            self.start = self.start_file.read()
+        return self.start is not None and self.now() > self.sc.dt * 0.5
+
+    def _build_node(self, *, joining: bool, epoch: int | None = None) -> FusionNode:
+        """This incarnation's :class:`FusionNode` (its incarnation epoch: ``epoch``, else the clock,
+        strictly newer than the last one claimed in the state directory, :func:`claim_epoch`).
 
         Links that change: a node started on time begins on the tree the tree rule's
         :func:`~dfusion.fusion.tree.initial_parents` picks among the links the scenario allows
@@ -260,7 +272,8 @@ class NodeProcess:
         node is up); a node that starts late (a restart) or joins later begins alone in the
         lowest tree epoch and adopts its neighbours' (``docs/dynamic-topology.md``).
         """
-        epoch = claim_epoch(self.state_dir, self.name) if self.state_dir is not None else None
+        if epoch is None and self.state_dir is not None:
+            epoch = claim_epoch(self.state_dir, self.name)
         kw = {"network_key": self.key, "network": self.network, "run": self.run_id or "", "epoch": epoch}
         if self.schedule is None:
             return build_node(self.sc, self.name, **kw)
@@ -329,8 +342,13 @@ class NodeProcess:
         node its messages meanwhile (:meth:`receive`).
         """
         yield from self._wait_for_start()
-        if self.schedule is not None and self.t_started > 0:
-            self.node = self._build_node(joining=True)   # a restart joins the running network
+        if self.schedule is not None and self.t_started > 0 and not self._joins:
+            # the start time came (or passed) after the node was built on time: a late start joins the
+            # running network, as the same incarnation (no second epoch claimed)
+            self._joins = True
+            self.node = self._build_node(joining=True, epoch=self.node.epoch)
+            if self.tr is not None:
+                self.tr.set_check(self.name, self.node.check_frame, self.node.max_message_bytes)
         self._cpu_at_start = time.process_time()
         if self.state_dir is not None:
             self._mlog = MeasurementLog(self.state_dir, self.name, self.run_id or repr(self.start), fsync=self.fsync)
@@ -583,6 +601,11 @@ class NodeProcess:
             out.update(tree_changes=s.tree_changes, new_epochs=s.new_epochs, not_fused=s.not_fused,
                        not_linked=s.not_linked, withdrawn_blocks=s.withdrawn_blocks,
                        epochs_started=self.node.tree.epochs_started)
+        guard = getattr(self.node, "guard", None)
+        if guard is not None:   # the consistency test of the neighbours' information (docs/clutter.md)
+            g = guard.summary()
+            out.update(guard_tests=g["tests"], guard_failures=g["failures"], quarantines=g["quarantines"],
+                       quarantined_now=len(g["quarantined"]))
         out["cpu_ms"] = int(self.cpu * 1000)
         if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
             out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)

@@ -131,3 +131,28 @@ def test_monitor_publications_are_keyed_for_the_network_and_the_run_and_validate
                 Status("a", 7, "run", 3, 0.3, np.zeros(4), np.eye(4) + np.triu(np.ones((4, 4)), 1)),  # asymmetric
                 Status("a", 7, "run", 3, 0.3, np.full(4, np.inf), np.eye(4))):      # non-finite
         assert reason(bad.encode(mine)) == "malformed", bad
+
+
+def test_a_node_process_reports_its_consistency_test_and_quarantines(tmp_path):
+    """A node process publishes the totals of its consistency test of the neighbours'
+    information (docs/clutter.md) with its counters; the monitor sums them per node and `dfusion
+    run` prints a line for a node that quarantined a neighbour."""
+    from types import SimpleNamespace
+
+    from dfusion.run.monitor import run_table
+    from dfusion.run.node_process import NodeProcess
+    from dfusion.scenario import load_scenario
+    from tests.run.test_processes import chain3
+
+    proc = NodeProcess(load_scenario(chain3(tmp_path)), "b", start=0.0, measurements=[])
+    guard = proc.node.guard
+    assert guard is not None   # the network check is on by default
+    rec = guard.links["a"]
+    rec.tests, rec.failures, rec.quarantines = 12, 4, 1
+    stats = proc.stats()
+    assert (stats["guard_tests"], stats["guard_failures"], stats["quarantines"]) == (12, 4, 1)
+
+    node = {"incarnations": 1, "measurements_replayed": 0, "measurements_lost": 0, "messages_rejected": 0,
+            "liveliness_losses": 0, "finished": True, "guard_tests": 12, "guard_failures": 4, "quarantines": 1}
+    text = run_table(SimpleNamespace(metrics={"run": {"nodes": {"b": node}}}))
+    assert "b: 1 quarantines of a neighbour by the consistency test (4 of 12 tests failed)" in text

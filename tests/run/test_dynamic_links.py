@@ -110,6 +110,50 @@ def test_partition_schedule_cuts_and_heals(tmp_path):
     assert peers(sc, "b") == ("a", "c")
 
 
+def test_a_restarted_node_with_changing_links_is_built_once_and_claims_one_epoch(tmp_path, monkeypatch):
+    """A node process started after the common start time (a restart) of a scenario whose links
+    change builds one FusionNode, as a joining node (alone in the join epoch, no links yet: it adopts
+    its neighbours' epoch), and claims one incarnation epoch in its state directory; a node whose
+    start time passes only after it was built on time is rebuilt as a joining node with the same
+    incarnation epoch (no second claim)."""
+    import time
+
+    from dfusion.fusion.tree import JOIN_TERM
+    from dfusion.run import node_process
+    from dfusion.run.node_process import NodeProcess
+
+    sc = load_scenario(square(tmp_path, 20.0, 60))
+    claims = []
+    real_claim = node_process.claim_epoch
+
+    def counting_claim(state_dir, name, *a, **kw):
+        claims.append(name)
+        return real_claim(state_dir, name, *a, **kw)
+
+    monkeypatch.setattr(node_process, "claim_epoch", counting_claim)
+    monkeypatch.setattr(NodeProcess, "_publish", lambda self, phase, k: None)   # no Zenoh session here
+
+    # started 5 s (scenario time) after the common start: a restart
+    state = tmp_path / "state"
+    proc = NodeProcess(sc, "b", start=time.time() - 5.0, state_dir=state, run_id="r", measurements=[])
+    built = proc.node
+    assert built.tree.epoch == TreeEpoch(JOIN_TERM, "b") and built.tree.parent is None and not built.tree_links
+    wait = next(proc.program())   # start, catch up to now, wait for the next step
+    assert proc.node is built and proc.t_started > 4.0 and wait.deadline > proc.start + 4.0
+    assert claims == ["b"] and int((state / "b.epoch").read_text()) == built.epoch
+
+    # on time at construction (start in the future), late by the time it starts: rebuilt, same epoch
+    claims.clear()
+    proc = NodeProcess(sc, "c", start=time.time() + 3600.0, state_dir=state, run_id="r", measurements=[])
+    on_time = proc.node
+    assert on_time.tree.epoch.term > JOIN_TERM and set(on_time.tree_links) <= {"b", "d"} and on_time.tree_links
+    proc.start = time.time() - 5.0
+    next(proc.program())
+    assert proc.node is not on_time and proc.node.epoch == on_time.epoch
+    assert proc.node.tree.epoch == TreeEpoch(JOIN_TERM, "c") and not proc.node.tree_links
+    assert claims == ["c"] and int((state / "c.epoch").read_text()) == on_time.epoch
+
+
 def test_tree_status_travels_in_the_monitor_message():
     st = Status("a", 7, "run", 3, 0.3, np.zeros(2), np.eye(2), tree=TreeStatus(2, "c", "d", ("b", "d"), ("d",)))
     key = FrameKey(b"k" * 16, "net", "run-1")

@@ -4,6 +4,7 @@ filter as the independent reference."""
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -182,3 +183,62 @@ def test_scenario_keys_and_defaults():
         load_scenario(chain(sends="often"))
     with pytest.raises(ScenarioError, match="min_send_interval"):
         load_scenario(chain(min_send_interval=-1))
+
+
+def _waypoint_position(points: list[list[float]], speed: float, loop: bool, t: float) -> tuple[float, float]:
+    """Where a robot is at ``t`` on its waypoint path, by hand (a reference for ``LinkSchedule``)."""
+    pts = [tuple(p) for p in points] + ([tuple(points[0])] if loop else [])
+    lengths = [math.dist(a, b) for a, b in pairwise(pts)]
+    s = speed * t
+    if loop:
+        s %= sum(lengths)
+    for (a, b), seg in zip(pairwise(pts), lengths):
+        if s <= seg:
+            u = s / seg
+            return (a[0] + u * (b[0] - a[0]), a[1] + u * (b[1] - a[1]))
+        s -= seg
+    return pts[-1]
+
+
+def test_urus_mobile_covers_the_robots_routes_so_they_hand_over_and_are_never_alone():
+    """The URUS-style scenario's radio coverage (docs/dynamic-topology.md, "Why it is shaped so"):
+    from the TOML alone (positions, paths, ranges; the link rule "distance at most the smaller
+    range"), every robot has a radio link at every step of the run and the robots' links change
+    at least ten times (handovers), and the scenario's LinkSchedule gives the same links."""
+    import tomllib
+
+    from dfusion.scenario.links import LinkSchedule
+
+    path = ROOT / "topologies" / "urus-mobile.scenario.toml"
+    raw = tomllib.loads(path.read_text())
+    kind_range = raw["radio"]["ranges"]
+    nodes = {n["name"]: n for n in raw["nodes"]}
+    ranges = {name: n.get("radio_range", kind_range.get(n.get("sensor"))) for name, n in nodes.items()}
+    ranges = {k: v for k, v in ranges.items() if v is not None}
+    robots = [name for name, n in nodes.items() if "path" in n]
+    assert sorted(robots) == ["robot1", "robot2"]
+
+    def positions(t):
+        out = {}
+        for name, n in nodes.items():
+            if "path" in n:
+                out[name] = _waypoint_position(n["path"], n["speed"], n.get("loop", False), t)
+            elif "position" in n:
+                out[name] = tuple(n["position"][:2])
+        return out
+
+    sched = LinkSchedule(load_scenario(path))
+    wired = {tuple(sorted(x["between"])) for x in raw["links"]}
+    prev, downs = None, 0
+    for k in range(round(raw["duration"] / raw["dt"]) + 1):
+        t = round(k * raw["dt"], 9)
+        pos = positions(t)
+        radio = {tuple(sorted((a, b))) for a in ranges for b in ranges
+                 if a < b and math.dist(pos[a], pos[b]) <= min(ranges[a], ranges[b])}
+        for r in robots:
+            assert any(r in pair for pair in radio), f"{r} has no link at t={t}"
+        assert sched.links(t) == radio | wired, t
+        if prev is not None:
+            downs += len(prev - radio)
+        prev = radio
+    assert downs >= 10
