@@ -18,8 +18,11 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/python examples/urus_demo.py --out $(OUT)
 
+# Two pytest workers (pytest-xdist), each test file on one worker (module fixtures are
+# built once); TEST_WORKERS=0 runs the suite in this process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
 
 # API reference from the docstrings (pdoc; warnings and unresolved cross-references
 # are errors): HTML in $(OUT)/api/, start at $(OUT)/api/index.html. See docs/api-reference.md.
