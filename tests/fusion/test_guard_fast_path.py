@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -151,3 +152,83 @@ def test_would_quarantine_predicts_judge(cfg, fails):
         history.append(failed)
     assert not guard.would_quarantine("x", np.inf, 0)   # nothing tested: no verdict
 
+
+# ----------------------------------------------------------------------------- the one-block computations
+def _random_blocks(rng, count: int):
+    """Blocks of every kind the guard meets: ranks 1 to 4, negligible, removals, zero, y out of range."""
+    out = []
+    for _ in range(count):
+        kind = int(rng.integers(6))
+        A = rng.normal(size=(int(rng.integers(1, 5)), 4))
+        L = A.T @ A * (1e-12 if kind == 0 else 1.0)
+        if kind == 1:
+            L = -L
+        if kind == 2:
+            L = np.zeros((4, 4))
+        y = L @ rng.normal(size=4) + (rng.normal(size=4) * 1e-2 if kind == 3 else 0.0)
+        B = rng.normal(size=(4, 4))
+        P = B @ B.T + 0.1 * np.eye(4)
+        m0 = rng.normal(size=4)
+        out.append(((0.0, L, y), m0, P, m0 + 0.1 * rng.normal(size=4)))
+    return out
+
+
+def test_one_block_computations_equal_the_stacked_ones():
+    """A steady-state message has one block: split_blocks and information_statistic take a path on
+    4 x 4 matrices and Python floats for it. Against the stacked computation of the same block
+    (split_blocks on two copies of it, _statistic_stacked): the same split, degrees of freedom and
+    statistic (to rounding)."""
+    from dfusion.fusion.guard import _statistic_stacked, information_statistic, split_blocks
+    rng = np.random.default_rng(8)
+    kinds = set()
+    for e, m0, P, m1 in _random_blocks(rng, 600):
+        add, other = split_blocks([e])
+        add2, other2 = split_blocks([e, e])
+        assert (len(add), len(other)) == (len(add2) // 2, len(other2) // 2)
+        if not add:
+            continue
+        stat, dof = information_statistic([e], [m0], [P], [m1])
+        ref, ref_dof = _statistic_stacked([e], [m0], [P], [m1])
+        kinds.add((dof, np.isinf(stat)))
+        assert dof == ref_dof
+        assert stat == ref or abs(stat - ref) <= 1e-12 * max(1.0, abs(ref))
+    assert {(0, False), (1, False), (4, False)} <= kinds and any(inf for _, inf in kinds)
+
+
+def test_moments_of_one_block_at_the_newest_state_equal_the_smoothing_passes():
+    """add_information_moments of one block at the newest state reads the filtered moments
+    instead of running the smoothing passes: bit for bit what the passes give (the same block
+    with a zero block at the same time takes them), and the statistic equals the dense joint
+    innovation test (independent reference, tests/fusion/test_guard.py)."""
+    from dfusion.estimation.delayed_state import DelayedStateEIF
+    from dfusion.fusion.guard import information_statistic
+    from dfusion.models import ConstantVelocity, PositionSensor
+    from tests.fusion.test_guard import _dense_statistic
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+
+        def filt():
+            f = DelayedStateEIF(ConstantVelocity(2, q=0.2), window=30)
+            r = np.random.default_rng(seed)
+            f.initialize(0.0, r.normal(size=4), np.diag([2.0, 2.0, 0.5, 0.5]))
+            for k in range(1, 12):
+                f.predict(0.1 * k)
+                if k % 3:
+                    f.update(0.1 * k, r.normal(size=2) + [0.1 * k, 0.0], PositionSensor(2, 0.5))
+            return f
+
+        A = rng.normal(size=(2, 4))
+        L = A.T @ A
+        block = (1.1, L, L @ rng.normal(size=4))
+        one, two, ref = filt(), filt(), filt()
+        fast = one.add_information_moments([block])
+        passes = two.add_information_moments([block, (1.1, np.zeros((4, 4)), np.zeros(4))])
+        for x, y in zip(fast, passes):
+            assert x[0].tobytes() == y[0].tobytes()
+        assert one.checkpoint()[1] == two.checkpoint()[1]
+        for x, y in zip(one.estimate(), two.estimate()):
+            assert x.tobytes() == y.tobytes()
+        stat, dof = information_statistic([block], *fast)
+        dense, dense_dof = _dense_statistic(ref, [block])
+        assert dof == dense_dof == 2
+        assert stat == pytest.approx(dense, rel=1e-7)
