@@ -19,7 +19,7 @@ nodes, as scenario nodes have it: the receiver tests every message against its b
 measurements are drawn from the nodes' own motion and sensor models (``transport.Track``), so
 the guarded link stays healthy (its test counters are printed: messages tested, failed,
 quarantines). ``--profile`` prints cProfile's top functions of the receiver's ``receive``
-instead (guard on), for finding what to cut.
+instead (``--sort tottime`` or ``cumulative``), for finding what to cut.
 
 Usage: python benchmarks/hop_cpu.py [--hops N] [--windows 10,100] [--guard off,on] [--profile]
 Another checkout's code: run that checkout's interpreter on this script
@@ -98,20 +98,21 @@ def main() -> int:
     ap.add_argument("--hops", type=int, default=2000)
     ap.add_argument("--windows", default="10,100")
     ap.add_argument("--guard", default="off,on", help="off, on or off,on")
-    ap.add_argument("--profile", action="store_true", help="cProfile of the receiver's receive (guard on)")
+    ap.add_argument("--profile", action="store_true", help="cProfile of the receiver's receive (per --guard)")
     ap.add_argument("--sort", default="tottime", help="cProfile sort key (tottime, cumulative)")
     args = ap.parse_args()
     windows = [int(w) for w in args.windows.split(",")]
+    guards = [g == "on" for g in args.guard.split(",")]
     if args.profile:
         import cProfile
         import pstats
         for W in windows:
-            pr = cProfile.Profile()
-            run(W, args.hops, guard=True, profile=pr)
-            print(f"\nwindow {W}: b.receive, guard on, {args.hops} hops")
-            pstats.Stats(pr).sort_stats(args.sort).print_stats(30)
+            for guard in guards:
+                pr = cProfile.Profile()
+                run(W, args.hops, guard=guard, profile=pr)
+                print(f"\nwindow {W}: b.receive, guard {'on' if guard else 'off'}, {args.hops} hops")
+                pstats.Stats(pr).sort_stats(args.sort).print_stats(30)
         return 0
-    guards = [g == "on" for g in args.guard.split(",")]
     print(f"hop CPU in one process, medians of {args.hops} hops (us; x = / minimal hop of the same run)")
     head = ["window", "guard", "sender", "x", "receiver", "x", "both", "x", "minimal"] + list(STAGES[:-1]) + [
         "tests/fail/quar."]

@@ -94,7 +94,8 @@ from dfusion.linalg import Array, chi2_isf
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "information_statistic", "split_blocks", "HEALTH_STATES"]
+__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "block_eigen", "information_statistic", "split_blocks",
+           "HEALTH_STATES"]
 
 HEALTH_STATES = ("ok", "degraded", "lost")
 
@@ -166,16 +167,27 @@ class LinkRecord:
         return int(sum(self.recent))
 
 
-def split_blocks(entries: list[tuple[float, Array, Array]]) -> tuple[list, list]:
+def block_eigen(L: Array) -> tuple[list[float], Array]:
+    """The eigendecomposition ``Lambda = V diag(l) V^T`` of one block (symmetrized), ``(l as
+    floats, ascending; V)``: computed once for a one-block message and handed to both
+    :func:`split_blocks` and :func:`information_statistic`."""
+    w, V = np.linalg.eigh(0.5 * (L + L.T))
+    return w.tolist(), V
+
+
+def split_blocks(entries: list[tuple[float, Array, Array]],
+                 eigen: tuple[list[float], Array] | None = None) -> tuple[list, list]:
     """``(additions, others)``: blocks whose information matrix is positive semi-definite
     (up to rounding: eigenvalues above ``-EIG_RTOL`` times the largest), and the rest.
     The eigenvalues of all blocks come from one stacked ``eigvalsh`` call (the same LAPACK
-    routine per block as one call per block, without its per-call overhead)."""
+    routine per block as one call per block, without its per-call overhead); ``eigen``: of
+    the one block of ``entries``, :func:`block_eigen` (a steady-state message), tested on
+    Python floats."""
     if not entries:
         return [], []
-    if len(entries) == 1:   # (a steady-state message: the same eigenvalues, tested on Python floats)
+    if eigen is not None and len(entries) == 1:
         e = entries[0]
-        w = np.linalg.eigvalsh(e[1]).tolist()
+        w = eigen[0]
         sc = max(abs(w[0]), abs(w[-1]))   # (ascending: the largest magnitude is at an end)
         if sc > 0.0:
             return ([e], []) if w[0] >= -EIG_RTOL * sc else ([], [e])
@@ -194,29 +206,31 @@ def split_blocks(entries: list[tuple[float, Array, Array]]) -> tuple[list, list]
 
 
 def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
-                          mu1: list[Array]) -> tuple[float, int]:
+                          mu1: list[Array], eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
     """``(D^2, dof)`` of the blocks ``entries`` as joint pseudo-measurements (module docstring).
 
     ``mu0, P0``: the belief's smoothed means and covariances at the blocks' times before
     they are added; ``mu1``: the means after. Returns ``(inf, dof)`` if some ``y`` is not
     in the range of its ``Lambda``. All blocks at once: one stacked eigendecomposition
     ``Lambda_t = V_t diag(l_t) V_t^T`` and masks for the directions kept (positive, and not
-    negligible), which gives per block exactly the terms of a loop over the blocks.
+    negligible), which gives per block exactly the terms of a loop over the blocks. One block
+    is computed on 4 x 4 matrices and Python floats instead (``eigen``: its
+    :func:`block_eigen`, if known).
     """
     if not entries:
         return 0.0, 0
     if len(entries) == 1:
-        return _statistic_one(entries[0], mu0[0], P0[0], mu1[0])
+        return _statistic_one(entries[0], mu0[0], P0[0], mu1[0], eigen)
     return _statistic_stacked(entries, mu0, P0, mu1)
 
 
-def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array) -> tuple[float, int]:
+def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array,
+                   eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
     """:func:`information_statistic` of one block (a steady-state message), the same terms as
     :func:`_statistic_stacked` on 4 x 4 matrices and Python floats: a numpy call on a stack of one
     block, and above all a numpy reduction, costs several times the arithmetic it does."""
     _, L, y = entry
-    w, V = np.linalg.eigh(0.5 * (L + L.T))
-    wl = w.tolist()
+    wl, V = block_eigen(L) if eigen is None else eigen
     sc = max(abs(wl[0]), abs(wl[-1]))   # (ascending)
     if not math.isfinite(sc):
         return _statistic_stacked([entry], [mu0], [P0], [mu1])

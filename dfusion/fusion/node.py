@@ -70,7 +70,8 @@ from numpy.typing import ArrayLike
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
-from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
+from dfusion.fusion.guard import (GuardConfig, LinkRecord, NeighbourGuard, block_eigen, information_statistic,
+                                  split_blocks)
 from dfusion.fusion.channel import (
     ACK_LAG,
     all_of,
@@ -1324,13 +1325,14 @@ class FusionNode:
         caller's transaction). Returns ``(D^2, dof, blocks tested)``
         (:func:`dfusion.fusion.guard.information_statistic`)."""
         f = self.filter
-        add, other = split_blocks(entries)
+        eigen = block_eigen(entries[0][1]) if len(entries) == 1 else None   # (one decomposition for both)
+        add, other = split_blocks(entries, eigen)
         if other:
             f.add_information_batch(other, validate=False)
         if not add:
             return 0.0, 0, 0
         mu0, P0, mu1 = f.add_information_moments(add)
-        stat, dof = information_statistic(add, mu0, P0, mu1)
+        stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
         return stat, dof, len(add)
 
     def _link_blocks(self, ch: ChannelFilter, sign: float = 1.0) -> tuple[list, list]:

@@ -22,7 +22,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.fusion import ChannelFilter, FusionNode, GuardConfig, NeighbourGuard
+from dfusion.fusion.guard import (
+    _statistic_stacked,
+    block_eigen,
+    information_statistic,
+    split_blocks,
+)
+from dfusion.models import ConstantVelocity, PositionSensor
+from tests.fusion.test_guard import _dense_statistic
 from tests.helpers.fusion_harness import (
     Schedule,
     Trace,
@@ -178,20 +187,22 @@ def test_one_block_computations_equal_the_stacked_ones():
     4 x 4 matrices and Python floats for it. Against the stacked computation of the same block
     (split_blocks on two copies of it, _statistic_stacked): the same split, degrees of freedom and
     statistic (to rounding)."""
-    from dfusion.fusion.guard import _statistic_stacked, information_statistic, split_blocks
     rng = np.random.default_rng(8)
     kinds = set()
     for e, m0, P, m1 in _random_blocks(rng, 600):
-        add, other = split_blocks([e])
+        eigen = block_eigen(e[1])
+        add, other = split_blocks([e], eigen)
         add2, other2 = split_blocks([e, e])
         assert (len(add), len(other)) == (len(add2) // 2, len(other2) // 2)
+        assert (add, other) == split_blocks([e])
         if not add:
             continue
-        stat, dof = information_statistic([e], [m0], [P], [m1])
         ref, ref_dof = _statistic_stacked([e], [m0], [P], [m1])
-        kinds.add((dof, np.isinf(stat)))
-        assert dof == ref_dof
-        assert stat == ref or abs(stat - ref) <= 1e-12 * max(1.0, abs(ref))
+        for stat, dof in (information_statistic([e], [m0], [P], [m1], eigen),
+                          information_statistic([e], [m0], [P], [m1])):
+            kinds.add((dof, np.isinf(stat)))
+            assert dof == ref_dof
+            assert stat == ref or abs(stat - ref) <= 1e-12 * max(1.0, abs(ref))
     assert {(0, False), (1, False), (4, False)} <= kinds and any(inf for _, inf in kinds)
 
 
@@ -200,14 +211,10 @@ def test_moments_of_one_block_at_the_newest_state_equal_the_smoothing_passes():
     instead of running the smoothing passes: bit for bit what the passes give (the same block
     with a zero block at the same time takes them), and the statistic equals the dense joint
     innovation test (independent reference, tests/fusion/test_guard.py)."""
-    from dfusion.estimation.delayed_state import DelayedStateEIF
-    from dfusion.fusion.guard import information_statistic
-    from dfusion.models import ConstantVelocity, PositionSensor
-    from tests.fusion.test_guard import _dense_statistic
     for seed in range(5):
         rng = np.random.default_rng(seed)
 
-        def filt():
+        def filt(seed=seed):
             f = DelayedStateEIF(ConstantVelocity(2, q=0.2), window=30)
             r = np.random.default_rng(seed)
             f.initialize(0.0, r.normal(size=4), np.diag([2.0, 2.0, 0.5, 0.5]))
