@@ -1166,13 +1166,22 @@ class FusionNode:
         cp_guard = None
         if guard is not None:
             src = msg.src
-            if verdict is not None and guard.would_quarantine(src, verdict[0], verdict[1]):
+            try:
+                if verdict is not None and guard.would_quarantine(src, verdict[0], verdict[1]):
+                    f.restore(cp_filter)
+                    return None
+                cp_guard = guard.state(src)
+                guard.links[src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
+                if verdict is not None:
+                    guard.judge(src, verdict[0], verdict[1])   # (False: would_quarantine)
+            except BaseException as exc:   # (a defect) the message is undone, the link's record too
                 f.restore(cp_filter)
-                return None
-            cp_guard = guard.state(src)
-            guard.links[src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
-            if verdict is not None:
-                guard.judge(src, verdict[0], verdict[1])   # (False: would_quarantine)
+                if cp_guard is not None:
+                    guard.restore(src, cp_guard)
+                if isinstance(exc, Exception):
+                    raise self._reject("internal",
+                                       f"message from {src!r} failed: {type(exc).__name__}: {exc}") from exc
+                raise
         heard = self._heard.get(msg.src)
         self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.messages_received += 1

@@ -137,6 +137,26 @@ def test_a_failure_of_the_deferred_bookkeeping_restores_every_attribute(monkeypa
     check_undone(b, data, before, reference, isinstance(exc, Exception))
 
 
+@pytest.mark.parametrize("owner, stage", [(NeighbourGuard, "would_quarantine"), (NeighbourGuard, "state"),
+                                          (NeighbourGuard, "judge"), (FusionNode, "_add_tested")],
+                         ids=["would_quarantine", "state", "judge", "add_tested"])
+@pytest.mark.parametrize("exc", [Injected("injected"), KeyboardInterrupt()], ids=["error", "interrupt"])
+def test_a_failure_of_the_guard_on_the_critical_path_restores_every_attribute(monkeypatch, owner, stage, exc):
+    """The test and the verdict run at once on the critical path: a failure there undoes the
+    filter's part and the link's record before anything is left for settle()."""
+    b, data = guarded_chain()
+    reference = pickle.loads(pickle.dumps(b))
+    before = observable(b)
+    calls: list = []
+    with monkeypatch.context() as m:
+        inject(m, owner, stage, exc, calls)
+        with pytest.raises(MessageError if isinstance(exc, Exception) else KeyboardInterrupt):
+            b.receive(data)
+    assert calls[:1] == [stage]
+    assert b._pending is None
+    check_undone(b, data, before, reference, isinstance(exc, Exception))
+
+
 @pytest.mark.parametrize("owner, stage", [(FusionNode, "_withdraw"), (node_module._Blocks, "subtract"),
                                           (FusionNode, "_mark_dirty")], ids=["withdraw", "subtract", "mark_dirty"])
 def test_a_failure_while_quarantining_restores_every_attribute(monkeypatch, owner, stage):
