@@ -14,7 +14,14 @@ the same machine: on a shared 2-core VM absolute times vary 2-3x from minute to 
 the ratios far less. Printed: medians over the hops (us) and each part divided by the
 median minimal hop.
 
-Usage: python benchmarks/hop_cpu.py [--hops N] [--windows 10,100]
+Each window is measured with the consistency guard off and on (``GuardConfig()`` on both
+nodes, as scenario nodes have it: the receiver tests every message against its belief);
+measurements are drawn from the nodes' own motion and sensor models (``transport.Track``), so
+the guarded link stays healthy (its test counters are printed: messages tested, failed,
+quarantines). ``--profile`` prints cProfile's top functions of the receiver's ``receive``
+instead (``--sort tottime`` or ``cumulative``), for finding what to cut.
+
+Usage: python benchmarks/hop_cpu.py [--hops N] [--windows 10,100] [--guard off,on] [--profile]
 Another checkout's code: run that checkout's interpreter on this script
 (``/path/to/other/.venv/bin/python benchmarks/hop_cpu.py``): it imports ``dfusion`` from
 that interpreter and ``transport.py`` from beside this file.
@@ -31,7 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import transport as T  # the same hop as transport.py section 3: make_node, MinimalHop, the models
 
-from dfusion.fusion import FusionNode
+from dfusion.fusion import FusionNode, GuardConfig
 
 STAGES = ("a.predict", "a.update", "a.message_to", "b.predict", "b.receive", "b.estimate", "minimal")
 
@@ -41,16 +48,17 @@ def settle(node: FusionNode) -> None:
     getattr(node, "settle", lambda: None)()
 
 
-def run(W: int, hops: int, warm: int = 50) -> dict[str, float]:
-    a = T.make_node("a", ["b"], W, fill=True)
-    b = FusionNode("b", ["a"], T.MOTION, window=W, prior=T.PRIOR, epoch=7)
+def run(W: int, hops: int, guard: bool = False, warm: int = 50, profile=None) -> tuple[dict[str, float], dict]:
+    """Medians (us) per stage, and the receiver's guard summary (empty without a guard)."""
+    track = T.Track(1)
+    a = T.make_node("a", ["b"], W, fill=True, guard=guard, track=track)
+    b = FusionNode("b", ["a"], T.MOTION, window=W, prior=T.PRIOR, epoch=7, guard=GuardConfig() if guard else None)
     mini = T.MinimalHop(W)
-    rng = np.random.default_rng(1)
     times: dict[str, list[float]] = {s: [] for s in STAGES}
     pc = time.perf_counter
     for i in range(hops + warm):
         t = round((W + 1 + i) * T.DT, 9)
-        z = rng.normal(size=2)
+        z = track.z(t)
         t0 = pc()
         a.predict(t)
         t1 = pc()
@@ -63,7 +71,12 @@ def run(W: int, hops: int, warm: int = 50) -> dict[str, float]:
         if t > b.latest_time + 1e-9:
             b.predict(t)
         t5 = pc()
-        b.receive(data)
+        if profile is not None and i >= warm:
+            profile.enable()
+            b.receive(data)
+            profile.disable()
+        else:
+            b.receive(data)
         t6 = pc()
         b.estimate()
         t7 = pc()
@@ -76,27 +89,48 @@ def run(W: int, hops: int, warm: int = 50) -> dict[str, float]:
         if i >= warm:
             for s, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t5 - t4, t6 - t5, t7 - t6, t9 - t8)):
                 times[s].append(dt)
-    return {s: float(np.median(v)) * 1e6 for s, v in times.items()}
+    summary = b.guard.summary() if getattr(b, "guard", None) is not None else {}
+    return {s: float(np.median(v)) * 1e6 for s, v in times.items()}, summary
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--hops", type=int, default=2000)
     ap.add_argument("--windows", default="10,100")
+    ap.add_argument("--guard", default="off,on", help="off, on or off,on")
+    ap.add_argument("--profile", action="store_true", help="cProfile of the receiver's receive (per --guard)")
+    ap.add_argument("--sort", default="tottime", help="cProfile sort key (tottime, cumulative)")
     args = ap.parse_args()
+    windows = [int(w) for w in args.windows.split(",")]
+    guards = [g == "on" for g in args.guard.split(",")]
+    if args.profile:
+        import cProfile
+        import pstats
+        for W in windows:
+            for guard in guards:
+                pr = cProfile.Profile()
+                run(W, args.hops, guard=guard, profile=pr)
+                print(f"\nwindow {W}: b.receive, guard {'on' if guard else 'off'}, {args.hops} hops")
+                pstats.Stats(pr).sort_stats(args.sort).print_stats(30)
+        return 0
     print(f"hop CPU in one process, medians of {args.hops} hops (us; x = / minimal hop of the same run)")
-    head = ["window", "sender", "x", "receiver", "x", "both", "x", "minimal"] + list(STAGES[:-1])
+    head = ["window", "guard", "sender", "x", "receiver", "x", "both", "x", "minimal"] + list(STAGES[:-1]) + [
+        "tests/fail/quar."]
     rows = []
-    for W in (int(w) for w in args.windows.split(",")):
-        m = run(W, args.hops)
-        snd = m["a.predict"] + m["a.update"] + m["a.message_to"]
-        rcv = m["b.predict"] + m["b.receive"] + m["b.estimate"]
-        mn = m["minimal"]
-        rows.append([W, f"{snd:.0f}", f"{snd / mn:.2f}", f"{rcv:.0f}", f"{rcv / mn:.2f}", f"{snd + rcv:.0f}",
-                     f"{(snd + rcv) / mn:.2f}", f"{mn:.0f}"] + [f"{m[s]:.0f}" for s in STAGES[:-1]])
+    for W in windows:
+        for guard in guards:
+            m, g = run(W, args.hops, guard)
+            snd = m["a.predict"] + m["a.update"] + m["a.message_to"]
+            rcv = m["b.predict"] + m["b.receive"] + m["b.estimate"]
+            mn = m["minimal"]
+            rows.append([W, "on" if guard else "off", f"{snd:.0f}", f"{snd / mn:.2f}", f"{rcv:.0f}", f"{rcv / mn:.2f}",
+                         f"{snd + rcv:.0f}", f"{(snd + rcv) / mn:.2f}", f"{mn:.0f}"]
+                        + [f"{m[s]:.0f}" for s in STAGES[:-1]]
+                        + [f"{g['tests']}/{g['failures']}/{g['quarantines']}" if g else "-"])
     print(T.table(rows, head))
     print("sender = a.predict + a.update + a.message_to; receiver = b.predict + b.receive + b.estimate;\n"
-          "minimal = MinimalHop send + receive (benchmarks/transport.py 3b.)")
+          "minimal = MinimalHop send + receive (benchmarks/transport.py 3b.); guard on: GuardConfig() on both\n"
+          "nodes, with the receiver's counters (messages tested / failed / quarantines)")
     return 0
 
 

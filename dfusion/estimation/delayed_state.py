@@ -494,6 +494,16 @@ class DelayedStateEIF:
         self._require_init()
         if not entries:
             return [], [], []
+        if len(entries) == 1:   # (a steady-state message: one block at the newest state, whose smoothed
+            t, Lam, y = entries[0]   # moments are the filtered ones: the same values without the passes)
+            k = self.index_of(as_time(t))
+            if k is not None and k == len(self._times) - 1:
+                with self._transaction():
+                    mean0, cov0 = self._traj.latest()
+                    self._traj.add_information(k, Lam, y)
+                    mean1 = self._traj.latest()[0]
+                    self._enforce_window()
+                return [mean0], [cov0], [mean1]
         with self._transaction():
             for t, _, _ in entries:
                 tf = as_time(t)

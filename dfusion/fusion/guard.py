@@ -42,6 +42,11 @@ applies the plan inside one transaction: the test runs as the plan's additions a
 added to the filter, the verdict is recorded, and a verdict that completes a quarantine
 withdraws the link in the same transaction. An exception anywhere undoes all of it, the
 link's record included: a message is tested, fused and judged completely or not at all.
+A steady-state message takes the node's critical path (:meth:`FusionNode.settle
+<dfusion.fusion.node.FusionNode.settle>`): it is tested and judged as it is fused, and its
+bookkeeping is done later, with the same statistic, counters and decisions; a verdict that
+would complete a quarantine (:meth:`NeighbourGuard.would_quarantine`) sends the message to
+the general transaction instead.
 
 **Quarantine.** A failed message is still fused (one failure is the expected false
 alarm of a healthy network, and refusing it would not make the fused result exact: the
@@ -80,7 +85,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -89,7 +94,8 @@ from dfusion.linalg import Array, chi2_isf
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "information_statistic", "split_blocks", "HEALTH_STATES"]
+__all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "block_eigen", "information_statistic", "split_blocks",
+           "HEALTH_STATES"]
 
 HEALTH_STATES = ("ok", "degraded", "lost")
 
@@ -161,13 +167,32 @@ class LinkRecord:
         return int(sum(self.recent))
 
 
-def split_blocks(entries: list[tuple[float, Array, Array]]) -> tuple[list, list]:
+def block_eigen(L: Array) -> tuple[list[float], Array]:
+    """The eigendecomposition ``Lambda = V diag(l) V^T`` of one block (symmetrized), ``(l as
+    floats, ascending; V)``: computed once for a one-block message and handed to both
+    :func:`split_blocks` and :func:`information_statistic`."""
+    w, V = np.linalg.eigh(0.5 * (L + L.T))
+    return w.tolist(), V
+
+
+def split_blocks(entries: list[tuple[float, Array, Array]],
+                 eigen: tuple[list[float], Array] | None = None) -> tuple[list, list]:
     """``(additions, others)``: blocks whose information matrix is positive semi-definite
     (up to rounding: eigenvalues above ``-EIG_RTOL`` times the largest), and the rest.
     The eigenvalues of all blocks come from one stacked ``eigvalsh`` call (the same LAPACK
-    routine per block as one call per block, without its per-call overhead)."""
+    routine per block as one call per block, without its per-call overhead); ``eigen``: of
+    the one block of ``entries``, :func:`block_eigen` (a steady-state message), tested on
+    Python floats."""
     if not entries:
         return [], []
+    if eigen is not None and len(entries) == 1:
+        e = entries[0]
+        w = eigen[0]
+        sc = max(abs(w[0]), abs(w[-1]))   # (ascending: the largest magnitude is at an end)
+        if sc > 0.0:
+            return ([e], []) if w[0] >= -EIG_RTOL * sc else ([], [e])
+        if sc == 0.0:
+            return ([e], []) if any(e[2].tolist()) else ([], [])
     w = np.linalg.eigvalsh(np.array([e[1] for e in entries]))
     scale = np.max(np.abs(w), axis=1)
     psd = w[:, 0] >= -EIG_RTOL * scale
@@ -181,17 +206,54 @@ def split_blocks(entries: list[tuple[float, Array, Array]]) -> tuple[list, list]
 
 
 def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
-                          mu1: list[Array]) -> tuple[float, int]:
+                          mu1: list[Array], eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
     """``(D^2, dof)`` of the blocks ``entries`` as joint pseudo-measurements (module docstring).
 
     ``mu0, P0``: the belief's smoothed means and covariances at the blocks' times before
     they are added; ``mu1``: the means after. Returns ``(inf, dof)`` if some ``y`` is not
     in the range of its ``Lambda``. All blocks at once: one stacked eigendecomposition
     ``Lambda_t = V_t diag(l_t) V_t^T`` and masks for the directions kept (positive, and not
-    negligible), which gives per block exactly the terms of a loop over the blocks.
+    negligible), which gives per block exactly the terms of a loop over the blocks. One block
+    is computed on 4 x 4 matrices and Python floats instead (``eigen``: its
+    :func:`block_eigen`, if known).
     """
     if not entries:
         return 0.0, 0
+    if len(entries) == 1:
+        return _statistic_one(entries[0], mu0[0], P0[0], mu1[0], eigen)
+    return _statistic_stacked(entries, mu0, P0, mu1)
+
+
+def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array,
+                   eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
+    """:func:`information_statistic` of one block (a steady-state message), the same terms as
+    :func:`_statistic_stacked` on 4 x 4 matrices and Python floats: a numpy call on a stack of one
+    block, and above all a numpy reduction, costs several times the arithmetic it does."""
+    _, L, y = entry
+    wl, V = block_eigen(L) if eigen is None else eigen
+    sc = max(abs(wl[0]), abs(wl[-1]))   # (ascending)
+    if not math.isfinite(sc):
+        return _statistic_stacked([entry], [mu0], [P0], [mu1])
+    pos = [x > EIG_RTOL * sc for x in wl] if sc > 0 else [False] * len(wl)
+    Vt = V.T
+    Vy = (Vt @ y).tolist()                                       # V^T y
+    out = y - V @ np.array([v if p else 0.0 for v, p in zip(Vy, pos)])   # the part of y outside the range
+    if float(out @ P0 @ out) > RANGE_TOL:
+        return math.inf, sum(pos)
+    vPv = np.diagonal(Vt @ P0 @ V).tolist()                      # v_i^T P0 v_i
+    a0, a1 = (Vt @ mu0).tolist(), (Vt @ mu1).tolist()
+    stat, dof = 0.0, 0
+    for lam, p, s, vy, m0, m1 in zip(wl, pos, vPv, Vy, a0, a1):
+        if p and lam * s > NEGLIGIBLE:
+            zc = vy / lam                                        # v^T z in a kept direction
+            stat += (zc - m0) * lam * (zc - m1)
+            dof += 1
+    return stat, dof
+
+
+def _statistic_stacked(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
+                       mu1: list[Array]) -> tuple[float, int]:
+    """:func:`information_statistic` of any number of blocks, on stacked arrays."""
     L = np.array([e[1] for e in entries])
     y = np.array([e[2] for e in entries])[:, :, None]
     C0 = np.array(P0)
@@ -229,7 +291,10 @@ class NeighbourGuard:
     def state(self, j: str) -> LinkRecord:
         """A copy of ``j``'s record (to undo a message's effect on it with :meth:`restore`)."""
         r = self.links[j]
-        return replace(r, recent=deque(r.recent, maxlen=r.window))
+        c = LinkRecord.__new__(LinkRecord)   # (its fields copied: dataclasses.replace costs 10x more per message)
+        c.__dict__.update(r.__dict__)
+        c.recent = deque(r.recent, maxlen=r.window)
+        return c
 
     def restore(self, j: str, record: LinkRecord) -> None:
         """Put back ``j``'s record as :meth:`state` copied it."""
@@ -254,6 +319,15 @@ class NeighbourGuard:
     def is_quarantined(self, j: str) -> bool:
         r = self.links.get(j)
         return r is not None and r.quarantined
+
+    def would_quarantine(self, j: str, stat: float, dof: int) -> bool:
+        """Whether :meth:`judge` of this test would quarantine ``j``, without recording anything."""
+        if dof <= 0:
+            return False
+        r = self.links[j]
+        failed = not (stat <= self.threshold(dof))
+        dropped = len(r.recent) == r.window and bool(r.recent[0])   # the oldest result leaves the last m
+        return r.recent_failures + failed - dropped >= self.config.failures
 
     def judge(self, j: str, stat: float, dof: int) -> bool:
         """Record one tested message of ``j``; returns True when ``j`` is to be quarantined now."""

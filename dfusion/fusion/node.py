@@ -70,7 +70,8 @@ from numpy.typing import ArrayLike
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError, ValidationError
 from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.estimation.estimate import Estimate
-from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
+from dfusion.fusion.guard import (GuardConfig, LinkRecord, NeighbourGuard, block_eigen, information_statistic,
+                                  split_blocks)
 from dfusion.fusion.channel import (
     ACK_LAG,
     all_of,
@@ -603,7 +604,8 @@ class FusionNode:
         bit for bit, as if all of it had been done at once.
 
         * :meth:`receive` fuses a steady-state message into the filter at once (the estimate
-          changes) and leaves what the estimate does not need: storing the blocks in the
+          changes; with a guard the message is tested and judged then) and leaves what the
+          estimate does not need: storing the blocks in the
           channel filter and the node's total information, marking them for the other links,
           the acknowledgement the message carries, pruning. A failure of this bookkeeping (a
           defect; nothing in it depends on the message's values) undoes the whole message, the
@@ -636,11 +638,8 @@ class FusionNode:
     def _settle_receive(self) -> None:
         p = self._pending
         self._pending = None
-        msg, ch, plan, deltas, cp_filter, heard = p
-        cp_total = self._total.mark()
-        cp_channels = {j: c.state() for j, c in self._channels.items()}
-        pruned_at = self._pruned_at
-        cp_own, cp_held, cp_tree_held = self._own.mark(), self._held.mark(), dict(self._tree_held)
+        msg, ch, plan, deltas, cp_filter, cp_guard, heard = p
+        mark = self._mark_stores(msg.src, cp_filter, cp_guard)
         try:
             ch.commit(msg, plan)
             if deltas:
@@ -650,14 +649,7 @@ class FusionNode:
                 ch.acknowledged(msg.ack, msg.ack_mask)
             self._prune()
         except BaseException as exc:
-            self.filter.restore(cp_filter)
-            self._total.rollback(cp_total)
-            self._own.rollback(cp_own)
-            self._held.rollback(cp_held)
-            self._tree_held = cp_tree_held
-            for j, c in self._channels.items():
-                c.restore(cp_channels[j])
-            self._pruned_at = pruned_at
+            self._rollback_stores(mark)
             self.stats.messages_received -= 1
             if heard is None:
                 self._heard.pop(msg.src, None)
@@ -669,6 +661,42 @@ class FusionNode:
             self._reject("internal", detail)
             log.error("%s: the bookkeeping of a fused message failed; the message is undone: %s", self.name, detail)
             return
+        self._release_stores()
+
+    # ------------------------------------------------------------------ one transaction's undo
+    def _mark_stores(self, src: str, cp_filter: tuple | None = None, cp_guard: LinkRecord | None = None) -> tuple:
+        """A mark of everything a received message may change, for :meth:`_rollback_stores`: the
+        filter, the stores messages are made from (total, own, held back), the times held after
+        a change of the tree, every channel filter, the prune mark and the guard's record of
+        ``src``'s link. ``cp_filter``, ``cp_guard``: the filter's checkpoint and the record's
+        copy taken earlier (the critical path changed them before the rest was marked).
+
+        The one place that lists the stores: :meth:`_apply` and :meth:`_settle_receive` both undo
+        with it (``tests/fusion/test_store_rollback.py`` compares every attribute of the node)."""
+        guard = self.guard
+        if cp_guard is None and guard is not None and src in guard.links:
+            cp_guard = guard.state(src)
+        return (self.filter.checkpoint() if cp_filter is None else cp_filter, self._total.mark(), self._own.mark(),
+                self._held.mark(), dict(self._tree_held), {j: c.state() for j, c in self._channels.items()},
+                self._pruned_at, src, cp_guard)
+
+    def _rollback_stores(self, mark: tuple) -> None:
+        """Go back to a :meth:`_mark_stores`."""
+        cp_filter, total, own, held, tree_held, channels, pruned_at, src, cp_guard = mark
+        self.filter.restore(cp_filter)
+        self._total.rollback(total)
+        self._own.rollback(own)
+        self._held.rollback(held)
+        self._tree_held = tree_held
+        for j, c in self._channels.items():
+            c.restore(channels[j])
+        self._pruned_at = pruned_at
+        if cp_guard is not None:
+            self.guard.restore(src, cp_guard)
+
+    def _release_stores(self) -> None:
+        """The :meth:`_mark_stores` is no longer needed (the transaction succeeded): the stores
+        write in place again."""
         self._total.release()
         self._own.release()
         self._held.release()
@@ -1086,7 +1114,9 @@ class FusionNode:
         except Exception as exc:   # nothing changed yet (the tree rule's changes are undone by _reject)
             raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
         if plan is not None and plan.append and not too_far and self._steady(msg, ch, deltas):
-            return self._apply_steady(msg, ch, plan, deltas)
+            done = self._apply_steady(msg, ch, plan, deltas)
+            if done is not None:
+                return done
         self._apply(msg, ch, plan, deltas, changed, too_far, outside)
         self._tree_undo = None
         return len(deltas)
@@ -1095,23 +1125,35 @@ class FusionNode:
         """Whether a message planned as an append (:meth:`ChannelFilter.plan`: new blocks after every
         stored one, nothing cleared, nothing older than the window) may take
         :meth:`_apply_steady`: a newer message of the link's incarnation, every block at or before
-        the newest state, no guard and a fixed tree (their tests and holds stay on the general path)."""
-        if (not self.critical_path_first or self.guard is not None or self.tree is not None or self._tree_held
-                or msg.seq <= ch.last_seq):
+        the newest state, a fixed tree (the tree rule's holds stay on the general path) and a link
+        that is not quarantined (its messages are probation tests)."""
+        if (not self.critical_path_first or self.tree is not None or self._tree_held or msg.seq <= ch.last_seq
+                or (self.guard is not None and self.guard.is_quarantined(msg.src))):
             return False
         latest = self.filter.latest_time + self.filter.time_tol
         return all(d[0] <= latest for d in deltas)
 
-    def _apply_steady(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list) -> int:
+    def _apply_steady(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list) -> int | None:
         """:meth:`_apply` of a steady-state message (:meth:`_steady`), the critical path first: the
         blocks go into the filter (and its estimate is brought up to date, which also tests
-        that the belief stays proper) at once; the rest is left to :meth:`settle`. Every
-        result is the same, bit for bit, as :meth:`_apply`'s."""
+        that the belief stays proper) at once; with a guard they are tested as they are added
+        and the verdict recorded (:meth:`_add_tested`, :meth:`NeighbourGuard.judge`); the rest
+        is left to :meth:`settle`. Every result is the same, bit for bit, as :meth:`_apply`'s.
+
+        A verdict that would quarantine the neighbour (its withdrawal needs the bookkeeping
+        done) is not recorded: the filter is put back and ``None`` returned, and the caller
+        takes :meth:`_apply`, which tests the message again (the same statistic) in its
+        transaction."""
         f = self.filter
+        guard = self.guard
         cp_filter = f.checkpoint()
+        verdict = None
         if deltas:
             try:
-                f.add_information_batch(deltas, validate=False)
+                if guard is None:
+                    f.add_information_batch(deltas, validate=False)
+                else:
+                    verdict = self._add_tested(deltas)
                 f.estimate()   # the belief must still be proper
             except BaseException as exc:
                 f.restore(cp_filter)
@@ -1121,10 +1163,29 @@ class FusionNode:
                     raise self._reject("internal",
                                        f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
                 raise
+        cp_guard = None
+        if guard is not None:
+            src = msg.src
+            try:
+                if verdict is not None and guard.would_quarantine(src, verdict[0], verdict[1]):
+                    f.restore(cp_filter)
+                    return None
+                cp_guard = guard.state(src)
+                guard.links[src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
+                if verdict is not None:
+                    guard.judge(src, verdict[0], verdict[1])   # (False: would_quarantine)
+            except BaseException as exc:   # (a defect) the message is undone, the link's record too
+                f.restore(cp_filter)
+                if cp_guard is not None:
+                    guard.restore(src, cp_guard)
+                if isinstance(exc, Exception):
+                    raise self._reject("internal",
+                                       f"message from {src!r} failed: {type(exc).__name__}: {exc}") from exc
+                raise
         heard = self._heard.get(msg.src)
         self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.messages_received += 1
-        self._pending = (msg, ch, plan, deltas, cp_filter, heard)
+        self._pending = (msg, ch, plan, deltas, cp_filter, cp_guard, heard)
         self._deferred = True
         self._tree_undo = None
         return len(deltas)
@@ -1198,15 +1259,8 @@ class FusionNode:
         f = self.filter
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
-        cp_filter = f.checkpoint()
-        cp_total = self._total.mark()
-        cp_own = self._own.mark()
-        cp_held = self._held.mark()
-        cp_tree_held = dict(self._tree_held)
-        cp_channels = {j: c.state() for j, c in self.channels.items()}
-        pruned_at = self._pruned_at
+        mark = self._mark_stores(msg.src)
         guard = self.guard
-        cp_guard = guard.state(msg.src) if guard is not None else None
         restarted = ch.epoch is not None and msg.epoch > ch.epoch
         duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
         event = None
@@ -1243,24 +1297,13 @@ class FusionNode:
                 ch.acknowledged(msg.ack, msg.ack_mask)
             self._prune()   # an inserted state may have pushed the oldest one out
         except BaseException as exc:
-            f.restore(cp_filter)
-            self._total.rollback(cp_total)
-            self._own.rollback(cp_own)
-            self._held.rollback(cp_held)
-            self._tree_held = cp_tree_held
-            for j, c in self.channels.items():
-                c.restore(cp_channels[j])
-            self._pruned_at = pruned_at
-            if guard is not None:
-                guard.restore(msg.src, cp_guard)
+            self._rollback_stores(mark)
             if isinstance(exc, _Numerical):
                 raise self._reject("numerical", f"message from {msg.src!r} cannot be fused: {exc}") from None
             if isinstance(exc, Exception):
                 raise self._reject("internal", f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
             raise
-        self._total.release()
-        self._own.release()
-        self._held.release()
+        self._release_stores()
         self.stats.messages_received += 1
         if not too_far and not duplicate:
             self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
@@ -1291,13 +1334,14 @@ class FusionNode:
         caller's transaction). Returns ``(D^2, dof, blocks tested)``
         (:func:`dfusion.fusion.guard.information_statistic`)."""
         f = self.filter
-        add, other = split_blocks(entries)
+        eigen = block_eigen(entries[0][1]) if len(entries) == 1 else None   # (one decomposition for both)
+        add, other = split_blocks(entries, eigen)
         if other:
             f.add_information_batch(other, validate=False)
         if not add:
             return 0.0, 0, 0
         mu0, P0, mu1 = f.add_information_moments(add)
-        stat, dof = information_statistic(add, mu0, P0, mu1)
+        stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
         return stat, dof, len(add)
 
     def _link_blocks(self, ch: ChannelFilter, sign: float = 1.0) -> tuple[list, list]:

@@ -5,7 +5,7 @@ a node's whole state (to check that a rejected message changes nothing)."""
 from __future__ import annotations
 
 import hashlib
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -88,6 +88,9 @@ class Schedule:
     #: ``FusionNode(guard=...)`` of every node (None: no consistency test); a callable is called
     #: with the node's sorted neighbours and returns that node's guard.
     guard: object = None
+    #: ``{node: (dx, dy)}``: with ``truth``, these nodes' measurements are off by this much (a
+    #: hostile or broken sensor whose claimed noise does not cover it).
+    bias: dict = field(default_factory=dict)
 
 
 class CVTruth:
@@ -204,7 +207,7 @@ def run_network(graph: nx.Graph, s: Schedule, final_rounds: bool = True, trace: 
                 z = rng.normal(0.0, 3.0, size=2)
                 batch.append((tm, n, z, rng.uniform(0, s.max_meas_delay)))
         if truth is not None:   # the truth at the measurement times, in time order
-            batch = [(tm, n, truth.at(tm)[:2] + stds[n] * z / 3.0, d) for tm, n, z, d in sorted(batch, key=lambda e: e[0])]
+            batch = [(tm, n, truth.at(tm)[:2] + stds[n] * z / 3.0 + np.asarray(s.bias.get(n, 0.0)), d) for tm, n, z, d in sorted(batch, key=lambda e: e[0])]
         for tm, n, z, d in batch:
             measurements.append((tm, z, stds[n]))
             waiting.append((tm + d, n, tm, z))
@@ -367,3 +370,56 @@ def build_chain(key: bytes | None = None, **kw) -> tuple[FusionNode, FusionNode,
     update(a, 0.33, [3.3, 0.3])
     update(b, 0.45, [4.5, 0.2])
     return a, b, c, a.message_to("b"), meas
+
+
+# ---------------------------------------------------------------- every attribute of a node
+#: Attributes of a node that a received message never changes (configuration, outputs of other
+#: methods) or that a rejection changes on purpose (its log).
+NOT_MESSAGE_STATE = frozenset({"policy", "frame_key", "rejection_log", "sources"})
+
+
+def full_state(node: FusionNode) -> dict:
+    """Every attribute of ``node`` (``vars(node)``) but :data:`NOT_MESSAGE_STATE` and the rejection
+    counters, each store as its content (the filter as in :func:`node_state`, a store of blocks
+    by its checkpoint, a channel filter by its state, the guard by its records), everything
+    else as its plain value. An attribute of a type it does not know raises ``TypeError``: a
+    store added to the node later is compared, or this fails, but it is never left out."""
+    from dfusion.estimation.delayed_state import DelayedStateEIF
+    from dfusion.fusion import ChannelFilter, NeighbourGuard
+    from dfusion.fusion.node import NodeStats, _Blocks
+
+    def plain(x):
+        if isinstance(x, DelayedStateEIF):
+            (base, L, y, _factors, _cache, _kept), times, marginalized = x.checkpoint()
+            return ("filter", base, L, y, times, marginalized, x.latest_time, x.oldest_time)
+        if isinstance(x, _Blocks):
+            return ("blocks",) + x.checkpoint()
+        if isinstance(x, ChannelFilter):
+            return ("channel", x.local, x.remote, x.ack_lag) + tuple(plain(v) for v in x.state())
+        if isinstance(x, NeighbourGuard):
+            return ("guard", repr(x.config), {j: plain({k: v for k, v in vars(r).items()})
+                                              for j, r in x.links.items()})
+        if isinstance(x, NodeStats):
+            return {k: plain(v) for k, v in vars(x).items() if k not in ("messages_rejected", "rejections")}
+        if isinstance(x, dict):
+            return {k: plain(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return tuple(plain(v) for v in x)
+        if isinstance(x, deque):
+            return ("deque", x.maxlen, tuple(x))
+        if isinstance(x, (set, frozenset)):
+            return ("set", tuple(sorted(x)))
+        if isinstance(x, np.ndarray) or x is None or isinstance(x, (bool, int, float, str, np.generic)):
+            return x
+        raise TypeError(f"full_state does not know {type(x).__name__}: add it")
+
+    return {k: plain(v) for k, v in vars(node).items() if k not in NOT_MESSAGE_STATE}
+
+
+def full_digest(node: FusionNode) -> str:
+    """:func:`full_state` as a digest (bit for bit for arrays)."""
+    arrays: list = []
+    scalars: list = []
+    _flatten(full_state(node), arrays, scalars)
+    h = hashlib.sha256(b"".join([np.ascontiguousarray(a).tobytes() for a in arrays]))
+    return f"{hash(tuple(map(repr, scalars))) & (2**64 - 1):016x}-{h.hexdigest()}"
