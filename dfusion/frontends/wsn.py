@@ -11,9 +11,11 @@ On each RSSI measurement taken at ``t``:
 1. the particles are predicted from the tracker's time to ``t``;
 2. they are weighted by the readings (the "annulus" likelihood);
 3. :meth:`WSNTracker.information_contribution` gives what these readings
-   added on the position, ``Omega = P_post^-1 - P_pred^-1``,
-   ``eta = P_post^-1 mu_post - P_pred^-1 mu_pred`` (Gaussian fits of the same
-   particles before and after weighting), projected to positive semi-definite;
+   added on the position as one linear-Gaussian measurement, ``Omega = A^T (R +
+   Omega_lin)^-1 A``, ``eta = A^T (R + Omega_lin)^-1 (z - b)``: the statistical linear
+   regression ``z ~ A x + b`` of the readings over the weighted posterior particles, its
+   error ``Omega_lin`` counted as noise (posterior linearization, Garcia-Fernandez et al.,
+   IEEE TSP 2015; ``docs/wsn.md``);
 4. the 2 x 2 pair is embedded in the node's state (position block; zeros for
    the velocities) and fused with ``node.add_local_information(t, Lam, y)``.
 
