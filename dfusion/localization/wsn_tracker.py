@@ -492,11 +492,12 @@ class WSNTracker:
         mean, cov = self._fit()
         return Estimate("wsn", self.time, mean, cov, covariance_reliability(cov), n_particles=pf.n, n_eff=pf.ess)
 
-    def information_contribution(self, rtol: float = 1e-9, method: str = "regression") -> InformationGaussian:
+    def information_contribution(self, rtol: float = 1e-9, method: str = "quotient") -> InformationGaussian:
         r"""What this node's RSSI readings added, as information on ``(x, y)`` (``docs/background.md`` sec. 3).
 
-        ``method = "regression"`` (the default; the log-distance model without outliers,
-        ``radio_map is None`` and ``outlier_prob == 0``, else ``"quotient"`` is used): the
+        ``method = "regression"`` (the log-distance model without outliers, ``radio_map is
+        None`` and ``outlier_prob == 0``; else ``"quotient"`` is used; scenario key
+        ``pf_information``): the
         readings weighted in since the last :meth:`predict` are written as one linear-Gaussian
         measurement of the position by statistical linear regression over the weighted
         posterior particles (posterior linearization: Garcia-Fernandez, Svensson, Morelande
@@ -516,7 +517,7 @@ class WSNTracker:
         readings hardly constrain gets little information, not a distant mean). ``Omega``
         is positive semi-definite by construction.
 
-        ``method = "quotient"``: the Gaussian fit of the posterior divided by that of the
+        ``method = "quotient"`` (the default): the Gaussian fit of the posterior divided by that of the
         prediction, ``Omega = P_post^-1 - P_pred^-1``, ``eta = P_post^-1 mu_post - P_pred^-1
         mu_pred`` (fits of the same particles before and after weighting), projected to
         positive semi-definite by :func:`project_psd_information` (negative eigenvalues appear

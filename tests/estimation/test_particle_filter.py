@@ -506,7 +506,7 @@ def test_regression_information_matches_weighted_statistical_linearization():
     z = s.h(np.array([5.5, 4.8])) + 3.0 * np.random.default_rng(1).standard_normal(12)
     z[3] = np.nan  # a missing reading is left out
     t.update(t.time, z)
-    info = t.information_contribution()
+    info = t.information_contribution(method="regression")
     x, lw = t.particles[:, :2], t.pf.log_weights
     w = np.exp(lw - lw.max())
     keep = np.isfinite(z)
@@ -541,7 +541,7 @@ def test_regression_information_is_an_honest_measurement():
         t.initialize(mean=mean, cov=cov)
         t.predict(t.time + 0.0)
         t.update(t.time, z)
-        info = t.information_contribution()
+        info = t.information_contribution(method="regression")
         lam, V = np.linalg.eigh(info.Omega)
         use = lam > 1e-9 * lam.max()
         e = (V[:, use].T @ info.eta) / lam[use] - V[:, use].T @ truth
