@@ -6,7 +6,8 @@ the periodic heartbeat; the default) and ``sends = "periodic"`` (every send peri
 Per node: position RMSE against the truth divided by the centralized EKF's (the reference:
 every measurement at once, no delay), and ANEES; per run: the changes of the links and of the
 fusion tree, the settling times after a change of the tree, and bytes and messages per
-link per second (both directions, over the run; the final lossless rounds apart).
+link per second (both directions, over the run; the final lossless rounds apart); the
+consistency test's failures and quarantines.
 
 Goal (issue 16): every node's RMSE within 1.2 times the centralized EKF's.
 
@@ -43,7 +44,9 @@ def one(job: tuple[int, str, float | None, float | None]) -> dict:
             "tree_settled": st["tree"]["median"], "info_settled": st["information"]["median"],
             "info_settled_max": st["information"]["max"],
             "bps": m["sends"]["bytes_per_link_per_s"], "mps": m["sends"]["messages_per_link_per_s"],
-            "bytes": m["bytes"], "messages": m["messages"]}
+            "bytes": m["bytes"], "messages": m["messages"],
+            "guard": {nm: (v.get("tests") or 0, v.get("failures") or 0, v.get("quarantines") or 0)
+                      for nm, v in m["nodes"].items()}}
 
 
 def main() -> int:
@@ -77,6 +80,15 @@ def main() -> int:
                      _f(r["tree_settled"]), f"{_f(r['info_settled'])} ({_f(r['info_settled_max'])})",
                      f"{r['bps']['median']:.0f}", f"{r['bps']['max']:.0f}", f"{r['mps']['median']:.1f}",
                      f"{r['mps']['max']:.1f}", str(r["bytes"]), str(r["messages"])])
+    _table(rows)
+    print("\nconsistency test of the neighbours' information (docs/clutter.md): messages tested, failed "
+          "(nominal 1e-3 per message), quarantines, summed over the nodes; the nodes that quarantined")
+    rows = [["seed", "sends", "tested", "failed", "failed / tested", "quarantines", "by"]]
+    for r in res:
+        g = r["guard"]
+        n, f, q = (sum(v[i] for v in g.values()) for i in range(3))
+        rows.append([str(r["seed"]), r["sends"], str(n), str(f), f"{f / n:.1e}" if n else "-", str(q),
+                     " ".join(nm for nm, v in g.items() if v[2]) or "-"])
     _table(rows)
     ok = True
     print()

@@ -11,9 +11,12 @@ On each RSSI measurement taken at ``t``:
 1. the particles are predicted from the tracker's time to ``t``;
 2. they are weighted by the readings (the "annulus" likelihood);
 3. :meth:`WSNTracker.information_contribution` gives what these readings
-   added on the position, ``Omega = P_post^-1 - P_pred^-1``,
-   ``eta = P_post^-1 mu_post - P_pred^-1 mu_pred`` (Gaussian fits of the same
-   particles before and after weighting), projected to positive semi-definite;
+   added on the position: by default the quotient of the posterior and prior Gaussian fits of
+   the particles; with ``information="regression"`` one linear-Gaussian measurement, ``Omega = A^T (R +
+   Omega_lin)^-1 A``, ``eta = A^T (R + Omega_lin)^-1 (z - b)``: the statistical linear
+   regression ``z ~ A x + b`` of the readings over the weighted posterior particles, its
+   error ``Omega_lin`` counted as noise (posterior linearization, Garcia-Fernandez et al.,
+   IEEE TSP 2015; ``docs/wsn.md``);
 4. the 2 x 2 pair is embedded in the node's state (position block; zeros for
    the velocities) and fused with ``node.add_local_information(t, Lam, y)``.
 
@@ -40,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dfusion.errors import OutsideWindowError
+from dfusion.errors import OutsideWindowError, ValidationError
 from dfusion.frontends.base import FrontEnd, FrontEndStats
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
@@ -89,9 +92,15 @@ class WSNFrontEnd(FrontEnd):
         positions (and velocities for a constant-velocity tracker) are drawn from it.
     axes : int
         Position axes of the state (2 or 3); the contribution goes to ``x, y``.
+    information : {"quotient", "regression"}
+        ``method`` of :meth:`WSNTracker.information_contribution`.
     """
 
-    def __init__(self, tracker: WSNTracker, prior: tuple[float, Array, Array], axes: int = 2) -> None:
+    def __init__(self, tracker: WSNTracker, prior: tuple[float, Array, Array], axes: int = 2,
+                 information: str = "quotient") -> None:
+        if information not in ("quotient", "regression"):
+            raise ValidationError(f"information must be 'quotient' or 'regression', got {information!r}")
+        self.information = information
         self.tracker = tracker
         self.t0 = float(prior[0])
         self.prior_mean = np.asarray(prior[1], dtype=float)
@@ -143,7 +152,7 @@ class WSNFrontEnd(FrontEnd):
         trk.predict(max(float(t), trk.time))
         used = trk.update(trk.time, z)
         self.stats.readings += used
-        info = trk.information_contribution()
+        info = trk.information_contribution(method=self.information)
         if used == 0 or not np.any(info.Omega):
             self.stats.empty += 1
             self.stats.rejected += 1

@@ -28,7 +28,7 @@ __all__ = ["WSN_RSSI", "WSN_KEYS", "rssi_sensor_from_table", "grid_from_table"]
 #: Keys of a ``sensor = "wsn_rssi"`` node table, besides the common node keys.
 WSN_KEYS = frozenset({"std", "receivers", "p0", "exponent", "d0", "tag_height", "particles", "pf_motion", "pf_q", "max_speed",
             "std_scale", "outlier_prob", "roughening", "map", "map_occupied_value", "obstacles", "map_bounds",
-            "map_cell"})
+            "map_cell", "pf_information"})
 
 
 def rssi_sensor_from_table(table: Mapping[str, Any]) -> RSSISensor:
@@ -88,6 +88,7 @@ def _wsn_sensor(table: Mapping[str, Any], sc: Scenario) -> RSSISensor:
     sensor = rssi_sensor_from_table(table)
     # validate the tracker's keys now, so that errors name the scenario file
     _tracker_options(table, sc)
+    _information(table)
     base = None if sc.base_dir is None else Path(sc.base_dir)
     grid_from_table(table, base)
     return sensor
@@ -117,7 +118,15 @@ def _wsn_front_end(spec: NodeSpec, sc: Scenario, seed: int) -> WSNFrontEnd:
     base = None if sc.base_dir is None else Path(sc.base_dir)
     grid = grid_from_table(table, base)
     tracker = WSNTracker(spec.sensor, grid=grid, seed=seed, **_tracker_options(table, sc))
-    return WSNFrontEnd(tracker, (0.0, sc.target.initial_mean, sc.target.initial_cov), axes=sc.target.axes)
+    return WSNFrontEnd(tracker, (0.0, sc.target.initial_mean, sc.target.initial_cov), axes=sc.target.axes,
+                       information=_information(table))
+
+
+def _information(table: Mapping[str, Any]) -> str:
+    v = table.get("pf_information", "quotient")
+    if v not in ("quotient", "regression"):
+        raise ValidationError(f"pf_information must be 'quotient' or 'regression', got {v!r}")
+    return v
 
 
 #: The ``wsn_rssi`` sensor kind.

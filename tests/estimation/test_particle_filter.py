@@ -496,6 +496,64 @@ def test_information_contribution_psd_for_ring_posteriors():
         assert lam.min() >= -1e-10 * max(1.0, lam.max())
 
 
+def test_regression_information_matches_weighted_statistical_linearization():
+    # Reference: the statistical linear regression written out with numpy's weighted covariance
+    # and explicit inverses, and the sensor model's own h (not the tracker's mean_rssi).
+    s = field(std=3.0)
+    t = WSNTracker(s, 3000, bounds=[0, 0, 12, 10], seed=5, ess_threshold=0.0)
+    t.initialize(mean=np.array([5.0, 5.0]), cov=np.diag([1.0, 0.5]))
+    t.predict(t.time + 0.5)
+    z = s.h(np.array([5.5, 4.8])) + 3.0 * np.random.default_rng(1).standard_normal(12)
+    z[3] = np.nan  # a missing reading is left out
+    t.update(t.time, z)
+    info = t.information_contribution(method="regression")
+    x, lw = t.particles[:, :2], t.pf.log_weights
+    w = np.exp(lw - lw.max())
+    keep = np.isfinite(z)
+    h = np.array([s.h(p) for p in x])[:, keep]
+    C = np.cov(np.hstack([x, h]).T, aweights=w, bias=True)
+    P, Chp, Chh = C[:2, :2], C[2:, :2], C[2:, 2:]
+    A = Chp @ np.linalg.inv(P)
+    b = np.average(h, axis=0, weights=w) - A @ np.average(x, axis=0, weights=w)
+    Si = np.linalg.inv(9.0 * np.eye(keep.sum()) + Chh - A @ P @ A.T)
+    np.testing.assert_allclose(info.Omega, A.T @ Si @ A, rtol=1e-8)
+    np.testing.assert_allclose(info.eta, A.T @ Si @ (z[keep] - b), rtol=1e-8)
+    np.testing.assert_allclose(t.mean_rssi(x[:5], np.flatnonzero(keep)), h[:5], rtol=1e-10)
+    with pytest.raises(ValidationError):
+        t.information_contribution(method="exact")
+
+
+def test_regression_information_is_an_honest_measurement():
+    # A wide prior and two receivers in a line: the likelihood is a curved ridge. The
+    # pseudo-measurement Omega^+ eta must be a measurement of the true position with
+    # information Omega: its normalized error against the truth is chi-square with rank(Omega)
+    # degrees of freedom, so the sum over independent trials is chi-square with the summed
+    # degrees of freedom (scipy's quantiles as the reference).
+    from scipy.stats import chi2
+    s = RSSISensor(RECEIVERS[[0, 6]], p0=-55.0, exponent=2.2, std=3.0, height=1.2)
+    rng = np.random.default_rng(7)
+    mean, cov = np.array([6.0, 5.0]), np.diag([4.0, 4.0])
+    total, dof, big = 0.0, 0, 0
+    for k in range(150):
+        truth = rng.multivariate_normal(mean, cov)
+        z = s.h(truth) + 3.0 * rng.standard_normal(2)
+        t = WSNTracker(s, 3000, bounds=[-10, -10, 22, 20], seed=k, ess_threshold=0.0)
+        t.initialize(mean=mean, cov=cov)
+        t.predict(t.time + 0.0)
+        t.update(t.time, z)
+        info = t.information_contribution(method="regression")
+        lam, V = np.linalg.eigh(info.Omega)
+        use = lam > 1e-9 * lam.max()
+        e = (V[:, use].T @ info.eta) / lam[use] - V[:, use].T @ truth
+        nis = float(e @ (lam[use] * e))
+        total += nis
+        dof += int(use.sum())
+        big += nis > chi2.ppf(0.999, int(use.sum()))
+    assert dof >= 150
+    assert chi2.ppf(0.001, dof) < total < chi2.ppf(0.999, dof)
+    assert big <= 2
+
+
 def test_project_psd_information():
     V = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
     Om = V @ np.diag([2.0, -0.5]) @ V.T

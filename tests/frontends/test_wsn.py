@@ -241,6 +241,7 @@ def _toml(d: dict) -> str:
     ({"exponent": 0}, "exponent"),
     ({"particles": 1}, "particles"),
     ({"pf_motion": "teleport"}, "pf_motion"),
+    ({"pf_information": "exact"}, "pf_information"),
     ({"obstacles": [[0, 0, 1, 1]]}, "map_bounds"),
     ({"map_cell": 0.5}, "map_cell"),
     ({"antenna": "yagi"}, "antenna"),
