@@ -1171,9 +1171,7 @@ class FusionNode:
                     f.restore(cp_filter)
                     return None
                 cp_guard = guard.state(src)
-                guard.links[src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
-                if verdict is not None:
-                    guard.judge(src, verdict[0], verdict[1])   # (False: would_quarantine)
+                self._record_verdict(src, len(deltas), verdict)   # (False: would_quarantine)
             except BaseException as exc:   # (a defect) the message is undone, the link's record too
                 f.restore(cp_filter)
                 if cp_guard is not None:
@@ -1288,11 +1286,9 @@ class FusionNode:
                     self._total.add_many(deltas)
                 self._mark_dirty(changed.tolist(), skip=msg.src)
                 self._follow_tree_held(deltas)
-                if guard is not None:
-                    guard.links[msg.src].untested_blocks += len(deltas) - (verdict[2] if verdict else 0)
-                    if verdict is not None and guard.judge(msg.src, verdict[0], verdict[1]):
-                        self._withdraw(msg.src)
-                        event = "quarantined"
+                if guard is not None and self._record_verdict(msg.src, len(deltas), verdict):
+                    self._withdraw(msg.src)
+                    event = "quarantined"
             if msg.dst_epoch == self.epoch:
                 ch.acknowledged(msg.ack, msg.ack_mask)
             self._prune()   # an inserted state may have pushed the oldest one out
@@ -1343,6 +1339,14 @@ class FusionNode:
         mu0, P0, mu1 = f.add_information_moments(add)
         stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
         return stat, dof, len(add)
+
+    def _record_verdict(self, src: str, n_blocks: int, verdict: tuple | None) -> bool:
+        """Record a message of ``src`` with ``n_blocks`` blocks in its link's guard record: the
+        blocks :meth:`_add_tested` did not test, and the test's verdict (``None``: nothing was
+        tested). True when ``src`` is to be quarantined now (:meth:`NeighbourGuard.judge`)."""
+        guard = self.guard
+        guard.links[src].untested_blocks += n_blocks - (verdict[2] if verdict else 0)
+        return verdict is not None and guard.judge(src, verdict[0], verdict[1])
 
     def _link_blocks(self, ch: ChannelFilter, sign: float = 1.0) -> tuple[list, list]:
         """The channel's stored blocks in the window as ``(t, info, vec)`` times ``sign``:

@@ -61,7 +61,7 @@ from dfusion.estimation.particle_filter import (
     ParticleFilter,
     weighted_mean_cov,
 )
-from dfusion.linalg import Array, as_spd, as_vector, spd_inverse
+from dfusion.linalg import Array, as_spd, as_vector, cholesky, spd_inverse, symmetrize
 from dfusion.localization.radio_map import RadioMap
 from dfusion.maps.grid import OccupancyGrid as MapGrid
 from dfusion.maps.lattice import NodeLattice, as_map_grid
@@ -577,9 +577,8 @@ class WSNTracker:
         Chh = (dh * w[:, None]).T @ dh
         A = np.linalg.solve(P, Chp.T).T                           # C_hp P^-1 (P symmetric)
         S = np.diag(1.0 / self._inv_s[j] ** 2) + Chh - A @ P @ A.T
-        S = 0.5 * (S + S.T)
-        Lc = np.linalg.cholesky(S)
+        Lc = cholesky(symmetrize(S), "covariance of the RSSI regression's readings")
         G = np.linalg.solve(Lc, A)                                # L^-1 A
         r = np.linalg.solve(Lc, z - hb + A @ pb)                  # L^-1 (z - b)
         Om = G.T @ G
-        return InformationGaussian(G.T @ r, 0.5 * (Om + Om.T))
+        return InformationGaussian(G.T @ r, symmetrize(Om))
