@@ -326,6 +326,24 @@ def _filled_output(rec: NodeRecord, sc: Scenario, mean: np.ndarray, cov: np.ndar
     return out
 
 
+def measurement_events(world, times: np.ndarray, lost: set[tuple[str, int]]) -> list[dict[str, Any]]:
+    """What a multi-process run can say of each measurement, in the form of
+    :attr:`SimulationResult.events` (for the recording's ``/detections``): the step at which it
+    reached its node (the first step at or after its arrival) and ``"delivered"`` to the
+    node's process, or ``"lost"`` while the node was down. The node processes gate and fuse
+    their measurements themselves and report counters, not a verdict per measurement.
+    Measurements arriving after the last step are left out."""
+    events: list[dict[str, Any]] = []
+    last = float(times[-1]) if len(times) else -math.inf
+    for m in world.measurements:
+        if m.arrival > last + 1e-9:
+            continue
+        k = int(np.searchsorted(times, m.arrival - 1e-9))
+        outcome = ["lost"] if (m.node, time_key(m.t)) in lost else ["delivered"]
+        events.append({"t": float(times[k]), "node": m.node, "t_meas": m.t, "z": m.z, "outcome": outcome})
+    return events
+
+
 def build_result(
     sc: Scenario,
     records: dict[str, NodeRecord],
@@ -397,6 +415,7 @@ def build_result(
             "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
         }
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
+                              events=measurement_events(world, times, lost),
                               oracle_mean=o_mean, oracle_cov=o_cov, oracle_final=o_final)
     net = SimpleNamespace(stats=SimpleNamespace(total=TransportStats(delivered=delivered,
                                                                        dropped=max(0, sent - delivered))))

@@ -32,7 +32,9 @@ topic                              schema                what
                                                          at 0 and at each change
 ``/detections``                    foxglove.SceneUpdate  each measurement that gives a point
                                                          on the ground, for 1 s (green used,
-                                                         red gated or refused, grey clutter)
+                                                         red gated, refused or lost; blue in
+                                                         a multi-process run: delivered to
+                                                         its node, which judged it there)
 ``/diagnostics``                   foxglove.Log          gates, refused measurements, link
                                                          outages beginning and ending
 =================================  ====================  ===================================
@@ -316,14 +318,17 @@ class _Builder:
         sensor = self.sc.nodes[n].sensor if n in self.sc.nodes else None
         p = detection_point(sensor, ev["z"]) if sensor is not None else None
         used = "contributed" in outcome
+        # a multi-process run knows only that the measurement reached its node's process
+        # (the node's front end judged it there): drawn in blue, no log line
+        delivered = outcome == ["delivered"]
         out: list[Message] = []
         if p is not None:
-            rgb = (0.1, 0.7, 0.1) if used else (0.85, 0.1, 0.1)
+            rgb = (0.1, 0.7, 0.1) if used else (0.2, 0.4, 0.9) if delivered else (0.85, 0.1, 0.1)
             out.append(("/detections", "foxglove.SceneUpdate", lns,
                         {"deletions": [], "entities": [_entity(lns, f"det/{n}/{i}", lifetime_ns=1_000_000_000,
                                                                spheres=[_sphere(p, rgb, 0.25, 0.8)],
                                                                metadata={"node": n, "outcome": ",".join(outcome)})]}))
-        if not used:
+        if not used and not delivered:
             why = ", ".join(outcome) or "no information"
             out.append(("/diagnostics", "foxglove.Log", lns,
                         {"timestamp": _stamp(lns), "level": _LOG_WARNING,

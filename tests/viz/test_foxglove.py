@@ -178,3 +178,33 @@ def test_live_view_of_one_node_estimate():
     json.loads(json.dumps(est, allow_nan=False))
     json_format.ParseDict(_protobuf_json(msgs["/scene/estimates"][3]), _foxglove_type("foxglove.SceneUpdate")(),
                           ignore_unknown_fields=False)
+
+
+def test_multi_process_recording_draws_every_delivered_measurement(tmp_path):
+    """A ``dfusion run`` result knows of each measurement only whether it reached its node's
+    process or was lost while the node was down (``measurement_events``). Its recording draws
+    each camera measurement once, at the first step at or after its arrival (checked by brute
+    force over the grid), blue when delivered, red with a log line when lost."""
+    from dfusion.fusion.channel import time_key
+    from dfusion.run.monitor import measurement_events
+    from dfusion.viz.foxglove import messages_of_result
+
+    sc = load_scenario(ROOT / "topologies" / "urus.scenario.toml", duration=6.0)
+    res = run_scenario(sc)
+    cams = [m for m in res.world.measurements if m.node == "cam_left"]
+    lost = {("cam_left", time_key(m.t)) for m in cams[:3]}
+    res.events = measurement_events(res.world, res.times, lost)
+    last = float(res.times[-1])
+    inside = [m for m in res.world.measurements if m.arrival <= last + 1e-9]
+    assert len(res.events) == len(inside) > 0
+    for ev, m in zip(res.events, inside):
+        assert ev["t"] == min(float(t) for t in res.times if t >= m.arrival - 1e-9)
+        assert ev["outcome"] == (["lost"] if (m.node, time_key(m.t)) in lost else ["delivered"])
+    msgs = messages_of_result(res)
+    dets = [m for topic, _, _, m in msgs if topic == "/detections"]
+    assert len(dets) == sum(1 for m in inside if m.node.startswith("cam"))
+    colours = [d["entities"][0]["spheres"][0]["color"] for d in dets]
+    red = [c for c in colours if c["r"] > 0.8]
+    assert len(red) == 3 and len(colours) - len(red) == sum(1 for c in colours if c["b"] > 0.8)
+    logs = [m["message"] for topic, _, _, m in msgs if topic == "/diagnostics" and "not used" in m["message"]]
+    assert len(logs) == 3 and all("lost" in line for line in logs)
