@@ -123,3 +123,57 @@ def test_a_lost_message_is_recovered_by_the_next(lost: list[int]) -> None:
         if i not in lost:
             b.receive(m)
     _close(b, done)
+
+
+@pytest.mark.parametrize("lost", [None, 6, 9])
+def test_a_busy_recipient_is_sent_what_changed_and_a_lost_message_is_still_recovered(lost) -> None:
+    """The resend backoff (docs/fusion.md): ``b`` answers every message of ``a``, but 4 messages
+    late (a queue: the acknowledgements lag more than ACK_LAG behind, and keep advancing). ``a``
+    then sends what changed only (one block: its new measurement), not everything since the
+    newest acknowledged message, except the one time of a lost message, sent again once an
+    acknowledgement shows it lost. After the queue is drained ``b`` equals filterpy's
+    KalmanFilter on all of ``a``'s measurements. When ``b`` then falls silent (an outage) for
+    more than ACK_LAG + 1 messages, ``a``'s messages carry everything since the newest
+    acknowledged one again (the catch-up)."""
+    from collections import deque
+
+    from dfusion.fusion.channel import ACK_LAG
+    from dfusion.wire import decode
+
+    a, b = _pair()
+    sensor = PositionSensor(dim=2, std=STD)
+    done, queue, blocks = [], deque(), []
+    lag = ACK_LAG + 2
+    for k in range(1, STEPS + 1):
+        t = round(k * DT, 9)
+        z = [0.1 * k, 0.05 * k * k]
+        a.update(t, z, sensor)
+        done.append((t, z, STD))
+        answered = a.channels["b"].acked >= 0   # (before any acknowledgement: everything so far)
+        data = a.message_to("b")
+        if answered:
+            blocks.append(decode(data).times.size)
+        if k - 1 != lost:
+            queue.append(data)
+        while len(queue) > lag:
+            b.receive(queue.popleft())
+            a.receive(b.message_to("a"))
+    stalled_lag = a.channels["b"].seq_out - 1 - a.channels["b"].acked
+    assert stalled_lag > ACK_LAG and not a.channels["b"].stalled()   # behind, but not stalled
+    # one block per message (two once: the lost message's time again), never a catch-up
+    assert len(blocks) >= STEPS - lag - 1
+    assert blocks.count(1) >= len(blocks) - (0 if lost is None else 1)
+    assert max(blocks) == (1 if lost is None else 2)
+    while queue:
+        b.receive(queue.popleft())
+        a.receive(b.message_to("a"))
+    b.receive(a.message_to("b"))   # the lost time, if the last acknowledgement showed it lost
+    a.receive(b.message_to("a"))
+    _close(b, done)
+    # an outage: b answers nothing while a fuses late measurements (one per message); after
+    # ACK_LAG + 1 messages every message catches up: everything since the newest acknowledged one
+    sizes = []
+    for j in range(ACK_LAG + 4):
+        a.update(round((j + 0.5) * DT, 9), [0.0, 0.1 * j], sensor)
+        sizes.append(decode(a.message_to("b")).times.size)
+    assert sizes == [1] * (ACK_LAG + 1) + list(range(ACK_LAG + 2, ACK_LAG + 5))
