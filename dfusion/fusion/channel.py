@@ -555,6 +555,11 @@ class ChannelFilter:
             return True
         return self.seq_out - 1 - self.acked > self.ack_lag and self.seq_out - self.acked_at > self.ack_lag
 
+    def lag(self) -> int:
+        """Messages sent since the newest acknowledged one (all of them while none was
+        acknowledged)."""
+        return self.seq_out - 1 - self.acked
+
     def pending_keys(self, oldest_key: int) -> np.ndarray:
         """Times a partial message must carry: changed since the last message, or carried by a
         message that turned out lost; and, while the acknowledgements are stalled
@@ -570,6 +575,22 @@ class ChannelFilter:
             return np.array(keys, dtype=np.int64) if keys else np.zeros(0, dtype=np.int64)
         keys = _unique(np.concatenate(parts + [np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty))]))
         return keys[keys >= oldest_key]
+
+    def at_risk_keys(self, edge_key: int) -> np.ndarray:
+        """While the acknowledgements lag more than ``ack_lag`` messages behind without stalling
+        (a busy recipient, :meth:`stalled`), the times up to ``edge_key`` of the messages not
+        acknowledged yet (sorted): those that would leave the window before an acknowledgement
+        could show them lost. :meth:`FusionNode.message_to
+        <dfusion.fusion.node.FusionNode.message_to>` carries them again in every message (the
+        window state ``lag + 1`` from the oldest is the edge) and leaves them out of that
+        message's record (:meth:`record_sent`): they are the values already sent, tracked by
+        the record of the message that first carried them, so they stop once it is acknowledged
+        (or are sent again as lost)."""
+        if self.acked < 0 or self.lag() <= self.ack_lag or self.stalled():
+            return _NO_KEYS
+        parts = [k[k <= edge_key] for k, _ in self._sent.values()]
+        parts = [p for p in parts if p.size]
+        return _unique(np.concatenate(parts)) if parts else _NO_KEYS
 
     def record_sent(self, seq: int, keys: np.ndarray, full: bool) -> None:
         """Remember the times message ``seq`` may have changed at ``remote`` (what it carried or

@@ -965,13 +965,23 @@ class FusionNode:
         tot = self._total
         full = self.fusion == "naive" or self.messages == "full" or ch.next_is_full()
         if full:
-            keys = tot.keys[tot.keys >= oldest_key]
+            keys = record = tot.keys[tot.keys >= oldest_key]
             if self.fusion == "naive":
                 infos, vecs = self._naive_increments(neighbor, keys, *tot.values_at(keys))
             else:
                 infos, vecs = self._values_for(ch, keys)
         else:
-            keys = ch.pending_keys(oldest_key)
+            keys = record = ch.pending_keys(oldest_key)
+            lag = ch.lag()
+            # a busy neighbour: what would leave the window unconfirmed (the states that leave it within
+            # lag + 1 more states; a window not full yet keeps them for its room)
+            edge = lag + 1 - (f.window - len(f) if f.window is not None else 0)
+            if ch.acked >= 0 and lag > ch.ack_lag and edge >= 0:
+                times = f.times
+                risk = ch.at_risk_keys(time_key(float(times[min(edge, times.size - 1)])))
+                risk = risk[risk >= oldest_key]
+                if risk.size:
+                    keys = np.union1d(keys, risk)
             infos, vecs = self._values_for(ch, keys)
         times = keys / 1e9
         keep = nonzero_blocks(infos, vecs)
@@ -1000,10 +1010,10 @@ class FusionNode:
         )
         data = encode(msg, self.frame_key)
         if self.critical_path_first:   # recorded by settle() (the next call): the next message depends on it
-            self._sent_pending.append((ch, msg.seq, keys, msg.full))
+            self._sent_pending.append((ch, msg.seq, record, msg.full))
             self._warm = self._deferred = True
         else:
-            ch.record_sent(msg.seq, keys, msg.full)
+            ch.record_sent(msg.seq, record, msg.full)
         self.stats.messages_sent += 1
         self.stats.bytes_sent += len(data)
         self.stats.full_messages_sent += int(msg.full)
