@@ -57,7 +57,8 @@ whatever the transport does:
   recipient up to date at once. Acknowledgements that lag but keep advancing (a busy
   recipient working through a queue) do not count as stalled: such a recipient is sent what
   changed only, and a loss shows in its acknowledgements (the resend backoff; resending
-  everything then kept a CPU-starved recipient behind);
+  everything then kept a CPU-starved recipient behind), except that the unacknowledged times
+  about to leave the window are carried in every message (:meth:`ChannelFilter.at_risk_keys`);
 * a restarted node has a new, larger ``epoch``: its neighbours forget what it had
   acknowledged and send it a full message, and treat the blocks its previous incarnation
   sent as older than any new message; a message of an earlier incarnation is rejected;

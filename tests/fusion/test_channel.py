@@ -212,7 +212,7 @@ def test_a_lost_message_near_the_window_edge_is_recovered_on_a_busy_link(lost) -
     ``a`` marginalized into (both have the same window)."""
     from dfusion.fusion.channel import ACK_LAG
 
-    a, b, done, blocks, (behind, stalled) = _lagging_link(8, 16, ACK_LAG + 2, lost)
+    a, b, _, _, (behind, stalled) = _lagging_link(8, 16, ACK_LAG + 2, lost)
     assert behind > ACK_LAG and not stalled
     for x, y in zip(a.estimate(), b.estimate()):
         np.testing.assert_allclose(y, x, rtol=1e-9, atol=1e-9)
