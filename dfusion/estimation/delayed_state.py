@@ -523,6 +523,14 @@ class DelayedStateEIF:
             self._enforce_window()
         return out
 
+    def newest_moments(self) -> tuple[Array, Array]:
+        """Filtered ``(mean, cov)`` of the newest state, the mean raw (angles not wrapped): what
+        :meth:`add_information_moments` returns as the moments before a block at the newest
+        state, bit for bit (the same cached forward pass). The arrays are the filter's own
+        cache: read them, do not write into them (the filter replaces, never writes, its arrays)."""
+        self._require_init()
+        return self._traj.latest()
+
     def linearization_point(self, t: float) -> Array:
         """Current mean of the window state at ``t``, angles *not* wrapped.
 

@@ -50,10 +50,15 @@ whatever the transport does:
 * in the steady state without losses a message carries only what changed since the
   previous one: the information minimum, plus a header;
 * while nothing is acknowledged (a link used one way only, or the first messages) and
-  when acknowledgements stall (more than :data:`ACK_LAG` messages behind: the link is
-  down, or the recipient is), partial messages carry everything sent since the newest
-  acknowledged message: a lost message is then recovered by the next one, and the first
-  message through after an outage brings the recipient up to date at once;
+  when acknowledgements stall (more than :data:`ACK_LAG` messages behind and none advanced
+  during the last ``ACK_LAG + 1`` messages: the link is down, or the recipient is), partial
+  messages carry everything sent since the newest acknowledged message: a lost message is
+  then recovered by the next one, and the first message through after an outage brings the
+  recipient up to date at once. Acknowledgements that lag but keep advancing (a busy
+  recipient working through a queue) do not count as stalled: such a recipient is sent what
+  changed only, and a loss shows in its acknowledgements (the resend backoff; resending
+  everything then kept a CPU-starved recipient behind), except that the unacknowledged times
+  about to leave the window are carried in every message (:meth:`ChannelFilter.at_risk_keys`);
 * a restarted node has a new, larger ``epoch``: its neighbours forget what it had
   acknowledged and send it a full message, and treat the blocks its previous incarnation
   sent as older than any new message; a message of an earlier incarnation is rejected;
@@ -219,6 +224,8 @@ class ChannelFilter:
         The next message to ``remote`` must be full.
     acked : int
         Newest of this node's messages ``remote`` acknowledged (-1: none).
+    acked_at : int
+        ``seq_out`` when ``acked`` last advanced (:meth:`stalled`).
     dirty : set of int
         Keys whose value for ``remote`` changed since the last message to it.
     ack_lag : int
@@ -245,6 +252,9 @@ class ChannelFilter:
         self.seq_out = 0
         self.need_full = True
         self.acked = -1
+        #: ``seq_out`` when :attr:`acked` last advanced: the messages sent since are those the
+        #: recipient has not answered yet (:meth:`pending_keys`).
+        self.acked_at = 0
         self.dirty: set[int] = set()
         #: Messages the acknowledgement may lag behind before partial messages carry everything
         #: since the newest acknowledged one (:data:`ACK_LAG`; more with event-triggered sends,
@@ -301,12 +311,12 @@ class ChannelFilter:
         """Everything :meth:`commit`, :meth:`acknowledged` and :meth:`record_sent` change (to undo them)."""
         return (self.keys, self.times, self.seqs, self.info, self.vec, self.epoch, self.last_seq, self.applied_seq,
                 self._applied_mask, self.need_full, self.acked, set(self.dirty), self._resend, dict(self._sent), self.seq_out,
-                self.messages_in, self.messages_out, self.duplicates)
+                self.messages_in, self.messages_out, self.duplicates, self.acked_at)
 
     def restore(self, state: tuple) -> None:
         (self.keys, self.times, self.seqs, self.info, self.vec, self.epoch, self.last_seq, self.applied_seq,
          self._applied_mask, self.need_full, self.acked, self.dirty, self._resend, self._sent, self.seq_out,
-         self.messages_in, self.messages_out, self.duplicates) = state
+         self.messages_in, self.messages_out, self.duplicates, self.acked_at) = state
 
     def plan(self, msg: InfoMessage, oldest: float, time_tol: float) -> Plan:
         """What receiving ``msg`` changes, without changing anything.
@@ -509,6 +519,8 @@ class ChannelFilter:
         one full."""
         if ack < 0 or ack >= self.seq_out:
             return
+        if ack > self.acked:
+            self.acked_at = self.seq_out
         self.acked = max(self.acked, ack)
         for s in [s for s in self._sent if s <= ack]:
             keys, full = self._sent.pop(s)
@@ -522,6 +534,7 @@ class ChannelFilter:
         """``remote`` is a new incarnation: it holds nothing of this node's; the next message is full."""
         self.need_full = True
         self.acked = -1
+        self.acked_at = 0
         self._sent.clear()
         self._resend = np.zeros(0, dtype=np.int64)
 
@@ -530,14 +543,32 @@ class ChannelFilter:
         or too many unacknowledged messages)."""
         return self.need_full or len(self._sent) > MAX_UNACKED
 
+    def stalled(self) -> bool:
+        """Whether the next partial message carries everything sent since the newest acknowledged
+        message (the catch-up): nothing was acknowledged yet, or the acknowledgements have
+        *stalled*: the newest acknowledged message is more than ``ack_lag`` messages old **and**
+        no acknowledgement advanced during the last ``ack_lag + 1`` messages (a link outage, say).
+        A recipient whose acknowledgements keep advancing but lag behind (alive, busy: a CPU-starved
+        process working through a queue) is sent what changed only; a loss among the messages it
+        has not answered yet shows in its next acknowledgements, whose times are then sent again
+        (the resend backoff: ``docs/fusion.md``)."""
+        if self.acked < 0:
+            return True
+        return self.seq_out - 1 - self.acked > self.ack_lag and self.seq_out - self.acked_at > self.ack_lag
+
+    def lag(self) -> int:
+        """Messages sent since the newest acknowledged one (all of them while none was
+        acknowledged)."""
+        return self.seq_out - 1 - self.acked
+
     def pending_keys(self, oldest_key: int) -> np.ndarray:
         """Times a partial message must carry: changed since the last message, or carried by a
-        message that turned out lost; and, while nothing was acknowledged yet or
-        acknowledgements have stalled (the newest acknowledged message is more than
-        ``ack_lag`` messages old: a link outage, say), every time carried since the
+        message that turned out lost; and, while the acknowledgements are stalled
+        (:meth:`stalled`: nothing acknowledged yet, or no acknowledgement for more than
+        ``ack_lag`` messages: a link outage, say), every time carried since the
         newest acknowledged message (sorted keys from ``oldest_key`` on)."""
         parts = [self._resend]
-        if self.acked < 0 or self.seq_out - 1 - self.acked > self.ack_lag:
+        if self.stalled():
             parts += [keys for keys, _ in self._sent.values()]
         parts = [p for p in parts if p.size]
         if not parts:   # the steady state: what changed since the last message only
@@ -545,6 +576,22 @@ class ChannelFilter:
             return np.array(keys, dtype=np.int64) if keys else np.zeros(0, dtype=np.int64)
         keys = _unique(np.concatenate(parts + [np.fromiter(self.dirty, dtype=np.int64, count=len(self.dirty))]))
         return keys[keys >= oldest_key]
+
+    def at_risk_keys(self, edge_key: int) -> np.ndarray:
+        """While the acknowledgements lag more than ``ack_lag`` messages behind without stalling
+        (a busy recipient, :meth:`stalled`), the times up to ``edge_key`` of the messages not
+        acknowledged yet (sorted): those that would leave the window before an acknowledgement
+        could show them lost. :meth:`FusionNode.message_to
+        <dfusion.fusion.node.FusionNode.message_to>` carries them again in every message (the
+        window state ``lag + 1`` from the oldest is the edge) and leaves them out of that
+        message's record (:meth:`record_sent`): they are the values already sent, tracked by
+        the record of the message that first carried them, so they stop once it is acknowledged
+        (or are sent again as lost)."""
+        if self.acked < 0 or self.lag() <= self.ack_lag or self.stalled():
+            return _NO_KEYS
+        parts = [k[k <= edge_key] for k, _ in self._sent.values()]
+        parts = [p for p in parts if p.size]
+        return _unique(np.concatenate(parts)) if parts else _NO_KEYS
 
     def record_sent(self, seq: int, keys: np.ndarray, full: bool) -> None:
         """Remember the times message ``seq`` may have changed at ``remote`` (what it carried or

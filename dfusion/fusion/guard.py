@@ -43,10 +43,13 @@ added to the filter, the verdict is recorded, and a verdict that completes a qua
 withdraws the link in the same transaction. An exception anywhere undoes all of it, the
 link's record included: a message is tested, fused and judged completely or not at all.
 A steady-state message takes the node's critical path (:meth:`FusionNode.settle
-<dfusion.fusion.node.FusionNode.settle>`): it is tested and judged as it is fused, and its
-bookkeeping is done later, with the same statistic, counters and decisions; a verdict that
-would complete a quarantine (:meth:`NeighbourGuard.would_quarantine`) sends the message to
-the general transaction instead.
+<dfusion.fusion.node.FusionNode.settle>`): it is fused at once and its bookkeeping is done
+later, with the same statistic, counters and decisions. Its test is done later too when it is
+one block at the newest state and even a failure would not complete a quarantine
+(:meth:`NeighbourGuard.may_quarantine`: the verdict then changes only the link's counters);
+otherwise it is tested and judged as it is fused, and a verdict that would complete a
+quarantine (:meth:`NeighbourGuard.would_quarantine`) sends the message to the general
+transaction instead.
 
 **Quarantine.** A failed message is still fused (one failure is the expected false
 alarm of a healthy network, and refusing it would not make the fused result exact: the
@@ -328,6 +331,15 @@ class NeighbourGuard:
         failed = not (stat <= self.threshold(dof))
         dropped = len(r.recent) == r.window and bool(r.recent[0])   # the oldest result leaves the last m
         return r.recent_failures + failed - dropped >= self.config.failures
+
+    def may_quarantine(self, j: str) -> bool:
+        """Whether a *failing* test of ``j`` now would quarantine it (:meth:`would_quarantine` of
+        the worst verdict). When it would not, no verdict of the next test can change anything
+        but ``j``'s counters: the node may record it later (:meth:`FusionNode.settle
+        <dfusion.fusion.node.FusionNode.settle>`)."""
+        r = self.links[j]
+        dropped = len(r.recent) == r.window and bool(r.recent[0])
+        return r.recent_failures + 1 - dropped >= self.config.failures
 
     def judge(self, j: str, stat: float, dof: int) -> bool:
         """Record one tested message of ``j``; returns True when ``j`` is to be quarantined now."""

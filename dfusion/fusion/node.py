@@ -572,7 +572,7 @@ class FusionNode:
                 raise ValidationError("a guard needs channel fusion (it withdraws what came over a link)")
             if set(guard.links) != set(nbrs):
                 raise ValidationError(f"the guard's links {sorted(guard.links)} are not the neighbours {sorted(nbrs)}")
-        self.guard: NeighbourGuard | None = guard
+        self._guard: NeighbourGuard | None = guard
 
     def __repr__(self) -> str:
         return f"FusionNode({self.name!r}, neighbors={list(self.neighbors)}, {self.filter!r})"
@@ -593,6 +593,14 @@ class FusionNode:
     def channels(self, value: dict[str, ChannelFilter]) -> None:
         self._channels = value
 
+    @property
+    def guard(self) -> NeighbourGuard | None:
+        """The consistency test's records and quarantine decisions (``None``: no test), settled
+        (:meth:`settle`: a steady-state message's verdict may be recorded there)."""
+        if self._deferred:
+            self._settle()
+        return self._guard
+
     # ------------------------------------------------------------------ deferred bookkeeping
     def settle(self) -> None:
         """Do the work that the last message received or sent left for later now (a node may call
@@ -604,8 +612,9 @@ class FusionNode:
         bit for bit, as if all of it had been done at once.
 
         * :meth:`receive` fuses a steady-state message into the filter at once (the estimate
-          changes; with a guard the message is tested and judged then) and leaves what the
-          estimate does not need: storing the blocks in the
+          changes) and leaves what the estimate does not need (with a guard, its consistency
+          test and verdict too when no verdict could complete a quarantine: the belief is then
+          final whatever the verdict; else it is tested and judged at once): storing the blocks in the
           channel filter and the node's total information, marking them for the other links,
           the acknowledgement the message carries, pruning. A failure of this bookkeeping (a
           defect; nothing in it depends on the message's values) undoes the whole message, the
@@ -638,13 +647,17 @@ class FusionNode:
     def _settle_receive(self) -> None:
         p = self._pending
         self._pending = None
-        msg, ch, plan, deltas, cp_filter, cp_guard, heard = p
+        msg, ch, plan, deltas, cp_filter, cp_guard, heard, test = p
         mark = self._mark_stores(msg.src, cp_filter, cp_guard)
         try:
             ch.commit(msg, plan)
             if deltas:
                 self._total.add_many(deltas)
             self._mark_dirty(plan.changed.tolist(), skip=msg.src)
+            if test is not None and self._record_verdict(msg.src, 1, self._deferred_test(*test)):
+                self._withdraw(msg.src)   # (not reached: the message was deferred because no verdict quarantines)
+                log.warning("%s: neighbour %s quarantined after a deferred test; what came over the link is "
+                            "withdrawn", self.name, msg.src)
             if msg.dst_epoch == self.epoch:
                 ch.acknowledged(msg.ack, msg.ack_mask)
             self._prune()
@@ -673,7 +686,7 @@ class FusionNode:
 
         The one place that lists the stores: :meth:`_apply` and :meth:`_settle_receive` both undo
         with it (``tests/fusion/test_store_rollback.py`` compares every attribute of the node)."""
-        guard = self.guard
+        guard = self._guard
         if cp_guard is None and guard is not None and src in guard.links:
             cp_guard = guard.state(src)
         return (self.filter.checkpoint() if cp_filter is None else cp_filter, self._total.mark(), self._own.mark(),
@@ -692,7 +705,7 @@ class FusionNode:
             c.restore(channels[j])
         self._pruned_at = pruned_at
         if cp_guard is not None:
-            self.guard.restore(src, cp_guard)
+            self._guard.restore(src, cp_guard)
 
     def _release_stores(self) -> None:
         """The :meth:`_mark_stores` is no longer needed (the transaction succeeded): the stores
@@ -952,13 +965,23 @@ class FusionNode:
         tot = self._total
         full = self.fusion == "naive" or self.messages == "full" or ch.next_is_full()
         if full:
-            keys = tot.keys[tot.keys >= oldest_key]
+            keys = record = tot.keys[tot.keys >= oldest_key]
             if self.fusion == "naive":
                 infos, vecs = self._naive_increments(neighbor, keys, *tot.values_at(keys))
             else:
                 infos, vecs = self._values_for(ch, keys)
         else:
-            keys = ch.pending_keys(oldest_key)
+            keys = record = ch.pending_keys(oldest_key)
+            lag = ch.lag()
+            # a busy neighbour: what would leave the window unconfirmed (the states that leave it within
+            # lag + 1 more states; a window not full yet keeps them for its room)
+            edge = lag + 1 - (f.window - len(f) if f.window is not None else 0)
+            if ch.acked >= 0 and lag > ch.ack_lag and edge >= 0:
+                times = f.times
+                risk = ch.at_risk_keys(time_key(float(times[min(edge, times.size - 1)])))
+                risk = risk[risk >= oldest_key]
+                if risk.size:
+                    keys = np.union1d(keys, risk)
             infos, vecs = self._values_for(ch, keys)
         times = keys / 1e9
         keep = nonzero_blocks(infos, vecs)
@@ -987,10 +1010,10 @@ class FusionNode:
         )
         data = encode(msg, self.frame_key)
         if self.critical_path_first:   # recorded by settle() (the next call): the next message depends on it
-            self._sent_pending.append((ch, msg.seq, keys, msg.full))
+            self._sent_pending.append((ch, msg.seq, record, msg.full))
             self._warm = self._deferred = True
         else:
-            ch.record_sent(msg.seq, keys, msg.full)
+            ch.record_sent(msg.seq, record, msg.full)
         self.stats.messages_sent += 1
         self.stats.bytes_sent += len(data)
         self.stats.full_messages_sent += int(msg.full)
@@ -1128,7 +1151,7 @@ class FusionNode:
         the newest state, a fixed tree (the tree rule's holds stay on the general path) and a link
         that is not quarantined (its messages are probation tests)."""
         if (not self.critical_path_first or self.tree is not None or self._tree_held or msg.seq <= ch.last_seq
-                or (self.guard is not None and self.guard.is_quarantined(msg.src))):
+                or (self._guard is not None and self._guard.is_quarantined(msg.src))):
             return False
         latest = self.filter.latest_time + self.filter.time_tol
         return all(d[0] <= latest for d in deltas)
@@ -1140,21 +1163,40 @@ class FusionNode:
         and the verdict recorded (:meth:`_add_tested`, :meth:`NeighbourGuard.judge`); the rest
         is left to :meth:`settle`. Every result is the same, bit for bit, as :meth:`_apply`'s.
 
+        The test itself is left to :meth:`settle` too when the message is one block at the
+        newest state and a failing verdict would not quarantine the neighbour
+        (:meth:`NeighbourGuard.may_quarantine`): no verdict can then change the filter, only
+        the link's counters, so the estimate is final at once. The moments the statistic
+        needs are saved as the block is added (the newest state's filtered moments before and
+        after: what :meth:`DelayedStateEIF.add_information_moments` reads) and the verdict is
+        recorded by :meth:`_settle_receive` (:meth:`_deferred_test`); reading :attr:`guard` or
+        :meth:`health` settles first.
+
         A verdict that would quarantine the neighbour (its withdrawal needs the bookkeeping
         done) is not recorded: the filter is put back and ``None`` returned, and the caller
         takes :meth:`_apply`, which tests the message again (the same statistic) in its
         transaction."""
         f = self.filter
-        guard = self.guard
+        guard = self._guard
         cp_filter = f.checkpoint()
         verdict = None
+        test = None   # the test left for settle(): (block, means and covariance before, mean after)
+        if guard is not None and len(deltas) == 1 and not guard.may_quarantine(msg.src) \
+                and f.index_of(deltas[0][0]) == len(f) - 1:
+            test = deltas[0]
         if deltas:
             try:
-                if guard is None:
+                if test is not None:   # (no verdict can change the belief: tested in settle())
+                    mu0, P0 = f.newest_moments()
                     f.add_information_batch(deltas, validate=False)
+                    f.estimate()   # the belief must still be proper
+                    test = (test, mu0, P0, f.newest_moments()[0])
+                elif guard is None:
+                    f.add_information_batch(deltas, validate=False)
+                    f.estimate()
                 else:
                     verdict = self._add_tested(deltas)
-                f.estimate()   # the belief must still be proper
+                    f.estimate()
             except BaseException as exc:
                 f.restore(cp_filter)
                 if isinstance(exc, DfusionError):
@@ -1164,7 +1206,7 @@ class FusionNode:
                                        f"message from {msg.src!r} failed: {type(exc).__name__}: {exc}") from exc
                 raise
         cp_guard = None
-        if guard is not None:
+        if guard is not None and test is None:
             src = msg.src
             try:
                 if verdict is not None and guard.would_quarantine(src, verdict[0], verdict[1]):
@@ -1183,7 +1225,7 @@ class FusionNode:
         heard = self._heard.get(msg.src)
         self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.messages_received += 1
-        self._pending = (msg, ch, plan, deltas, cp_filter, cp_guard, heard)
+        self._pending = (msg, ch, plan, deltas, cp_filter, cp_guard, heard, test)
         self._deferred = True
         self._tree_undo = None
         return len(deltas)
@@ -1258,7 +1300,7 @@ class FusionNode:
         latest = f.latest_time + f.time_tol
         now = [d for d in deltas if d[0] <= latest]
         mark = self._mark_stores(msg.src)
-        guard = self.guard
+        guard = self._guard
         restarted = ch.epoch is not None and msg.epoch > ch.epoch
         duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
         event = None
@@ -1319,11 +1361,14 @@ class FusionNode:
     # ------------------------------------------------------------------ guard (dfusion.fusion.guard)
     def is_quarantined(self, neighbor: str) -> bool:
         """Whether the link to ``neighbor`` is quarantined (its information withdrawn)."""
-        return self.guard is not None and self.guard.is_quarantined(neighbor)
+        return self._guard is not None and self._guard.is_quarantined(neighbor)
 
     def health(self) -> str:
         """``"ok"``, ``"degraded"`` or ``"lost"`` (:meth:`NeighbourGuard.health`; always ok without a guard)."""
-        return "ok" if self.guard is None else self.guard.health()
+        if self._guard is None:
+            return "ok"
+        self._settle()   # (a verdict left for settle() counts)
+        return self._guard.health()
 
     def _add_tested(self, entries: list[tuple[float, Array, Array]]) -> tuple[float, int, int]:
         """Add a message's blocks to the filter, testing the additions jointly (inside the
@@ -1340,11 +1385,22 @@ class FusionNode:
         stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
         return stat, dof, len(add)
 
+    def _deferred_test(self, block: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array) -> tuple[float, int, int]:
+        """:meth:`_add_tested`'s verdict of one block at the newest state, from the moments saved
+        when it was added (the same values: :meth:`DelayedStateEIF.add_information_moments` reads
+        the same filtered moments), for :meth:`settle`."""
+        eigen = block_eigen(block[1])
+        add, _ = split_blocks([block], eigen)
+        if not add:
+            return 0.0, 0, 0
+        stat, dof = information_statistic(add, [mu0], [P0], [mu1], eigen)
+        return stat, dof, 1
+
     def _record_verdict(self, src: str, n_blocks: int, verdict: tuple | None) -> bool:
         """Record a message of ``src`` with ``n_blocks`` blocks in its link's guard record: the
         blocks :meth:`_add_tested` did not test, and the test's verdict (``None``: nothing was
         tested). True when ``src`` is to be quarantined now (:meth:`NeighbourGuard.judge`)."""
-        guard = self.guard
+        guard = self._guard
         guard.links[src].untested_blocks += n_blocks - (verdict[2] if verdict else 0)
         return verdict is not None and guard.judge(src, verdict[0], verdict[1])
 
@@ -1400,7 +1456,7 @@ class FusionNode:
                 stat, dof = information_statistic(add, mu0, P0, mu1)
         except DfusionError:
             stat, dof = math.inf, 1
-        if self.guard.probation(neighbor, stat, dof):
+        if self._guard.probation(neighbor, stat, dof):
             self._reinstate(neighbor)
             return "released"
         return None
@@ -1489,15 +1545,15 @@ class FusionNode:
                     self._tree_withdraw(lost)
                 for j in sorted(change.gained):
                     self.channels[j] = self._channel(j)
-        if self.guard is not None:
+        if self._guard is not None:
             # a record per link that exists (after the withdrawal, which asks whether a link was
             # quarantined); a quarantine outlives changes of the tree while the link exists
-            links = self.guard.links
+            links = self._guard.links
             for j in [j for j in links if j not in self.tree.links]:
                 del links[j]
             for j in self.neighbors:
                 if j not in links:
-                    links[j] = LinkRecord(self.guard.config.window)
+                    links[j] = LinkRecord(self._guard.config.window)
 
     def _tree_withdraw(self, channels: list[ChannelFilter], everything: bool = False) -> None:
         """Take what ``channels`` delivered out of the stores messages are made from (the other
@@ -1652,13 +1708,13 @@ class FusionNode:
         return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
                 {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
                 self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._tree_held),
-                None if self.guard is None else dict(self.guard.links))
+                None if self._guard is None else dict(self._guard.links))
 
     def _tree_restore(self, cp: tuple) -> None:
         tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links = cp
         self._tree_held = held
         if guard_links is not None:
-            self.guard.links = guard_links
+            self._guard.links = guard_links
         self.tree.restore(tree)
         self.incarnations, self.channels, self.neighbors = inc, channels, nbrs
         for j, st in states.items():

@@ -1,14 +1,16 @@
 """The consistency guard on the critical path (issue 15): a steady-state message to a node with a
-guard is tested, judged and fused at once and its bookkeeping settled later, exactly as the
-general path does it all at once.
+guard is fused at once and its bookkeeping settled later, exactly as the general path does it all
+at once; it is tested and judged at once when a failing verdict would complete a quarantine,
+else in ``settle()`` (no verdict can then change the belief).
 
 * over random schedules with the guard on every node and, in most, one hostile node (its
   sensor 6 m off with a claimed noise of 0.2 m: its neighbours quarantine it), every
   node's whole state, estimate, guard records and every message it sends are bit for bit
   those of the same run on the general path (``FusionNode.critical_path_first`` and
   ``ChannelFilter.append_plans`` off), step by step;
-* the test is not vacuous: guarded steady-state messages take the critical path, the
-  message that completes a quarantine falls back to the general path, and a quarantine
+* the test is not vacuous: guarded steady-state messages take the critical path, most with
+  the test left for ``settle()`` (the estimate read before it is already the one after it),
+  the message that completes a quarantine falls back to the general path, and a quarantine
   happens;
 * :meth:`NeighbourGuard.would_quarantine` predicts :meth:`NeighbourGuard.judge` on random
   sequences of verdicts (a brute-force replay of the rule "k failures among the last m").
@@ -55,7 +57,7 @@ def recorded_run(monkeypatch, graph, kw: dict, general: bool) -> tuple:
     the general path with ``general``."""
     steps: list = []
     sent: list = []
-    paths = {"fast": 0, "fallback": 0}
+    paths = {"fast": 0, "fallback": 0, "deferred": 0}
     send, steady = FusionNode.message_to, FusionNode._apply_steady
 
     def message_to(self, neighbor, sent_at=None):
@@ -66,6 +68,12 @@ def recorded_run(monkeypatch, graph, kw: dict, general: bool) -> tuple:
     def apply_steady(self, *args):
         done = steady(self, *args)
         paths["fast" if done is not None else "fallback"] += 1
+        if done is not None and self._pending[-1] is not None:   # the test left for settle()
+            paths["deferred"] += 1
+            # the belief is final already: the estimate read now is the one after settle()
+            now = [x.tobytes() for x in self.estimate()]
+            self.settle()
+            assert [x.tobytes() for x in self.estimate()] == now
         return done
 
     def on_step(nodes, measurements, t):
@@ -115,7 +123,7 @@ def test_the_guard_on_the_critical_path_changes_no_result(monkeypatch, case):
     assert fast[0] == slow[0]   # every node's state, guard records and estimate after every step
     assert fast[2] == slow[2]   # the rejections
     assert fast[4] == slow[4]   # the quarantines
-    assert slow[3] == {"fast": 0, "fallback": 0}
+    assert slow[3] == {"fast": 0, "fallback": 0, "deferred": 0}
 
 
 def test_guarded_messages_take_the_critical_path_and_a_quarantine_falls_back(monkeypatch):
@@ -135,6 +143,70 @@ def test_guarded_messages_take_the_critical_path_and_a_quarantine_falls_back(mon
     # steady-state ones, took it anyway)
     assert 1 <= fast[3]["fallback"] <= fast[4]
     assert fast[3]["fast"] > 50               # the guarded steady state on the critical path
+    # most of them with the test left for settle(); those of a link one failure from quarantine
+    # (c's, failing) tested at once
+    # (here the blocks mostly reach b one step late, at a state before its newest: tested at once)
+    assert fast[3]["deferred"] >= 1
+
+
+def hop_run(monkeypatch, general: bool, steps: int = 160) -> tuple:
+    """The hop of benchmarks/hop_cpu.py: a predicts, measures and sends, b predicts to a's time
+    and fuses the message (its block at b's newest state), then b acknowledges; guards on both.
+    a's sensor is 6 m off with a claimed noise of 0.2 m in steps 60-69 (b quarantines a and
+    later takes it back). Returns per step b's state digest, guard records and estimate read
+    right after receive (before settle), and the path counts."""
+    from tests.helpers.fusion_harness import PRIOR, Q_PSD, CVTruth, make_node
+    paths = {"fast": 0, "fallback": 0, "deferred": 0}
+    steady = FusionNode._apply_steady
+
+    def apply_steady(self, *args):
+        done = steady(self, *args)
+        paths["fast" if done is not None else "fallback"] += 1
+        paths["deferred"] += done is not None and self._pending[-1] is not None
+        return done
+
+    out = []
+    with monkeypatch.context() as m:
+        m.setattr(FusionNode, "_apply_steady", apply_steady)
+        m.setattr(FusionNode, "critical_path_first", not general)
+        m.setattr(ChannelFilter, "append_plans", not general)
+        a = make_node("a", ["b"], epoch=1, window=20, guard=GuardConfig(release=3))
+        b = make_node("b", ["a"], epoch=2, window=20, guard=GuardConfig(release=3))
+        rng = np.random.default_rng(5)
+        truth = CVTruth(rng)
+        assert PRIOR[0] == 0.0 and Q_PSD > 0
+        for k in range(1, steps + 1):
+            t = round(0.1 * k, 9)
+            x = truth.at(t)
+            a.predict(t)
+            hostile = 60 <= k < 70
+            z = x[:2] + (HOSTILE_STD if hostile else 0.5) * rng.standard_normal(2) + (HOSTILE_BIAS if hostile else 0.0)
+            a.update(t, z, PositionSensor(2, HOSTILE_STD if hostile else 0.5))
+            data = a.message_to("b", sent_at=t)
+            a.settle()
+            b.predict(t)
+            b.receive(data)
+            now = [v.tobytes() for v in b.estimate()]
+            a.receive(b.message_to("a", sent_at=t))
+            out.append((state_digest(b), guard_records(b), now, [v.tobytes() for v in b.estimate()]))
+        quarantines = b.guard.links["a"].quarantines
+    return out, paths, quarantines
+
+
+def test_the_deferred_test_of_the_hop_changes_no_result(monkeypatch):
+    """The steady-state hop (a block at the receiver's newest state): most messages leave their
+    test for settle(), a link one failure from quarantine is tested at once, a hostile stretch
+    quarantines a; every step bit for bit the general path's, the estimate read before settle()
+    included, and equal to the estimate after it."""
+    fast, paths, quarantines = hop_run(monkeypatch, general=False)
+    slow, none, slow_quarantines = hop_run(monkeypatch, general=True)
+    assert fast == slow
+    assert none == {"fast": 0, "fallback": 0, "deferred": 0}
+    assert quarantines == slow_quarantines >= 1
+    assert all(now == after for _, _, now, after in fast)
+    assert paths["deferred"] > 100                      # the healthy steady state: deferred
+    assert paths["fast"] > paths["deferred"]            # some tested at once (a link at risk)
+    assert paths["fallback"] >= 1                       # the quarantining message: the general path
 
 
 @settings(max_examples=200, deadline=None)

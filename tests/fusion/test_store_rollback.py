@@ -121,7 +121,11 @@ def test_a_failure_on_the_general_path_restores_every_attribute(monkeypatch, own
     check_failing_receive_is_undone(monkeypatch, b, data, owner, stage, exc)
 
 
-@pytest.mark.parametrize("owner, stage", BOOKKEEPING, ids=[s for _, s in BOOKKEEPING])
+# the deferred consistency test of a steady-state message (its verdict cannot change the belief)
+DEFERRED_TEST = BOOKKEEPING + [(FusionNode, "_deferred_test"), (NeighbourGuard, "judge")]
+
+
+@pytest.mark.parametrize("owner, stage", DEFERRED_TEST, ids=[s for _, s in DEFERRED_TEST])
 @pytest.mark.parametrize("exc", [Injected("injected"), KeyboardInterrupt()], ids=["error", "interrupt"])
 def test_a_failure_of_the_deferred_bookkeeping_restores_every_attribute(monkeypatch, owner, stage, exc):
     b, data = guarded_chain()
@@ -130,7 +134,8 @@ def test_a_failure_of_the_deferred_bookkeeping_restores_every_attribute(monkeypa
     tests = b.guard.links["a"].tests
     assert b.receive(data) == 1
     assert b._pending is not None                # the critical path, with the guard on
-    assert b.guard.links["a"].tests == tests + 1   # the message was tested at once
+    assert b._pending[-1] is not None            # the test left for settle(): no verdict could quarantine a
+    assert b._guard.links["a"].tests == tests    # (not recorded yet; reading b.guard would settle)
     calls: list = []
     with monkeypatch.context() as m:
         inject(m, owner, stage, exc, calls)
@@ -148,9 +153,11 @@ def test_a_failure_of_the_deferred_bookkeeping_restores_every_attribute(monkeypa
                          ids=["would_quarantine", "state", "judge", "add_tested"])
 @pytest.mark.parametrize("exc", [Injected("injected"), KeyboardInterrupt()], ids=["error", "interrupt"])
 def test_a_failure_of_the_guard_on_the_critical_path_restores_every_attribute(monkeypatch, owner, stage, exc):
-    """The test and the verdict run at once on the critical path: a failure there undoes the
-    filter's part and the link's record before anything is left for settle()."""
-    b, data = guarded_chain()
+    """When a failing verdict would complete a quarantine (here k = 1: any failure does) the test
+    and the verdict run at once on the critical path: a failure there undoes the filter's part
+    and the link's record before anything is left for settle()."""
+    b, data = guarded_chain(config=GuardConfig(failures=1, window=10))
+    assert b.guard.may_quarantine("a") and not b.is_quarantined("a")
     check_failing_receive_is_undone(monkeypatch, b, data, owner, stage, exc)
 
 
