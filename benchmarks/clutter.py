@@ -18,7 +18,11 @@ over the Monte Carlo seeds of docs/urus-demo.md (100-107): per node ANEES and RM
 the runs' RMSE), both references, final gaps, quarantines and track losses, and the consistency
 test by sending node: messages tested, failed, and the statistic per degree of freedom.
 
-Usage: python benchmarks/clutter.py [--quick] [--rate 0.3] [--seeds 3] [--all-seeds] [--nodes] [SCENARIO ...]
+``--pf-information quotient|regression``: the WSN nodes' contribution method for every run (default:
+the scenario files' own; only the URUS demo has a WSN node among these scenarios; docs/wsn.md).
+
+Usage: python benchmarks/clutter.py [--quick] [--rate 0.3] [--seeds 3] [--all-seeds] [--nodes]
+                                    [--pf-information M] [SCENARIO ...]
        python benchmarks/clutter.py --urus-mc [--rate R]
 (``--quick``: one seed per scenario.)
 """
@@ -104,6 +108,8 @@ def main(argv=None) -> int:
     p.add_argument("--all-seeds", action="store_true", help="seeds 0.. without the geometric rule")
     p.add_argument("--nodes", action="store_true", help="print every node's RMSE and ANEES")
     p.add_argument("--quick", action="store_true", help="one seed per scenario")
+    p.add_argument("--pf-information", choices=("quotient", "regression"), default=None,
+                   help="the WSN nodes' contribution method (default: the scenario file's)")
     p.add_argument("--urus-mc", action="store_true", help="the URUS demo over seeds 100-107 (docs/urus-demo.md)")
     a = p.parse_args(argv)
     if a.urus_mc:
@@ -123,7 +129,7 @@ def main(argv=None) -> int:
                  else seeds_for(name, a.seeds, not a.all_seeds))
         for seed in seeds:
             t0 = time.perf_counter()
-            runs = {key: run(name, seed, rate, prot)
+            runs = {key: run(name, seed, rate, prot, a.pf_information)
                     for key, rate, prot in (("clean", 0.0, True), ("on", a.rate, True), ("off", a.rate, False))}
             clean = runs["clean"].metrics["nodes"]
             cells = []

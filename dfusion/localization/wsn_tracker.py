@@ -515,7 +515,12 @@ class WSNTracker:
         over the posterior's spread, counted as measurement noise, so the pseudo-measurement
         ``Omega^+ eta`` is honest where the likelihood is far from Gaussian (a direction the
         readings hardly constrain gets little information, not a distant mean). ``Omega``
-        is positive semi-definite by construction.
+        is positive semi-definite by construction. With degenerate weights (effective sample
+        size below 3, the parameters of an affine fit in 2-D, or no spread of the positions in
+        some direction) the slope ``C_hp P^-1`` is rounding noise; the regression's limit for a
+        narrow posterior is used instead, the first-order expansion at the weighted mean:
+        ``A = dh/dp(p_bar)`` (:meth:`mean_rssi_jacobian`), ``b = h(p_bar) - A p_bar``,
+        ``Omega_lin = 0``.
 
         ``method = "quotient"`` (the default): the Gaussian fit of the posterior divided by that of the
         prediction, ``Omega = P_post^-1 - P_pred^-1``, ``eta = P_post^-1 mu_post - P_pred^-1
@@ -561,6 +566,18 @@ class WSNTracker:
         # residual / s = z / s + A0 + B ln d^2 (log_likelihood), so the mean is -s (A0 + B ln d^2)
         return -(self._A0[j] + self._B[j] * np.log(d2)) / self._inv_s[j]
 
+    def mean_rssi_jacobian(self, position: ArrayLike, receivers: ArrayLike) -> Array:
+        """``(k, 2)`` Jacobian of :meth:`mean_rssi` at one ``position`` ``(>= 2,)``:
+        ``-10 n_j / ln 10 (p - r_j)^T / d_j^2`` (zero where the distance is clamped at ``d_min``)."""
+        x = as_vector(np.asarray(position, dtype=float).reshape(-1)[:2], 2, "position")
+        j = np.asarray(receivers, dtype=np.int64).reshape(-1)
+        diff = x - self.receivers[j, :2]
+        d2 = np.einsum("ij,ij->i", diff, diff) + self._dz2[j]
+        # mean = -s (A0 + B ln d^2): d mean / dp = -s B 2 (p - r) / d^2, with s B = 5 n / ln 10
+        g = (-2.0 * self._B[j] / self._inv_s[j]) / d2
+        g[d2 < self._dmin2[j]] = 0.0
+        return g[:, None] * diff
+
     def _regression_information(self) -> InformationGaussian:
         """The ``"regression"`` contribution of :meth:`information_contribution`."""
         x, lw = self._post_snap
@@ -569,14 +586,27 @@ class WSNTracker:
         p = x[:, :2]
         z = np.concatenate([zz for zz, _ in self._pending])
         j = np.concatenate([jj for _, jj in self._pending])
-        h = self.mean_rssi(p, j)                                  # (N, k)
-        pb, hb = w @ p, w @ h
-        dp, dh = p - pb, h - hb
+        R = np.diag(1.0 / self._inv_s[j] ** 2)
+        pb = w @ p
+        dp = p - pb
         P = (dp * w[:, None]).T @ dp
-        Chp = (dh * w[:, None]).T @ dp                            # (k, 2)
-        Chh = (dh * w[:, None]).T @ dh
-        A = np.linalg.solve(P, Chp.T).T                           # C_hp P^-1 (P symmetric)
-        S = np.diag(1.0 / self._inv_s[j] ** 2) + Chh - A @ P @ A.T
+        if 1.0 / float(w @ w) < 3.0 or not np.all(np.linalg.eigvalsh(P) > 1e-12 * max(1.0, float(np.trace(P)))):
+            # Degenerate weights: fewer effective particles than an affine fit in 2-D has
+            # parameters (ESS < 3), or positions with no spread in some direction. The slope
+            # C_hp P^-1 is then rounding noise (weights of 1e-60 next to 1), and it is undefined
+            # for a point mass; its limit for a narrow posterior is the first-order Taylor
+            # expansion at the weighted mean: A = dh/dp(p_bar), b = h(p_bar) - A p_bar, Omega_lin = 0.
+            A = self.mean_rssi_jacobian(pb, j)
+            hb = self.mean_rssi(pb[None], j)[0]
+            S = R
+        else:
+            h = self.mean_rssi(p, j)                              # (N, k)
+            hb = w @ h
+            dh = h - hb
+            Chp = (dh * w[:, None]).T @ dp                        # (k, 2)
+            Chh = (dh * w[:, None]).T @ dh
+            A = np.linalg.solve(P, Chp.T).T                       # C_hp P^-1 (P symmetric)
+            S = R + Chh - A @ P @ A.T
         Lc = cholesky(symmetrize(S), "covariance of the RSSI regression's readings")
         G = np.linalg.solve(Lc, A)                                # L^-1 A
         r = np.linalg.solve(Lc, z - hb + A @ pb)                  # L^-1 (z - b)

@@ -554,6 +554,105 @@ def test_regression_information_is_an_honest_measurement():
     assert big <= 2
 
 
+class _LinearRSSI(WSNTracker):
+    """A tracker whose readings are exactly linear in the position, ``z_j = H_j p + c_j + e_j``,
+    ``e_j ~ N(0, sd_j^2)``: the case in which the regression must be the Kalman measurement
+    information whatever the particles."""
+
+    Hl = np.array([[2.0, -1.0], [0.5, 3.0], [-1.5, 0.7]])
+    c = np.array([-60.0, -55.0, -70.0])
+    sd = np.array([2.0, 3.0, 4.0])
+
+    def __init__(self, n, seed):
+        sensors = [RSSISensor(np.array([[0.0, 0.0, 2.0]]), -50.0, 2.0, sd, height=1.0) for sd in self.sd]
+        super().__init__(sensors, n, bounds=[-5, -5, 5, 5], seed=seed, ess_threshold=0.0)
+
+    def mean_rssi(self, positions, receivers):
+        j = np.asarray(receivers)
+        return np.asarray(positions)[:, :2] @ self.Hl[j].T + self.c[j]
+
+    def mean_rssi_jacobian(self, position, receivers):
+        return self.Hl[np.asarray(receivers)]
+
+    def log_likelihood(self, rssi, receivers=None, particles=None):
+        z = np.asarray(rssi, dtype=float)
+        x = self.particles if particles is None else particles
+        r = (z - self.mean_rssi(x, np.arange(3))) / self.sd
+        return -0.5 * np.sum(r * r, axis=1)
+
+
+def test_regression_information_is_the_kalman_information_for_a_linear_measurement():
+    # Closed form: for z = H p + c + e, e ~ N(0, R), the information of the readings is
+    # H^T R^-1 H and H^T R^-1 (z - c) (the EIF/Kalman measurement update), exactly, for any
+    # particle set: the regression of an affine h has A = H and no linearization error. Checked
+    # for well-spread weights and for weights so degenerate that the Taylor fallback is taken.
+    z = np.array([-58.0, -52.0, -71.0])
+    Ri = np.diag(1.0 / _LinearRSSI.sd ** 2)
+    for scale, degenerate in ((1.0, False), (100.0, True)):
+        t = _LinearRSSI(3000, seed=3)
+        t.initialize()   # uniform over 10 m x 10 m: far from Gaussian
+        t.predict(0.5)
+        t.update(0.5, scale * (z - _LinearRSSI.c) + _LinearRSSI.c)
+        assert (t.pf.ess < 3) == degenerate
+        zz = scale * (z - _LinearRSSI.c) + _LinearRSSI.c
+        info = t.information_contribution(method="regression")
+        np.testing.assert_allclose(info.Omega, _LinearRSSI.Hl.T @ Ri @ _LinearRSSI.Hl, rtol=1e-9)
+        np.testing.assert_allclose(info.eta, _LinearRSSI.Hl.T @ Ri @ (zz - _LinearRSSI.c), rtol=1e-9)
+
+
+def test_regression_information_tends_to_the_linearized_update_for_a_narrow_posterior():
+    # Reference: the EIF update linearized at the posterior mean with the sensor's own h and H
+    # (posterior linearization). A noisy reading (the quotient follows the observed curvature
+    # of the likelihood there, the regression does not). The difference left is the curvature of
+    # h over the posterior's spread (0.1-0.15 m): 3-4 % measured, independent of N.
+    s = field(std=3.0)
+    mean = np.array([4.0, 6.0])
+    t = WSNTracker(s, 20_000, bounds=[0, 0, 12, 10], seed=21, ess_threshold=0.0)
+    t.initialize(mean=mean, cov=np.diag([0.15, 0.1]) ** 2)
+    t.predict(t.time + 0.0)
+    z = s.h(mean) + 3.0 * np.random.default_rng(21).standard_normal(12)
+    t.update(t.time, z)
+    info = t.information_contribution(method="regression")
+    pm = t.weights @ t.particles[:, :2]
+    H, Rinv = s.H(pm), np.linalg.inv(s.R)
+    Om, eta = H.T @ Rinv @ H, H.T @ Rinv @ (z - s.h(pm) + H @ pm)
+    assert np.linalg.norm(info.Omega - Om) / np.linalg.norm(Om) < 0.06
+    assert np.linalg.norm(info.eta - eta) / np.linalg.norm(eta) < 0.03
+
+
+def test_regression_information_with_degenerate_weights_is_the_linearized_update():
+    # 50 particles and 0.3 dB readings: one particle carries the posterior (ESS 1; the next
+    # weights are 1e-63 and smaller, or exactly 0). The weighted regression would divide rounding
+    # noise by rounding noise (an eigenvalue of 2e5 m^-2 where the Fisher information is 300-440)
+    # or a zero covariance by itself; the fallback is the first-order expansion at the weighted
+    # mean, checked against the sensor's own h and H.
+    for std in (0.3, 0.01):
+        s = field(std=std)
+        t = WSNTracker(s, 50, bounds=[0, 0, 12, 10], seed=0, ess_threshold=0.0)
+        t.initialize()
+        t.predict(0.1)
+        z = s.h(np.array([5.0, 5.0]))
+        t.update(0.1, z)
+        assert t.pf.ess < 1.0 + 1e-9
+        info = t.information_contribution(method="regression")
+        pm = t.weights @ t.particles[:, :2]
+        H, Rinv = s.H(pm), np.linalg.inv(s.R)
+        np.testing.assert_allclose(info.Omega, H.T @ Rinv @ H, rtol=1e-8)
+        np.testing.assert_allclose(info.eta, H.T @ Rinv @ (z - s.h(pm) + H @ pm), rtol=1e-8)
+    # the Jacobian against the sensor's H and central differences (a point under a receiver: clamped)
+    s = RSSISensor(RECEIVERS, p0=-55.0, exponent=2.2, std=3.0, height=2.0, d_min=0.5)
+    t = WSNTracker(s, 10, bounds=[0, 0, 12, 10], seed=0)
+    j = np.arange(12)
+    for p in (np.array([4.2, 7.3]), RECEIVERS[4, :2] + 0.1):
+        J = t.mean_rssi_jacobian(p, j)
+        np.testing.assert_allclose(J, s.H(p), rtol=1e-10, atol=1e-12)
+        e = 1e-6
+        fd = np.column_stack([(t.mean_rssi((p + e * u)[None], j)[0] - t.mean_rssi((p - e * u)[None], j)[0]) / (2 * e)
+                              for u in np.eye(2)])
+        np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-6)
+    assert np.all(t.mean_rssi_jacobian(RECEIVERS[4, :2] + 0.1, [4]) == 0.0)
+
+
 def test_project_psd_information():
     V = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
     Om = V @ np.diag([2.0, -0.5]) @ V.T
