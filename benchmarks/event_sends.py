@@ -12,7 +12,7 @@ consistency test's failures and quarantines.
 Goal (issue 16): every node's RMSE within 1.2 times the centralized EKF's.
 
 Usage: python benchmarks/event_sends.py [--seeds 27 28 29 30 31] [--min-send-interval S] [--quick] [--strict]
-(``--quick``: 20 s of one seed). Two runs at a time (2 processes); about 20 s per run.
+(``--quick``: 20 s of one seed). Two runs at a time (2 processes); about 30 s per run (120 s scenario).
 """
 from __future__ import annotations
 

@@ -242,3 +242,41 @@ def test_urus_mobile_covers_the_robots_routes_so_they_hand_over_and_are_never_al
             downs += len(prev - radio)
         prev = radio
     assert downs >= 10
+
+
+def test_urus_mobile_person_starts_in_a_fixed_cameras_view():
+    """The URUS-style scenario starts the person inside the covered area (docs/dynamic-topology.md,
+    "Margin on every seed"): the prior's mean and its whole 3-sigma circle project into cam_w's
+    640 x 480 image. Checked by a pinhole projection written here from the TOML (camera axis
+    towards look_at on the ground, image x to the right, image y down; Hartley & Zisserman),
+    not by the scenario's camera model; robot1 starts 5.5 m behind the mean at its pace."""
+    import tomllib
+
+    raw = tomllib.loads((ROOT / "topologies" / "urus-mobile.scenario.toml").read_text())
+    cam = next(n for n in raw["nodes"] if n["name"] == "cam_w")
+    C = np.array(cam["position"], dtype=float)
+    look = np.array([*cam["look_at"], 0.0])
+    z = (look - C) / np.linalg.norm(look - C)            # optical axis
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)                               # image right (horizontal)
+    y = np.cross(z, x)                                   # image down
+    f, w, h = cam["fx"], cam.get("width", 640), cam.get("height", 480)
+
+    def in_image(px: float, py: float) -> bool:
+        d = np.array([px, py, 0.0]) - C
+        pc = np.array([d @ x, d @ y, d @ z])
+        if pc[2] <= 0:
+            return False
+        u, v = f * pc[0] / pc[2] + w / 2, f * pc[1] / pc[2] + h / 2
+        return 0 <= u <= w and 0 <= v <= h
+
+    mean = raw["target"]["initial_mean"]
+    sd = np.sqrt(raw["target"]["initial_cov_diag"][:2])
+    circle = [(mean[0] + 3 * sd[0] * math.cos(a), mean[1] + 3 * sd[1] * math.sin(a))
+              for a in np.linspace(0, 2 * math.pi, 36, endpoint=False)]
+    assert all(in_image(px, py) for px, py in [tuple(mean[:2])] + circle)
+    # a point well outside the view is refused (the projection is not vacuous)
+    assert not in_image(mean[0] - 6.0, mean[1])
+    robot1 = next(n for n in raw["nodes"] if n["name"] == "robot1")
+    assert math.dist(robot1["path"][0], mean[:2]) == pytest.approx(5.5)
+    assert robot1["speed"] == pytest.approx(math.hypot(mean[2], mean[3]))
