@@ -33,7 +33,6 @@ them in two processes.)
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -47,14 +46,9 @@ METHODS = ("quotient", "regression")
 PF_STRIDE = 7919
 
 
-def _helpers():
-    spec = importlib.util.spec_from_file_location("clutter_helpers", ROOT / "tests" / "helpers" / "clutter.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-H = _helpers()
+# tests/helpers/clutter.py, as benchmarks/clutter.py loads it (by path)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from clutter import H
 
 
 def one_run(seed: int, pf_seed: int, rate: float, method: str):
@@ -124,8 +118,8 @@ def ess_table() -> None:
                 t.predict(0.0)
                 t.update(0.0, z)
                 info = t.information_contribution(method="regression")
-                H = s.H(truth)
-                ratio.append(np.trace(info.Omega) / np.trace(H.T @ H / std ** 2))
+                jac = s.H(truth)
+                ratio.append(np.trace(info.Omega) / np.trace(jac.T @ jac / std ** 2))
                 ess.append(t.pf.ess)
                 e = np.linalg.solve(info.Omega, info.eta) - truth
                 ne.append(e @ info.Omega @ e / 2.0)

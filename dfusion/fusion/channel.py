@@ -554,7 +554,7 @@ class ChannelFilter:
         (the resend backoff: ``docs/fusion.md``)."""
         if self.acked < 0:
             return True
-        return self.seq_out - 1 - self.acked > self.ack_lag and self.seq_out - self.acked_at > self.ack_lag
+        return self.lag() > self.ack_lag and self.seq_out - self.acked_at > self.ack_lag
 
     def lag(self) -> int:
         """Messages sent since the newest acknowledged one (all of them while none was
