@@ -2,7 +2,7 @@ r"""Straight-line Python kernels of the forward pass for small states (the scala
 
 The forward pass of :class:`dfusion.estimation.trajectory.TrajectoryInformation` on one state is
 a chain of some fifteen numpy calls on ``n x n`` blocks; on a 4 x 4 block each call costs
-1-3 us of overhead for well under 1 us of arithmetic. For a small state (``n <= MAX_N``)
+1-3 us of overhead for well under 1 us of arithmetic. For a small state (``n <= MAX_N``, 4)
 the same arithmetic is done here on Python floats, in code generated once per ``n`` with
 every loop unrolled (no numpy call inside; measured on 4 states: 14.6 against 42 us for
 the fold with the conversions to and from arrays, ``benchmarks/hop_cpu.py``).
@@ -35,9 +35,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-#: Largest state dimension given the scalar path (measured: the fold of 6 states costs about
-#: as much on floats as in numpy, of 5 states less; ``docs/zenoh.md``).
-MAX_N = 5
+#: Largest state dimension given the scalar path. Measured (micro-benchmark, three runs on a
+#: shared 2-core VM; the fold with its conversions, us): 2 states 4-7 against 25-41 in numpy,
+#: 4 states 15-19 against 24-51, 5 states 22-26 against 25-40, 6 states 24-40 against 25-40:
+#: from 5 states on the gain is within the noise (``docs/zenoh.md``).
+MAX_N = 4
 
 _PREDICT: dict[int, Callable] = {}
 _FOLD: dict[int, Callable] = {}

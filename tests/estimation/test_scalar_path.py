@@ -67,7 +67,7 @@ def rel(a: np.ndarray, b: np.ndarray) -> float:
 EPS = np.finfo(float).eps
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("n", range(1, scalar.MAX_N + 1))
 @pytest.mark.parametrize("cond", [1.0, 1e4, 1e8])
 @pytest.mark.parametrize("spread", [0.0, 1.0, 3.0])
 def test_fold_agrees_with_the_numpy_path_and_exact_arithmetic(n, cond, spread):
@@ -100,7 +100,7 @@ def test_fold_agrees_with_the_numpy_path_and_exact_arithmetic(n, cond, spread):
     assert worst_sc <= 10 * worst_gen + 1e-14   # no further from the exact result than LAPACK
 
 
-@pytest.mark.parametrize("n", [1, 2, 4, 5])
+@pytest.mark.parametrize("n", range(1, scalar.MAX_N + 1))
 def test_predict_kernel_agrees_with_numpy(n):
     rng = np.random.default_rng(n)
     predict = scalar.predict_kernel(n)
@@ -162,7 +162,7 @@ def bad_inputs(n: int):
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")   # (the numpy path's matmul on NaN, as before)
-@pytest.mark.parametrize("n", [1, 4, 5])
+@pytest.mark.parametrize("n", [1, 2, scalar.MAX_N])
 def test_bad_information_is_refused_as_by_the_numpy_path(n):
     mp, Pp = np.ones(n), np.eye(n)
     for i, (L, y) in enumerate(bad_inputs(n)):
@@ -249,3 +249,6 @@ def test_a_guarded_hop_gives_the_numpy_paths_results(monkeypatch):
     assert f_sum == g_sum and g_sum["tests"] > 70   # the same tests, failures and quarantines
     for eg, ef in zip(general, fast):
         assert rel(ef[0], eg[0]) < 1e-12 and rel(ef[1], eg[1]) < 1e-12
+    n = scalar.MAX_N + 1   # a larger state takes the numpy path
+    assert not TrajectoryInformation(np.zeros(n), np.eye(n))._scalar
+    assert TrajectoryInformation(np.zeros(n - 1), np.eye(n - 1))._scalar
