@@ -58,6 +58,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from dfusion.errors import NotPositiveDefiniteError
+from dfusion.estimation.scalar import MAX_N as _SCALAR_MAX_N
+from dfusion.estimation.scalar import fold_kernel, predict_kernel
 from dfusion.linalg import Array, symmetrize
 
 # numpy.linalg's compiled kernels called directly: the same LAPACK routines as
@@ -155,6 +157,9 @@ class TrajectoryInformation:
         self._cache: list[_Filtered] = []
         self._kept: _Filtered | None = None   # prediction of state len(_cache), if still valid
         self._diag = np.diag_indices(self.n)
+        # the scalar path of a small state (dfusion.estimation.scalar): the forward pass on floats
+        # (the kernels are looked up, not kept: an instance stays picklable)
+        self._scalar = self.n <= _SCALAR_MAX_N
 
     def __len__(self) -> int:
         return len(self.L)
@@ -242,23 +247,41 @@ class TrajectoryInformation:
             else:
                 prev = cache[k - 1]
                 f = self.factors[k - 1]
-                mp = f.F @ prev.mean + f.c
-                Pp = symmetrize(f.F @ prev.cov @ f.F.T + f.Q)
-                cache.append(self._filtered(k, mp, Pp))
+                if self._scalar:   # (the same prediction on floats; the filtered terms from it)
+                    mp, Pp = predict_kernel(self.n)(f.F.tolist(), f.Q.tolist(), f.c.tolist(),
+                                                    prev.mean.tolist(), prev.cov.tolist())
+                    cache.append(self._filtered(k, np.array(mp), np.array(Pp), mp, Pp))
+                else:
+                    mp = f.F @ prev.mean + f.c
+                    Pp = symmetrize(f.F @ prev.cov @ f.F.T + f.Q)
+                    cache.append(self._filtered(k, mp, Pp))
             k += 1
 
-    def _filtered(self, k: int, mp: Array, Pp: Array) -> _Filtered:
+    def _filtered(self, k: int, mp: Array, Pp: Array, mp_list: list | None = None,
+                  Pp_list: list | None = None) -> _Filtered:
         """Fold the single-state information of ``x_k`` into its prediction ``N(mp, Pp)``.
 
         ``A = (P^-)^-1 + L``: ``P = A^-1 = (I + P^- L)^-1 P^-`` and
         ``mu = P ((P^-)^-1 mu^- + y) = (I + P^- L)^-1 (mu^- + P^- y)``, one LU solve
         with ``n + 1`` right-hand sides. ``I + P^- L`` is invertible: it is similar
         to ``I + (P^-)^1/2 L (P^-)^1/2``, which is positive definite.
+
+        A small state takes the scalar path (:func:`dfusion.estimation.scalar.fold_kernel`: the
+        same algorithm on floats; ``mp_list``, ``Pp_list``: the prediction as lists, if the
+        caller has them); when it finds the result unusable the numpy path below decides.
         """
         Lk, yk = self.L[k], self.y[k]
         # (tests on Python lists: a numpy reduction costs more than the 4 x 4 arithmetic; the same
         # decisions, NaN counting as non-zero and non-finite)
-        if not any(Lk.ravel().tolist()) and not any(yk.tolist()):
+        if self._scalar:
+            Ll, yl = Lk.tolist(), yk.tolist()
+            if not any(map(any, Ll)) and not any(yl):
+                return _Filtered(mp, Pp, mp, Pp)
+            done = fold_kernel(self.n)(Pp.tolist() if Pp_list is None else Pp_list, Ll,
+                                       mp.tolist() if mp_list is None else mp_list, yl)
+            if done is not None:
+                return _Filtered(np.array(done[0]), np.array(done[1]), mp, Pp)
+        elif not any(Lk.ravel().tolist()) and not any(yk.tolist()):
             return _Filtered(mp, Pp, mp, Pp)
         n = self.n
         M = Pp @ Lk
