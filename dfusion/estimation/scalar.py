@@ -32,6 +32,7 @@ nested lists (``ndarray.tolist()``); results are lists.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -41,8 +42,6 @@ from collections.abc import Callable
 #: from 5 states on the gain is within the noise (``docs/zenoh.md``).
 MAX_N = 4
 
-_PREDICT: dict[int, Callable] = {}
-_FOLD: dict[int, Callable] = {}
 _GLOBALS = {"_sqrt": math.sqrt, "_isfinite": math.isfinite}
 
 
@@ -123,27 +122,24 @@ def fold_source(n: int) -> str:
     return "\n".join(out)
 
 
-def _compile(source: str, name: str, n: int) -> Callable:
+def _compile(name: str, n: int) -> Callable:
+    """The function ``name`` (``"predict"`` or ``"fold"``) for an ``n``-state, compiled from its
+    generated source; ``1 <= n <= MAX_N``."""
+    if not 1 <= n <= MAX_N:
+        raise ValueError(f"the scalar path takes 1 to {MAX_N} states, not {n}")
+    source = predict_source(n) if name == "predict" else fold_source(n)
     space = dict(_GLOBALS)
     exec(compile(source, f"<dfusion.estimation.scalar.{name}{n}>", "exec"), space)   # noqa: S102 - generated above
     return space[name]
 
 
+@functools.cache
 def predict_kernel(n: int) -> Callable:
     """The compiled :func:`predict_source` for ``1 <= n <= MAX_N`` (compiled once, then cached)."""
-    k = _PREDICT.get(n)
-    if k is None:
-        if not 1 <= n <= MAX_N:
-            raise ValueError(f"the scalar path takes 1 to {MAX_N} states, not {n}")
-        k = _PREDICT[n] = _compile(predict_source(n), "predict", n)
-    return k
+    return _compile("predict", n)
 
 
+@functools.cache
 def fold_kernel(n: int) -> Callable:
     """The compiled :func:`fold_source` for ``1 <= n <= MAX_N`` (compiled once, then cached)."""
-    k = _FOLD.get(n)
-    if k is None:
-        if not 1 <= n <= MAX_N:
-            raise ValueError(f"the scalar path takes 1 to {MAX_N} states, not {n}")
-        k = _FOLD[n] = _compile(fold_source(n), "fold", n)
-    return k
+    return _compile("fold", n)
