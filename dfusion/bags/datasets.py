@@ -96,15 +96,23 @@ def mrclam_from_bag(
     duration : keep messages up to this many seconds after the first stamp
     msgdefs : message definitions for a bag that stores none (:func:`~dfusion.bags.read_bag`)
 
-    Only these topics are read. Ground truth is any of
+    Only these topics are read; a robot without a sightings topic saw nothing (logged;
+    none for every robot is refused). Ground truth is any of
     :data:`~dfusion.bags.convert.POSE_TYPES`.
 
     Times are relative to the earliest stamp read (``t0``, in seconds, as the reader's).
     """
     pat = {**MRCLAM_TOPICS, **(topics or {})}
     if not isinstance(bag, Bag):
-        need = [pat[k].format(n=n) for n in robots for k in ("odometry", "sightings")]
-        bag = read_bag(bag, need, optional=[pat["ground_truth"].format(n=n) for n in robots], msgdefs=msgdefs)
+        bag = read_bag(bag, [pat["odometry"].format(n=n) for n in robots],
+                       optional=[pat[k].format(n=n) for n in robots for k in ("sightings", "ground_truth")],
+                       msgdefs=msgdefs)
+    no_sightings = [n for n in robots if pat["sightings"].format(n=n) not in bag.topics]
+    if len(no_sightings) == len(robots):
+        raise ValidationError(f"{bag.path}: no sightings topic {pat['sightings']!r} of any robot "
+                              f"(topics: {sorted(bag.topics)})")
+    if no_sightings:
+        log.warning("%s: robots %s have no %s topic: no sightings", bag.path, no_sightings, pat["sightings"])
     t0_ns = min((m.stamp_ns for m in bag.messages
                  if any(m.topic == pat[k].format(n=n) for k in pat for n in robots)), default=None)
     if t0_ns is None:
@@ -120,7 +128,7 @@ def mrclam_from_bag(
                 od_t.append(t)
                 od.append(_velocity(convert(m.msgtype, m.msg, t)))
         me_t, subj, rng, brg = [], [], [], []
-        for m in bag.on(sig_topic):
+        for m in (bag.on(sig_topic) if sig_topic in bag.topics else []):
             t = bag.seconds(m.stamp_ns, t0_ns)
             if not keep(t):
                 continue
