@@ -262,14 +262,12 @@ def test_replay_refuses_a_message_type_that_does_not_fit_the_node(chain_world, t
         world_from_bag(sc, bag, [TopicInput("/a/scan", "a")])
 
 
-def test_replay_without_truth_draws_no_nan_and_records_in_the_bags_time(chain_world, tmp_path, capsys, monkeypatch):
+def test_replay_without_truth_draws_no_nan_and_shows_progress_when_piped(chain_world, tmp_path, capsys, monkeypatch):
     """Issue 25: without a truth the table says 'unknown' (not nan) and the top-down figure
-    is drawn (it crashed on NaN axis limits); --plot, which needs a truth, is refused; the
-    MCAP recording lies on the bag's time line (it started at 0); a piped run prints
-    progress lines (it printed nothing until the end)."""
+    is drawn (it crashed on NaN axis limits); --plot, which needs a truth, is refused; a
+    piped run prints progress lines (it printed nothing until the end)."""
     import dfusion.sim.runner as runner
     from dfusion.cli import main
-    from mcap.reader import make_reader
 
     sc, world = chain_world
     bag = _write(tmp_path, world, {nm: "point" for nm in sc.nodes})
@@ -277,13 +275,44 @@ def test_replay_without_truth_draws_no_nan_and_records_in_the_bags_time(chain_wo
     assert code == 2 and "--plot draws errors against the truth: give --truth" in capsys.readouterr().err
     monkeypatch.setattr(runner, "PROGRESS_INTERVAL", 0.0)
     out = tmp_path / "out"
-    code = main(["replay", SCENARIO, str(bag), "--duration", "6", *TOPICS, "--origin-ns", str(ORIGIN),
-                 "--topdown", str(out / "t.png"), "--mcap", str(out / "r.mcap")])
+    code = main(["replay", SCENARIO, str(bag), "--duration", "6", *TOPICS, "--topdown", str(out / "t.png")])
     cap = capsys.readouterr()
     assert code == 0 and "nan" not in cap.out.lower() and "unknown" in cap.out
     assert f"progress: {sc.steps}/{sc.steps} steps (100 %)" in cap.err and cap.err.count("progress: ") == sc.steps
     assert (out / "t.png").stat().st_size > 10_000
-    with (out / "r.mcap").open("rb") as fh:
-        log_ns = [msg.log_time for _, _, msg in make_reader(fh).iter_messages(topics=["/nodes/a/estimate"])]
+
+
+def test_replay_records_the_mcap_in_the_bags_time_with_ros_diagnostics(tmp_path):
+    """Issue 25: the recording of a replay was stamped in scenario time from 0, so it could
+    not be overlaid on its bag; its /diagnostics were a foxglove.Log. Log times and stamps
+    are now the bag's header stamps, and /diagnostics decode with rosbags as
+    diagnostic_msgs/msg/DiagnosticArray."""
+    from mcap.reader import make_reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from dfusion.cli import main
+
+    sc = load_scenario(SCENARIO, duration=21.0)   # a link goes down at 20 s: a diagnostic
+    world = simulate_world(sc)
+    bag = _write(tmp_path, world, {nm: "point" for nm in sc.nodes})
+    out = tmp_path / "r.mcap"
+    assert main(["replay", SCENARIO, str(bag), "--duration", "21", *TOPICS, "--truth", "/truth", "--arrival",
+                 "record", "--mcap", str(out), "-q"]) == 0
+    ros2 = get_typestore(Stores.ROS2_HUMBLE)
+    est, diag = [], []
+    with out.open("rb") as fh:
+        for schema, ch, msg in make_reader(fh).iter_messages(topics=["/nodes/a/estimate", "/diagnostics"]):
+            if ch.topic == "/diagnostics":
+                assert (schema.name, schema.encoding, ch.message_encoding) == (
+                    "diagnostic_msgs/msg/DiagnosticArray", "ros2msg", "cdr")
+                diag.append((msg.log_time, ros2.deserialize_cdr(msg.data, schema.name)))
+            else:
+                est.append(msg.log_time)
     ref = run_scenario(sc, world=world)
-    assert log_ns == [ORIGIN + int(round(t * 1e9)) for t in ref.times]
+    origin = ORIGIN   # the truth's first stamp, at t = 0: the earliest of the topics read
+    assert est == [origin + int(round(t * 1e9)) for t in ref.times]
+    [(log_time, d)] = diag
+    assert log_time == origin + 20 * 10**9 and d.status[0].level == 1 and " down " in d.status[0].message
+    for log_time, d in diag:
+        assert d.header.stamp.sec * 10**9 + d.header.stamp.nanosec == log_time >= origin
+        assert d.status[0].name.startswith("dfusion/") and d.status[0].level in (0, 1)
