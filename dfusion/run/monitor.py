@@ -50,7 +50,7 @@ from dfusion.sim.links import LinkChange
 from dfusion.scenario.build import build_front_ends
 from dfusion.sim.runner import NodeOutput, References, SimulationResult, compute_metrics, frames
 from dfusion.sim.world import simulate_world
-from dfusion.transport.base import TransportStats
+from dfusion.transport.base import LineBudget, TransportStats
 from dfusion.wire import FrameKey
 from dfusion.transport.zenoh import (
     ZenohConfig,
@@ -157,6 +157,8 @@ class Monitor:
                       self.max_status_bytes, "peak_bytes": 0, "shed": 0, "shed_bytes": 0,
                       "oversized": 0, "oversized_bytes": 0}
         self._alive_events: deque = deque()
+        #: at most one line per node's loss, and one per return, a second (``log_budget.held_back``: the rest)
+        self.log_budget = LineBudget()
         self._session = open_session(config or ZenohConfig())
         try:
             self._session.declare_subscriber(monitor_key(network), self._on_sample)
@@ -225,9 +227,13 @@ class Monitor:
             up = kind == zenoh.SampleKind.PUT
             if rec.alive and not up and rec.final is None:
                 rec.losses += 1
-                log.warning("monitor: node %s lost", name)
+                write, held = self.log_budget.allow(f"{name}:lost")
+                if write:
+                    log.warning("monitor: node %s lost%s", name, LineBudget.suffix(held))
             elif up and not rec.alive and rec.losses:
-                log.info("monitor: node %s is back", name)
+                write, held = self.log_budget.allow(f"{name}:back")
+                if write:
+                    log.info("monitor: node %s is back%s", name, LineBudget.suffix(held))
             rec.alive = up
         count = 0
         self._rejection_log.tick()
@@ -478,6 +484,8 @@ def build_result(
             "receive_queue_shed": total.get("receive_queue_shed", 0),
             "receive_queue_shed_bytes": total.get("receive_queue_shed_bytes", 0),
             "receive_queue_peak_bytes": max((s.get("receive_queue_peak_bytes", 0) for s in per_epoch), default=0),
+            # liveliness log lines held back (at most one per neighbour's loss, one per return, a second)
+            "log_lines_held_back": total.get("log_lines_held_back", 0),
         }
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
                               events=measurement_events(world, times, lost),

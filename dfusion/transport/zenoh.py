@@ -42,10 +42,12 @@ Pitfalls handled here (measured in this project; ``docs/background.md#7-zenoh-wh
   protocol tolerates that (the next message carries the same window).
 
 Liveliness: each local node declares ``dfusion/NET/alive/<name>``; one
-liveliness subscriber (``history=True``) follows every node's token. Loss of a
+liveliness subscriber (``history=True``) follows the local nodes' and their neighbours'
+tokens (other names are ignored as they arrive). Loss of a
 neighbour is logged with ``logging.warning`` (``info`` once
 :attr:`ZenohTransport.quiet_loss` is set, e.g. at a normal end of run), its
-return with ``info``, and both are exposed through :meth:`ZenohTransport.alive`
+return with ``info``, at most one line of each per neighbour a second
+(:class:`~dfusion.transport.base.LineBudget`), and both are exposed through :meth:`ZenohTransport.alive`
 and callbacks registered with :meth:`ZenohTransport.on_liveliness` (called in
 the thread that calls :meth:`ZenohTransport.receive` or :meth:`ZenohTransport.poll`, never in Zenoh's).
 """
@@ -68,6 +70,7 @@ import zenoh
 from dfusion.errors import MessageError, ValidationError
 from dfusion.transport.base import (
     Delivery,
+    LineBudget,
     LinkKey,
     StatsReport,
     Transport,
@@ -396,6 +399,8 @@ class ZenohTransport(Transport):
         #: the names whose liveliness is followed: the local nodes and their neighbours
         self._followed = frozenset(self.neighbors) | {nb for nbs in self.neighbors.values() for nb in nbs}
         self._alive_events: deque[tuple[str, bool]] = deque()
+        #: at most one log line per neighbour's loss, one per return (and its first appearance) a second (``log_budget.held_back``: the rest)
+        self.log_budget = LineBudget()
         self._callbacks: list[Callable[[str, bool], None]] = []
         self._publishers: dict[LinkKey, Any] = {}
         self._declared: list[Any] = []
@@ -609,12 +614,15 @@ class ZenohTransport(Transport):
                 continue
             changes.append((name, up))
             mine = [n for n, nb in self.neighbors.items() if name in nb]
-            if mine:
+            what = ("back" if was is False else "up") if up else "lost"
+            write, held = self.log_budget.allow(f"{name}:{what}") if mine else (False, 0)
+            if write:
                 if up:
-                    log.info("%s: neighbour %s is %s", ",".join(mine), name, "back" if was is False else "up")
+                    log.info("%s: neighbour %s is %s%s", ",".join(mine), name, what, LineBudget.suffix(held))
                 else:
                     level = logging.INFO if self.quiet_loss else logging.WARNING
-                    log.log(level, "%s: neighbour %s lost (liveliness token gone)", ",".join(mine), name)
+                    log.log(level, "%s: neighbour %s lost (liveliness token gone)%s", ",".join(mine), name,
+                            LineBudget.suffix(held))
             for cb in list(self._callbacks):
                 try:
                     cb(name, up)

@@ -355,3 +355,17 @@ def test_receive_queue_is_bounded_in_bytes(monkeypatch):
         got = b.receive("b")
         assert [int.from_bytes(d.data[:4], "little") for d in got] == list(range(15, 20))
         assert b.stats.links[("a", "b")].dropped == 15 and b.queue_report("b")["queued_bytes"] == 0
+
+
+def test_line_budget_holds_back_a_flapping_name_and_says_so():
+    from dfusion.transport.base import LineBudget
+
+    now = [0.0]
+    budget = LineBudget(1.0, clock=lambda: now[0])
+    assert budget.allow("b:lost") == (True, 0) and budget.allow("b:back") == (True, 0)   # a loss and a return
+    for _ in range(50):   # a flapping token: 50 more losses within the second
+        now[0] += 0.01
+        assert budget.allow("b:lost") == (False, 0)
+    now[0] = 1.5
+    assert budget.allow("b:lost") == (True, 50) and budget.held_back == 50
+    assert LineBudget.suffix(50) == " (50 earlier changes not logged)" and LineBudget.suffix(0) == ""
