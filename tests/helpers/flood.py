@@ -63,18 +63,13 @@ def run_with_flood(scenario: Path, run_dir: Path, *, size: int, flood_s: float, 
     """``dfusion run SCENARIO`` as a process; once the run has started, ``flooders`` processes publish
     ``size``-byte payloads at its monitor for ``flood_s`` seconds; returns the run's JSON metrics and
     the launcher's memory. The scenario must last longer than the flood."""
+    from tests.run.test_processes import start_cli_run
+
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     out = run_dir.parent / f"{run_dir.name}.json"
-    launcher = subprocess.Popen([sys.executable, "-m", "dfusion.cli", "run", str(scenario), "--run-dir", str(run_dir),
-                                 "--json", str(out), "--speed", repr(speed), "--quiet"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    launcher = start_cli_run(scenario, run_dir, timeout, ("--json", str(out), "--speed", repr(speed)))
     procs: list[subprocess.Popen] = []
     try:
-        deadline = time.monotonic() + timeout
-        while not (run_dir / "start").exists():
-            assert launcher.poll() is None, launcher.communicate()
-            assert time.monotonic() < deadline, "the run never started"
-            time.sleep(0.05)
         info = json.loads((run_dir / "run.json").read_text())
         key = f"dfusion/{info['network']}/monitor/{node}"
         before = rss_mb(launcher.pid)[0]
