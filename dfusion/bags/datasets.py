@@ -183,7 +183,13 @@ def carmen_from_bag(
         need = [scan_topic] + [t for t in (scan_pose_topic,) if t is not None]
         if scan_pose_topic is None and odom_topic is not None:
             need.append(odom_topic)
-        bag = read_bag(bag, need, optional=[t for t in (odom_topic, tf_topic) if t], msgdefs=msgdefs)
+        try:
+            bag = read_bag(bag, need, optional=[t for t in (odom_topic, tf_topic) if t], msgdefs=msgdefs)
+        except ValidationError as exc:
+            if scan_pose_topic is not None and f"no topic {scan_pose_topic!r}" in str(exc):
+                raise ValidationError(f"{exc}; name the scans' pose topic (--pose-topic), or take odometry poses, "
+                                      f"which are no ground truth (--pose-topic none)") from None
+            raise
     out = CarmenLog()
     odom_t, odom, vel = [], [], []
     child = ""

@@ -157,6 +157,8 @@ def test_examples_take_topic_options_and_fold_the_laser_mount_in_from_tf(carmen_
     args = ex.build_parser().parse_args(["--bag", str(bag), "--scan-topic", "/base_scan", "--pose-topic", "/amcl_pose"])
     got = ex.load_log(args)
     assert len(got.scans) == SCANS
+    with pytest.raises(ValidationError, match=r"no topic '/scan_pose'.*\(--pose-topic none\)"):
+        ex.load_log(ex.build_parser().parse_args(["--bag", str(bag), "--scan-topic", "/base_scan"]))
     for s, r in zip(got.scans, carmen_log.scans):
         np.testing.assert_allclose(wrap_angle(s.laser_pose - r.laser_pose), 0.0, atol=1e-9)
         assert np.max(np.abs(s.odom_pose[:2] - r.laser_pose[:2])) > 0.2   # the mount did matter
