@@ -178,7 +178,7 @@ def _diagnostics_cdr(msg: dict[str, Any]) -> bytes:
         level=int(st["level"]), name=st["name"], message=st["message"], hardware_id=st["hardware_id"],
         values=[T["diagnostic_msgs/msg/KeyValue"](key=kv["key"], value=kv["value"]) for kv in st["values"]])
         for st in msg["status"]]
-    return ts.serialize_cdr(T[DIAGNOSTICS](header=header, status=status), DIAGNOSTICS)
+    return bytes(ts.serialize_cdr(T[DIAGNOSTICS](header=header, status=status), DIAGNOSTICS))
 
 
 def encode(name: str, msg: dict[str, Any]) -> bytes:

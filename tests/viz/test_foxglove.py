@@ -176,6 +176,11 @@ def test_live_view_streams_every_step_as_the_recording_has_it(tmp_path):
         return (m[0], m[2], json.dumps(m[3], sort_keys=True))
     steps = {"/truth", "/scene/estimates", "/detections"} | {f"/nodes/{n}/estimate" for n in sc.nodes}
     assert sorted(map(key, (m for m in got if m[0] in steps))) == sorted(map(key, (m for m in rec if m[0] in steps)))
+    # what the server is given: bytes in the channel's encoding (foxglove-sdk's Channel.log takes bytes, not views)
+    from dfusion.viz.foxglove import encode
+
+    assert {m[1] for m in got} >= {"foxglove.SceneUpdate", "diagnostic_msgs/msg/DiagnosticArray", "dfusion/Estimate"}
+    assert all(type(encode(m[1], m[3])) is bytes for m in got)
 
 
 def test_live_view_of_one_node_estimate():
