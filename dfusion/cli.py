@@ -41,7 +41,7 @@ def _simulate(args: argparse.Namespace) -> int:
         live = LiveView(sc, port=args.foxglove, speed=args.speed)
         print(f"Foxglove live view on ws://127.0.0.1:{args.foxglove} (scenario time x{args.speed:g})", flush=True)
     try:
-        result = run_scenario(sc, progress=sys.stderr.isatty() and not args.quiet and live is None, on_step=live)
+        result = run_scenario(sc, progress=not args.quiet and live is None, on_step=live)
     finally:
         if live is not None:
             live.close()
@@ -86,13 +86,22 @@ def _replay(args: argparse.Namespace) -> int:
     if not args.topic:
         print("dfusion: error: map at least one bag topic to a node with --topic TOPIC=NODE", file=sys.stderr)
         return 2
+    if args.plot and args.truth is None:
+        print("dfusion: error: --plot draws errors against the truth: give --truth TOPIC (or leave --plot out)",
+              file=sys.stderr)
+        return 2
+    from dfusion.bags import msgdefs_from_files, read_bag
+
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
     inputs = [parse_topic_input(t) for t in args.topic]
-    result = replay_scenario(sc, args.bag, inputs, truth_topic=args.truth, arrival=args.arrival,
-                             origin_ns=args.origin_ns, progress=sys.stderr.isatty() and not args.quiet)
+    bag = read_bag(args.bag, [i.topic for i in inputs] + ([args.truth] if args.truth else []),
+                   msgdefs=msgdefs_from_files(args.msg))
+    result = replay_scenario(sc, bag, inputs, truth_topic=args.truth, arrival=args.arrival,
+                             origin_ns=args.origin_ns, progress=not args.quiet)
     print(result.table())
     if args.truth is None:
         print("(no --truth topic: RMSE and ANEES are unknown)")
+    args.start_ns = result.world.origin_ns   # the recording in the bag's time (overlays the source bag)
     _outputs(result, args)
     return 0
 
@@ -238,6 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--arrival", choices=("stamp", "record"), default="stamp",
                    help="when a message reaches its node: at its header stamp (default) or at its record time "
                         "(late messages are then late measurements)")
+    b.add_argument("--msg", action="append", default=[], metavar="FILE.msg",
+                   help="a message definition (.../PKG/msg/TYPE.msg or PKG/msg/TYPE=FILE) for bags that store none "
+                        "(Humble sqlite3); repeatable")
     b.add_argument("--origin-ns", type=int, default=None,
                    help="header stamp (ns) of scenario time 0 (default: the earliest stamp of the topics read)")
     b.add_argument("--seed", type=int, default=None, help="override the scenario's seed (particle filters)")

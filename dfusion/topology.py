@@ -437,8 +437,8 @@ def check_tree(graph: nx.Graph) -> None:
         raise TopologyError(
             f"{_source(graph)}not a tree: cycle {' -> '.join(map(str, cycle))}; "
             "channel-filter fusion is exact only on trees "
-            "(to fuse over the maximum spanning tree use spanning_tree() or "
-            "load_topology(..., spanning_tree=True))")
+            "(to fuse over the maximum spanning tree, set spanning_tree = true at the top of the scenario file; "
+            "from Python: load_topology(..., spanning_tree=True))")
 
 
 def _canonical(u: Hashable, v: Hashable) -> tuple[str, str]:

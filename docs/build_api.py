@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import builtins
 import dataclasses
+import html
 import importlib
 import inspect
 import pkgutil
@@ -235,6 +236,35 @@ def missing_paths_in_markdown(paths: list[Path], root: Path) -> list[str]:
     return bad
 
 
+def _summary(module: pdoc.doc.Module) -> str:
+    """The first sentence of a module's docstring, as plain text."""
+    text = " ".join((module.docstring or "").strip().split("\n\n")[0].split())
+    return re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "").split(". ")[0].rstrip(".")
+
+
+def index_html(modules: dict[str, pdoc.doc.Module]) -> str:
+    """The index page: every package with its first sentence, its modules below it.
+    (pdoc's own index follows the top package's ``__all__`` and listed 2 of its packages.)"""
+    packages = sorted(n for n, m in modules.items() if m.is_package)
+    rows = []
+    for pkg in packages:
+        subs = sorted(n for n in modules if n.rpartition(".")[0] == pkg and not modules[n].is_package)
+        link = f'<a href="{pkg.replace(".", "/")}.html"><code>{html.escape(pkg)}</code></a>'
+        mods = ", ".join(f'<a href="{n.replace(".", "/")}.html"><code>{html.escape(n.rpartition(".")[2])}</code></a>'
+                         for n in subs)
+        rows.append(f"<dt>{link}</dt><dd>{html.escape(_summary(modules[pkg]))}"
+                    + (f"<br><small>modules: {mods}</small>" if mods else "") + "</dd>")
+    top = [n for n in modules if "." in n and not modules[n].is_package and n.count(".") == 1]
+    rows += [f'<dt><a href="{n.replace(".", "/")}.html"><code>{html.escape(n)}</code></a></dt>'
+             f"<dd>{html.escape(_summary(modules[n]))}</dd>" for n in sorted(top)]
+    return ("<!doctype html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>dfusion API reference</title>"
+            "<style>body{font-family:sans-serif;max-width:60em;margin:2em auto;line-height:1.4}dd{margin:0 0 .8em 1.5em}"
+            "</style></head><body><h1>dfusion API reference</h1>"
+            f"<p>{len(packages)} packages and {len(modules)} modules; every page has a search box "
+            "(start at <a href=\"dfusion.html\"><code>dfusion</code></a>).</p><dl>"
+            + "".join(rows) + "</dl></body></html>\n")
+
+
 def build(out_dir: Path) -> list[Path]:
     """Render every module of dfusion into ``out_dir``; raise on any warning or bad reference."""
     pdoc.render.configure(docformat="numpy", math=True, search=True, show_source=False)   # source view: 3x slower
@@ -255,7 +285,7 @@ def build(out_dir: Path) -> list[Path]:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(html, encoding="utf-8")
             written.append(path)
-        (out_dir / "index.html").write_text(pdoc.render.html_index(modules), encoding="utf-8")
+        (out_dir / "index.html").write_text(index_html(modules), encoding="utf-8")
         (out_dir / "search.js").write_text(pdoc.render.search_index(modules), encoding="utf-8")
     return written
 

@@ -19,10 +19,15 @@ localized scans, heading RMSE, recoveries, gated, ms/scan for each localizer) an
 figures over all scans of all runs; ``--json`` writes them; ``--jobs N`` runs N logs at
 once in worker processes (the results do not depend on it). ``-v`` logs every recovery.
 
-With ``--bag BAG`` the scans (``/scan``, ``sensor_msgs/LaserScan``), their corrected poses
-(``/scan_pose``, ``geometry_msgs/PoseStamped``) and the odometry stream (``/odom``) come
-from a ROS 1 or ROS 2 bag (:func:`dfusion.bags.carmen_from_bag`, ``docs/ros.md``), in
-the bag's time order.
+With ``--bag BAG`` the scans (``--scan-topic``, default ``/scan``, ``sensor_msgs/LaserScan``),
+their corrected poses (``--pose-topic``, default ``/scan_pose``: ``PoseStamped``,
+``PoseWithCovarianceStamped`` or ``Odometry``, the one nearest each scan's stamp within
+``--pose-tolerance`` seconds, else refused) and the odometry stream (``--odom-topic``,
+default ``/odom``) come from a ROS 1 or ROS 2 bag (:func:`dfusion.bags.carmen_from_bag`,
+``docs/ros.md``), in the bag's time order. A laser mounted off the robot's centre is
+folded in from the bag's ``/tf_static`` (``--tf-topic``, ``--base-frame``). ``--pose-topic
+none`` takes the odometry poses as the scans' poses (they drift: no ground truth).
+``--msg FILE.msg`` gives a message definition a Humble sqlite3 bag does not store.
 
 **Settings** are the module-level constants below (``MCL_SETTINGS``, ``ICP_SETTINGS``,
 ...): one set for every CARMEN log, never per log.
@@ -205,7 +210,13 @@ def load_log(args: argparse.Namespace):
     if getattr(args, "bag", None):
         from dfusion.bags import carmen_from_bag  # noqa: PLC0415
 
-        return carmen_from_bag(args.bag)
+        from dfusion.bags import msgdefs_from_files  # noqa: PLC0415
+
+        pose = None if args.pose_topic.lower() in ("", "none") else args.pose_topic
+        odom = None if args.odom_topic.lower() in ("", "none") else args.odom_topic
+        return carmen_from_bag(args.bag, scan_topic=args.scan_topic, odom_topic=odom, scan_pose_topic=pose,
+                               pose_tolerance=args.pose_tolerance, tf_topic=args.tf_topic, base_frame=args.base_frame,
+                               msgdefs=msgdefs_from_files(args.msg))
     if args.log is None:
         raise ValidationError("give a CARMEN log or --bag")
     return read_carmen(args.log, sort=False)
@@ -430,11 +441,13 @@ def figures(res: dict, grid, out: Path) -> list[Path]:
                         f"{res['map_scans']} others",
                   truth={"robot (corrected poses)": (t, truth)}, tracks=[mcl, sm, odo], grid=grid,
                   note=f"RMSE: MCL {res['mcl']['rmse']:.3f} m, ICP + EKF {res['scan_matching']['rmse']:.3f} m, "
-                       f"odometry {res['odometry']['rmse']:.2f} m")
+                       f"odometry {res['odometry']['rmse']:.2f} m",
+                  time_format="scan {:.0f}")
     out.mkdir(parents=True, exist_ok=True)
     a = draw_scene(scene, out / "carmen_topdown.png")
     b = plot_track_errors(t, truth, [mcl, sm], out / "carmen_errors.png",
-                          title=f"CARMEN {Path(res['log']).name}: position error of each localizer with its own ±3σ")
+                          title=f"CARMEN {Path(res['log']).name}: position error of each localizer with its own ±3σ",
+                          xlabel="scan index (the logs' stamps are unusable)")
     return [a, b]
 
 
@@ -571,6 +584,19 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("log", type=Path, nargs="?", default=None, help="CARMEN log (plain or .gz) with corrected poses")
     ap.add_argument("--bag", type=Path, default=None, help="read scans, scan poses and odometry from this ROS bag")
+    ap.add_argument("--scan-topic", default="/scan", help="with --bag: the sensor_msgs/LaserScan topic")
+    ap.add_argument("--pose-topic", default="/scan_pose",
+                    help="with --bag: the scans' corrected poses (PoseStamped, PoseWithCovarianceStamped, Odometry); "
+                         "'none': odometry poses (no ground truth)")
+    ap.add_argument("--odom-topic", default="/odom", help="with --bag: the nav_msgs/Odometry stream ('none': not read)")
+    ap.add_argument("--pose-tolerance", type=float, default=0.01, metavar="S",
+                    help="with --bag: seconds a scan's pose may be stamped from the scan (default 0.01)")
+    ap.add_argument("--tf-topic", default="/tf_static", help="with --bag: static transforms (the laser's mount)")
+    ap.add_argument("--base-frame", default=None,
+                    help="with --bag: the robot's frame (default: the odometry's child_frame_id, else base_link)")
+    ap.add_argument("--msg", action="append", default=[], metavar="FILE.msg",
+                    help="with --bag: a message definition (.../PKG/msg/TYPE.msg or PKG/msg/TYPE=FILE) for bags that "
+                         "store none (Humble sqlite3); repeatable")
     ap.add_argument("--all", type=Path, default=None, metavar="DIR", help="evaluate every *.log(.gz) in DIR")
     ap.add_argument("--json", type=Path, default=None, help="write the results (and per-scan series for one log)")
     ap.add_argument("--plot", type=Path, default=None, metavar="DIR",

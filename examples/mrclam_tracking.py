@@ -63,9 +63,11 @@ the start as the dead-reckoning baseline, which integrates robot 1's own odometr
 its true initial pose.
 
 With ``--bag BAG`` the robots' odometry, sightings and ground truth come from a ROS 1 or
-ROS 2 bag (topics ``/robot<n>/odom``, ``/robot<n>/sightings``, ``/robot<n>/ground_truth``,
-:func:`dfusion.bags.mrclam_from_bag`, ``docs/ros.md``); ``DATASET_DIR`` then only gives
-the landmark map (``Landmark_Groundtruth.dat``).
+ROS 2 bag (topics ``--odom-topic``, ``--sightings-topic``, ``--truth-topic``, patterns with
+``{n}`` for the robot's number, by default ``/robot{n}/odom``, ``/robot{n}/sightings``,
+``/robot{n}/ground_truth``; :func:`dfusion.bags.mrclam_from_bag`, ``docs/ros.md``);
+``DATASET_DIR`` then only gives the landmark map (``Landmark_Groundtruth.dat``). ``--msg
+FILE.msg`` gives the sightings' definition to a Humble sqlite3 bag, which stores none.
 
 References:
 
@@ -355,7 +357,11 @@ def load_dataset(args: argparse.Namespace):
     if getattr(args, "bag", None):
         from dfusion.bags import mrclam_from_bag
 
-        return mrclam_from_bag(args.bag, read_landmarks(args.dataset)[1], duration=args.duration)
+        from dfusion.bags import msgdefs_from_files
+
+        topics = {"odometry": args.odom_topic, "sightings": args.sightings_topic, "ground_truth": args.truth_topic}
+        return mrclam_from_bag(args.bag, read_landmarks(args.dataset)[1], duration=args.duration, topics=topics,
+                               msgdefs=msgdefs_from_files(args.msg))
     return read_mrclam(args.dataset, duration=args.duration)
 
 
@@ -696,6 +702,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset", type=Path, help="MRCLAM dataset directory (with --bag: only its landmark map)")
     ap.add_argument("--bag", type=Path, default=None, help="read the robots' data from this ROS 1 / ROS 2 bag")
+    ap.add_argument("--odom-topic", default="/robot{n}/odom", help="with --bag: robot {n}'s velocity odometry")
+    ap.add_argument("--sightings-topic", default="/robot{n}/sightings", help="with --bag: robot {n}'s sightings")
+    ap.add_argument("--truth-topic", default="/robot{n}/ground_truth",
+                    help="with --bag: robot {n}'s ground truth (PoseStamped, PoseWithCovarianceStamped, Odometry)")
+    ap.add_argument("--msg", action="append", default=[], metavar="FILE.msg",
+                    help="with --bag: a message definition (.../PKG/msg/TYPE.msg or PKG/msg/TYPE=FILE) for bags that "
+                         "store none (Humble sqlite3); repeatable")
     ap.add_argument("--duration", type=float, default=None, help="use the first S seconds")
     ap.add_argument("--json", type=Path, default=None, help="write the results (and the per-step series) as JSON")
     ap.add_argument("--plot", type=Path, default=None, metavar="DIR",

@@ -15,23 +15,27 @@ from dfusion.bags.convert import (
     RangeReading,
     ScanReading,
     Velocity,
+    POSE_TYPES,
     convert,
     quaternion_of_yaw,
+    read_pose,
     yaw_of,
 )
 from dfusion.bags.datasets import (
     MRCLAM_TOPICS,
+    POSE_TOLERANCE,
     SIGHTINGS_MSGDEF,
     SIGHTINGS_TYPE,
     carmen_from_bag,
     mrclam_from_bag,
     sightings,
 )
-from dfusion.bags.reader import Bag, BagMessage, read_bag, stamp_ns
+from dfusion.bags.reader import Bag, BagMessage, msgdefs_from_files, read_bag, stamp_ns
+from dfusion.bags.tf import TF_STATIC, StaticTransforms, compose
 
 __all__ = [
-    "Bag", "BagMessage", "read_bag", "stamp_ns",
+    "Bag", "BagMessage", "read_bag", "stamp_ns", "msgdefs_from_files", "TF_STATIC", "StaticTransforms", "compose",
     "CONVERTERS", "Converter", "PoseReading", "PositionFix", "RangeReading", "ScanReading", "Velocity",
-    "convert", "quaternion_of_yaw", "yaw_of",
-    "MRCLAM_TOPICS", "SIGHTINGS_MSGDEF", "SIGHTINGS_TYPE", "carmen_from_bag", "mrclam_from_bag", "sightings",
+    "convert", "quaternion_of_yaw", "yaw_of", "read_pose", "POSE_TYPES",
+    "MRCLAM_TOPICS", "POSE_TOLERANCE", "SIGHTINGS_MSGDEF", "SIGHTINGS_TYPE", "carmen_from_bag", "mrclam_from_bag", "sightings",
 ]

@@ -19,6 +19,10 @@ message type                                     result
 ``sensor_msgs/Range``                            :class:`RangeReading`
 ===============================================  =========================================
 
+Where a **pose** is read (a scan's pose, ground truth), :func:`read_pose` takes
+``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``, ``Pose`` and
+``PoseWithCovarianceStamped`` (with its ``(x, y, yaw)`` covariance) alike.
+
 Any other type (a vendor's detection array, ...) is mapped by a **user function**
 ``convert(msg, t) -> measurement`` passed where a replay asks for converters
 (``docs/ros.md`` has an example). The yaw of a quaternion is
@@ -43,6 +47,8 @@ __all__ = [
     "Converter",
     "CONVERTERS",
     "convert",
+    "read_pose",
+    "POSE_TYPES",
     "yaw_of",
     "quaternion_of_yaw",
 ]
@@ -171,6 +177,30 @@ def pose_with_covariance(msg: Any, t: float) -> PositionFix:
     p = msg.pose.pose.position
     R = _cov3(msg.pose.covariance)[:2, :2]
     return PositionFix(t, np.array([float(p.x), float(p.y)]), R, _frame(msg))
+
+
+def pose_with_covariance_pose(msg: Any, t: float) -> PoseReading:
+    """``geometry_msgs/PoseWithCovarianceStamped`` as a pose: ``(x, y, yaw)`` and its 3x3
+    covariance."""
+    return PoseReading(t, _pose(msg.pose.pose), _cov3(msg.pose.covariance), frame=_frame(msg))
+
+
+#: Message types that hold a planar pose, and their converters (:func:`read_pose`).
+POSE_TYPES: dict[str, Converter] = {
+    "nav_msgs/msg/Odometry": odometry,
+    "geometry_msgs/msg/PoseStamped": pose_stamped,
+    "geometry_msgs/msg/Pose": pose_stamped,
+    "geometry_msgs/msg/PoseWithCovarianceStamped": pose_with_covariance_pose,
+}
+
+
+def read_pose(msgtype: str, msg: Any, t: float, topic: str = "") -> PoseReading:
+    """The pose of a message of one of :data:`POSE_TYPES`; any other type is refused in one
+    line (a ``PointStamped`` has no heading)."""
+    fn = POSE_TYPES.get(msgtype)
+    if fn is None:
+        raise ValidationError(f"{topic or 'pose topic'}: a {msgtype} holds no pose (pose types: {sorted(POSE_TYPES)})")
+    return fn(msg, t)
 
 
 def point_stamped(msg: Any, t: float) -> PositionFix:

@@ -20,19 +20,28 @@ decides **which time a message has** and **in what order messages come**:
 Times are integer nanoseconds; :meth:`Bag.seconds` turns one into seconds relative to
 an origin (by default the earliest stamp in the bag), so that epoch stamps (1.7e9 s)
 do not lose their nanoseconds in a float.
+
+**Only the topics asked for are deserialized**, so a message type that cannot be
+decoded on another topic does not stop a reader. **Message definitions.** MCAP bags,
+ROS 1 bags and sqlite3 bags from Iron on store them. A sqlite3 bag from Humble does not:
+its standard types are taken from rosbags' Humble type store, and a custom type's
+definition is given with ``msgdefs`` (``{type: definition text or .msg file}``, or
+:func:`msgdefs_from_files` for ``.../<pkg>/msg/<Type>.msg`` files; ``--msg FILE.msg`` on
+the command line), registered with rosbags' ``get_types_from_msg``. A needed type
+without a definition is refused in one line that says how to give it.
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Mapping
 
 from dfusion.errors import ValidationError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BagMessage", "Bag", "read_bag", "stamp_ns"]
+__all__ = ["BagMessage", "Bag", "read_bag", "stamp_ns", "msgdefs_from_files"]
 
 
 @dataclass(frozen=True)
@@ -121,23 +130,63 @@ def _bag_paths(path: Path) -> Path:
     return path
 
 
-def read_bag(path: str | Path, topics: Iterable[str] | None = None) -> Bag:
+def msgdefs_from_files(paths: Iterable[str | Path]) -> dict[str, str]:
+    """Message definitions from ``.msg`` files: ``.../<pkg>/msg/<Type>.msg`` (the layout of
+    a ROS package) is the type ``<pkg>/msg/<Type>``. ``PKG/msg/TYPE=FILE`` names the type
+    of a file kept elsewhere."""
+    out: dict[str, str] = {}
+    for item in paths:
+        name, sep, file = str(item).rpartition("=")
+        p = Path(file)
+        if not p.is_file():
+            raise ValidationError(f"message definition {file}: no such file")
+        if not sep:
+            if p.suffix != ".msg" or p.parent.name != "msg" or not p.parent.parent.name:
+                raise ValidationError(f"message definition {file}: the type is read from .../<pkg>/msg/<Type>.msg; "
+                                      f"otherwise give it as PKG/msg/TYPE={file}")
+            name = f"{p.parent.parent.name}/msg/{p.stem}"
+        out[name] = p.read_text()
+    return out
+
+
+def _register(reader: Any, msgdefs: Mapping[str, str | Path]) -> None:
+    """Add the user's message definitions to the reader's type store (the bag's own win)."""
+    from rosbags.typesys import get_types_from_msg
+
+    have = set(reader.typestore.fielddefs)
+    types: dict[str, Any] = {}
+    for name, text in msgdefs.items():
+        if isinstance(text, Path) or (isinstance(text, str) and text.endswith(".msg") and "\n" not in text):
+            text = Path(text).read_text()
+        try:
+            types.update(get_types_from_msg(str(text), name))
+        except Exception as exc:   # rosbags' parser raises its own error types
+            raise ValidationError(f"message definition of {name}: {type(exc).__name__}: {exc}") from None
+    reader.typestore.register({k: v for k, v in types.items() if k not in have})
+
+
+def read_bag(path: str | Path, topics: Iterable[str] | None = None, *, optional: Iterable[str] = (),
+             msgdefs: Mapping[str, str | Path] | None = None) -> Bag:
     """Read ``topics`` (default: every topic) of a ROS 1 or ROS 2 bag.
 
     Returns a :class:`Bag` whose messages are sorted by header stamp (see the module
-    docstring). Message types are read from the bag's own definitions, with the
-    standard ROS 2 Humble types as a fallback for bags that do not carry them.
+    docstring). Message types are read from the bag's own definitions; for a bag that
+    does not carry them (a Humble sqlite3 bag), from the standard ROS 2 Humble types and
+    ``msgdefs`` (type -> definition text or ``.msg`` file). Only ``topics`` are
+    deserialized, and ``optional`` topics when the bag has them.
 
     Raises
     ------
     ValidationError
-        When the path is not a bag rosbags can open, or a requested topic is missing.
+        When the path is not a bag rosbags can open, a requested topic is missing, or a
+        requested topic's type has no definition.
     """
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     p = _bag_paths(Path(path))
     wanted = None if topics is None else set(topics)
+    optional = set(optional)
     out: list[tuple[int, int, BagMessage]] = []
     try:
         with AnyReader([p], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
@@ -146,7 +195,13 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None) -> Bag:
                 missing = sorted(wanted - set(all_topics))
                 if missing:
                     raise ValidationError(f"{path}: no topic {missing[0]!r} (topics: {sorted(all_topics)})")
-            conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+            if msgdefs:
+                _register(reader, msgdefs)
+            conns = [c for c in reader.connections if wanted is None or c.topic in wanted | optional]
+            for c in conns:
+                if c.msgtype not in reader.typestore.fielddefs:
+                    raise ValidationError(f"{path}: topic {c.topic}: the bag stores no definition of {c.msgtype}; "
+                                          f"give its .msg file (--msg .../{c.msgtype}.msg, or msgdefs=)")
             for i, (conn, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
                 msg = reader.deserialize(raw, conn.msgtype)
                 st = stamp_ns(msg)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+from dfusion.errors import ValidationError
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.models.measurement import PositionSensor
 from dfusion.models.motion import ConstantVelocity
@@ -43,7 +44,15 @@ POSITION = SensorKind("position", frozenset({"std"}), _position_sensor, None,
 
 
 def _constant_velocity(table: Mapping[str, Any]) -> MotionModel:
+    """The number of axes is half the length of ``initial_mean`` (positions, then
+    velocities); an odd length is refused, since no number of entries near it is right
+    by itself (3 entries: 4 for a 2-D target, 6 for 3-D; 2 would be a 1-D target)."""
     mean = table.get("initial_mean")
+    if isinstance(mean, list) and len(mean) % 2:
+        n = len(mean)
+        raise ValidationError(f"initial_mean of a constant_velocity target is the positions then the velocities, "
+                              f"2 entries per axis: [x, y, vx, vy] in 2-D, [x, y, z, vx, vy, vz] in 3-D "
+                              f"(got {n} entries; {n - 1} would be a {(n - 1) // 2}-D target)")
     axes = len(mean) // 2 if isinstance(mean, list) and mean else 2
     return ConstantVelocity(dim=axes, q=number(table, "q", 0.1, positive=True))
 

@@ -34,7 +34,9 @@ message type                                          ``z``
                                                       ``beams`` and ``fov``)
 ====================================================  ================================
 
-The noise is the node's model's (``std`` of its table); a message's own covariance is
+The size of ``z`` must be the one the node's sensor takes: a message of another kind
+(a ``LaserScan`` fed to a ``position`` node) is refused in one line, never cut. The
+noise is the node's model's (``std`` of its table); a message's own covariance is
 available to a user function. Any other type, or another ``z``, is given by a **user
 function** ``f(msg, t) -> z`` (array-like, or ``None`` to skip the message) per topic,
 :class:`TopicInput.convert`. ``docs/ros.md`` has examples.
@@ -44,8 +46,10 @@ function** ``f(msg, t) -> z`` (array-like, or ``None`` to skip the message) per 
 state`` giving the full state). Positions are interpolated linearly at the filter's
 times; the velocity of a constant-velocity state is the odometry twist turned into the
 world frame (``v (cos yaw, sin yaw)``) when the topic has one, else the central
-difference of the positions. Without a truth topic the truth is NaN and so are the
-RMSE and ANEES.
+difference of the positions. The truth must cover every filter time, from 0 to the
+duration: a topic that starts later or ends earlier is refused in one line that gives
+the ``origin_ns`` and ``duration`` of the part it covers. Without a truth topic the
+truth is unknown (NaN): the table says so and the figures draw no truth.
 """
 from __future__ import annotations
 
@@ -137,6 +141,20 @@ def _truth_at(times: np.ndarray, n: int, axes: int, samples) -> np.ndarray:
     return out
 
 
+def _require_cover(ts: np.ndarray, times: np.ndarray, topic: str, origin_ns: int, duration: float) -> None:
+    """Refuse a truth topic that does not cover every filter time (its RMSE would be unknown)."""
+    if ts.size and ts[0] <= times[0] + 1e-9 and ts[-1] >= times[-1] - 1e-9:
+        return
+    if not ts.size:
+        raise ValidationError(f"truth topic {topic} has no message in the run")
+    a, b = float(ts[0]), float(ts[-1])
+    start = max(a, 0.0)
+    raise ValidationError(
+        f"truth topic {topic} covers {a:.3f}-{b:.3f} s of the run's {times[0]:.3f}-{times[-1]:.3f} s, so RMSE and "
+        f"ANEES would be unknown: replay the covered part (--origin-ns {origin_ns + int(round(start * 1e9))} "
+        f"--duration {max(min(b, duration) - start, 0.0):.3f}) or give no --truth")
+
+
 def world_from_bag(
     sc: Scenario,
     bag: str | Path | Bag,
@@ -149,7 +167,10 @@ def world_from_bag(
 ) -> World:
     """The world of ``sc`` read from ``bag`` (see the module docstring).
 
-    Measurements outside ``(0, sc.duration]`` are left out (logged).
+    Measurements outside ``(0, sc.duration]`` are left out (logged). A message whose
+    ``z`` does not have the size the node's sensor takes (a ``LaserScan`` fed to a
+    ``position`` node) is refused, as is a truth topic that does not cover every filter
+    time (the error gives the ``--origin-ns`` and ``--duration`` of the part it covers).
     """
     if arrival not in ARRIVALS:
         raise ValidationError(f"arrival must be one of {ARRIVALS}, got {arrival!r}")
@@ -179,10 +200,14 @@ def world_from_bag(
         if z is None:
             skipped += 1
             continue
-        z = np.atleast_1d(np.asarray(z, dtype=float))
-        dim = getattr(sc.nodes[inp.node].sensor, "dim_z", None)
-        if dim is not None and z.size > dim:
-            z = z[:dim]
+        z = np.atleast_1d(np.asarray(z, dtype=float)).ravel()
+        node = sc.nodes[inp.node]
+        dim = getattr(node.sensor, "dim_z", None)
+        if dim is not None and z.size != dim:
+            what = "its converter gives" if inp.convert is not None else f"a {m.msgtype} gives"
+            raise ValidationError(f"topic {m.topic}: {what} {z.size} numbers, but node {inp.node!r} "
+                                  f"({node.sensor_kind}) takes {dim}: map the topic to a node of a fitting kind "
+                                  f"or with a function msg, t -> z")
         rec = round(bag.seconds(m.record_ns, origin_ns), TIME_DECIMALS) if arrival == "record" else t
         meas.append(Measurement(t, inp.node, z, max(t, rec)))
     if skipped:
@@ -192,10 +217,12 @@ def world_from_bag(
     times = np.unique(np.concatenate([grid, np.array([x.t for x in meas], dtype=float)]))
     n = sc.target.motion.dim
     if truth_topic:
-        states = _truth_at(times, n, sc.target.axes, _truth_samples(bag, truth_topic, origin_ns, truth_convert))
+        samples = _truth_samples(bag, truth_topic, origin_ns, truth_convert)
+        _require_cover(samples[0], times, truth_topic, origin_ns, sc.duration)
+        states = _truth_at(times, n, sc.target.axes, samples)
     else:
         states = np.full((times.size, n), np.nan)
-    return World(times, states, meas)
+    return World(times, states, meas, int(origin_ns))
 
 
 def replay_scenario(sc: Scenario, bag: str | Path | Bag, inputs: Sequence[TopicInput], *,

@@ -180,7 +180,7 @@ class SimulationResult:
         def gap(x):
             return "left" if x is None else f"{x:.2e}"
         for name, v in m["nodes"].items():
-            row = [name, f"{v['rmse']:.4f}", f"{v['anees']:.3f}", gap(v['final_gap_position'])]
+            row = [name, known(v['rmse'], ".4f"), known(v['anees'], ".3f"), gap(v['final_gap_position'])]
             if vel:
                 row.append(gap(v['final_gap_velocity']))
             row.append(f"{v['mean_gap_position']:.2e}")
@@ -195,7 +195,7 @@ class SimulationResult:
         for key, label in (("centralized", "centralized"), ("centralized_oracle", "central oracle")):
             c = m.get(key)
             if c is not None:
-                rows.append([label, f"{c['rmse']:.4f}", f"{c['anees']:.3f}"] + ["-"] * (len(head) - 3))
+                rows.append([label, known(c['rmse'], ".4f"), known(c['anees'], ".3f")] + ["-"] * (len(head) - 3))
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
         lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows]
         lines.insert(1, "-" * len(lines[0]))
@@ -225,9 +225,15 @@ class SimulationResult:
             lines.append("policy outputs (node.output(): the source each node's policy chose)")
             for name, o in outs.items():
                 share = ", ".join(f"{src} {frac:.0%}" for src, frac in o["sources"].items())
-                lines.append(f"  {name}: policy {o['policy']}, RMSE {o['rmse']:.4f} m, ANEES {o['anees']:.3f}, "
+                lines.append(f"  {name}: policy {o['policy']}, RMSE {known(o['rmse'], '.4f')} m, "
+                             f"ANEES {known(o['anees'], '.3f')}, "
                              f"switches {o['switches']}; {share}")
         return "\n".join(lines)
+
+
+def known(x: float, fmt: str) -> str:
+    """``x`` formatted, or ``unknown`` when it is NaN (no truth): never a bare ``nan``."""
+    return format(x, fmt) if math.isfinite(x) else "unknown"
 
 
 def link_lines(lk: dict[str, Any]) -> list[str]:
@@ -298,18 +304,43 @@ def warning_lines(m: dict[str, Any]) -> list[str]:
         if steps.get("lost", 0):
             out.append(f"WARNING {name}: lost during {steps['lost']} steps (every neighbour quarantined, or its "
                        f"camera's track lost); health at the end: {v.get('health', '?')}")
-        if not lo <= v["anees"] <= hi:
+        if math.isfinite(v["anees"]) and not lo <= v["anees"] <= hi:
             side = "over-confident" if v["anees"] > hi else "conservative"
             out.append(f"WARNING {name}: inconsistent, ANEES {v['anees']:.3g} outside [{lo:.3f}, {hi:.3f}] ({side})")
     return out
 
 
+#: Seconds between two progress lines when stderr is not a terminal (a pipe, a log file).
+PROGRESS_INTERVAL = 10.0
+
+
 def _progress(iterable, enabled: bool, total: int):
+    """Progress on stderr: a tqdm bar on a terminal; elsewhere (piped, redirected) one line
+    every :data:`PROGRESS_INTERVAL` seconds and one at the end, so a long run piped into a
+    file or a CI log shows it is alive."""
     if not enabled:
         return iterable
-    from tqdm import tqdm
+    import sys
 
-    return tqdm(iterable, total=total, unit="step", leave=False)
+    if sys.stderr.isatty():
+        from tqdm import tqdm
+
+        return tqdm(iterable, total=total, unit="step", leave=False, file=sys.stderr)
+    return _progress_lines(iterable, total, sys.stderr)
+
+
+def _progress_lines(iterable, total: int, stream):
+    import time
+
+    start = last = time.monotonic()
+    k = 0
+    for k, item in enumerate(iterable, 1):
+        yield item
+        now = time.monotonic()
+        if now - last >= PROGRESS_INTERVAL or k == total:
+            last = now
+            stream.write(f"progress: {k}/{total} steps ({100.0 * k / max(total, 1):.0f} %), {now - start:.0f} s\n")
+            stream.flush()
 
 
 

@@ -53,6 +53,8 @@ class World:
     times: Array            # (T,) sorted
     states: Array           # (T, n)
     measurements: list[Measurement]
+    #: The source's time of time 0, in ns (a bag's header stamp; 0 for a simulated world).
+    origin_ns: int = 0
 
     @property
     def n_clutter(self) -> int:

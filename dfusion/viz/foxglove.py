@@ -1,14 +1,18 @@
 r"""A run as an MCAP recording for Foxglove (``dfusion simulate --mcap``, ``docs/ros.md``).
 
-The file is written with the ``mcap`` library (the format's reference implementation),
-JSON-encoded, with Foxglove's own schemas (``foxglove.PoseInFrame``,
-``foxglove.SceneUpdate``, ``foxglove.Log``) described as JSON Schema, so that opening it
-in Foxglove shows the run in the 3D panel (frame ``map``, metres) without any set-up.
-Numbers to plot (covariances, NEES, gaps) travel in small ``dfusion/*`` JSON messages
-that Foxglove's Plot and Raw Message panels read by field path.
+The file is written with the ``mcap`` library (the format's reference implementation).
+Foxglove's types (``foxglove.PoseInFrame``, ``foxglove.SceneUpdate``) are Foxglove's
+official schemas: protobuf-encoded with the descriptors Foxglove publishes
+(``foxglove-schemas-protobuf``), so opening the file in Foxglove shows the run in the 3D
+panel (frame ``map``, metres) without any set-up. ``/diagnostics`` is ROS 2's
+``diagnostic_msgs/msg/DiagnosticArray`` (CDR, its definition from rosbags' type store),
+what ROS users' diagnostics tools read. Numbers to plot (covariances, NEES, gaps) travel
+in small ``dfusion/*`` JSON messages (JSON Schema) that Foxglove's Plot and Raw Message
+panels read by field path.
 
-Topics (one message per filter step unless said otherwise; time = scenario time, plus
-``start_ns``):
+Topics (one message per filter step unless said otherwise; time = scenario time plus
+``start_ns``: a replay passes the bag's stamp of its time 0, so the recording lies on
+the source bag's time line and overlays it):
 
 =================================  ====================  ===================================
 topic                              schema                what
@@ -35,8 +39,10 @@ topic                              schema                what
                                                          red gated, refused or lost; blue in
                                                          a multi-process run: delivered to
                                                          its node, which judged it there)
-``/diagnostics``                   foxglove.Log          gates, refused measurements, link
-                                                         outages beginning and ending
+``/diagnostics``                   diagnostic_msgs/      gates, refused measurements, link
+                                   DiagnosticArray       outages beginning and ending (one
+                                                         status: WARN, or OK when a link
+                                                         comes back)
 =================================  ====================  ===================================
 
 A node's *anchor* (where the tree draws it) is its camera's position, its receivers'
@@ -44,6 +50,8 @@ centroid, its beacon; nodes without a place are put in a row above the scene.
 """
 from __future__ import annotations
 
+import functools
+import importlib
 import json
 import math
 from pathlib import Path
@@ -53,7 +61,8 @@ import numpy as np
 
 from dfusion.viz.topdown import camera_footprint, detection_point, ellipse_points, sensor_points
 
-__all__ = ["SCHEMAS", "FOXGLOVE_SCHEMAS", "record_mcap", "messages_of_result", "LiveView"]
+__all__ = ["SCHEMAS", "DIAGNOSTICS", "FOXGLOVE_TYPES", "record_mcap", "messages_of_result", "LiveView",
+           "channel_schema", "encode"]
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -75,43 +84,21 @@ def _obj(props: dict[str, Any], title: str | None = None) -> dict[str, Any]:
 
 
 _TIME = _obj({"sec": _INT, "nsec": _INT})
-_VEC3 = _obj({"x": _NUM, "y": _NUM, "z": _NUM})
-_QUAT = _obj({"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM})
-_POSE = _obj({"position": _VEC3, "orientation": _QUAT})
-_COLOR = _obj({"r": _NUM, "g": _NUM, "b": _NUM, "a": _NUM})
-_KV = _obj({"key": _STR, "value": _STR})
 
 
 def _arr(items: dict[str, Any]) -> dict[str, Any]:
     return {"type": "array", "items": items}
 
 
-_LINE = _obj({"type": _INT, "pose": _POSE, "thickness": _NUM, "scale_invariant": _BOOL, "points": _arr(_VEC3),
-              "color": _COLOR, "colors": _arr(_COLOR), "indices": _arr(_INT)})
-_SPHERE = _obj({"pose": _POSE, "size": _VEC3, "color": _COLOR})
-_TEXT = _obj({"pose": _POSE, "billboard": _BOOL, "font_size": _NUM, "scale_invariant": _BOOL, "color": _COLOR,
-              "text": _STR})
-_TRIANGLES = _obj({"pose": _POSE, "points": _arr(_VEC3), "color": _COLOR, "colors": _arr(_COLOR),
-                   "indices": _arr(_INT)})
-_ENTITY = _obj({"timestamp": _TIME, "frame_id": _STR, "id": _STR, "lifetime": _TIME, "frame_locked": _BOOL,
-                "metadata": _arr(_KV), "arrows": _arr({}), "cubes": _arr(_SPHERE), "spheres": _arr(_SPHERE),
-                "cylinders": _arr({}), "lines": _arr(_LINE), "triangles": _arr(_TRIANGLES), "texts": _arr(_TEXT),
-                "models": _arr({})})
+#: Foxglove's types used, written with Foxglove's published protobuf descriptors
+#: (foxglove-schemas-protobuf; https://docs.foxglove.dev/docs/sdk/schemas).
+FOXGLOVE_TYPES = ("foxglove.PoseInFrame", "foxglove.SceneUpdate")
 
-#: JSON Schemas of the Foxglove message types used (field names as in Foxglove's schema
-#: reference, https://docs.foxglove.dev/docs/visualization/message-schemas/introduction;
-#: the tests check every message against Foxglove's published definitions).
-FOXGLOVE_SCHEMAS: dict[str, dict[str, Any]] = {
-    "foxglove.PoseInFrame": _obj({"timestamp": _TIME, "frame_id": _STR, "pose": _POSE}, "foxglove.PoseInFrame"),
-    "foxglove.SceneUpdate": _obj({"deletions": _arr(_obj({"timestamp": _TIME, "type": _INT, "id": _STR})),
-                                  "entities": _arr(_ENTITY)}, "foxglove.SceneUpdate"),
-    "foxglove.Log": _obj({"timestamp": _TIME, "level": _INT, "message": _STR, "name": _STR, "file": _STR,
-                          "line": _INT}, "foxglove.Log"),
-}
+#: ROS 2's diagnostics message (CDR): ``/diagnostics``.
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 
-#: Every schema of the recording: Foxglove's and dfusion's own numeric messages.
+#: dfusion's own numeric messages (JSON Schema).
 SCHEMAS: dict[str, dict[str, Any]] = {
-    **FOXGLOVE_SCHEMAS,
     "dfusion/Estimate": _obj({"timestamp": _TIME, "t": _NUM, "node": _STR, "state": _arr(_STR), "mean": _arr(_NUM),
                               "covariance": _arr(_NUM), "std": _arr(_NUM), "nees": _NUM_OR_NULL,
                               "gap_position_m": _NUM_OR_NULL, "gap_velocity_mps": _NUM_OR_NULL}, "dfusion/Estimate"),
@@ -119,7 +106,96 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                           "links": _arr(_obj({"a": _STR, "b": _STR, "up": _BOOL}))}, "dfusion/Tree"),
 }
 
-_LOG_INFO, _LOG_WARNING = 2, 3
+
+@functools.cache
+def _proto_class(name: str):
+    short = name.split(".", 1)[1]
+    return getattr(importlib.import_module(f"foxglove_schemas_protobuf.{short}_pb2"), short)
+
+
+@functools.cache
+def _ros2_types():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def _descriptor_set(cls) -> bytes:
+    """The ``FileDescriptorSet`` of a protobuf type with its dependencies (the schema data
+    of an MCAP protobuf channel)."""
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    fds, seen = FileDescriptorSet(), set()
+
+    def add(fd) -> None:
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        fd.CopyToProto(fds.file.add())
+
+    add(cls.DESCRIPTOR.file)
+    return fds.SerializeToString()
+
+
+@functools.cache
+def channel_schema(name: str) -> tuple[str, str, bytes]:
+    """``(schema encoding, message encoding, schema data)`` of a schema name."""
+    if name in FOXGLOVE_TYPES:
+        return "protobuf", "protobuf", _descriptor_set(_proto_class(name))
+    if name == DIAGNOSTICS:
+        return "ros2msg", "cdr", _ros2_types().generate_msgdef(name, ros_version=2)[0].encode()
+    return "jsonschema", "json", json.dumps(SCHEMAS[name]).encode()
+
+
+def _protobuf_json(value: Any, key: str | None = None) -> Any:
+    """A message in Foxglove's JSON form -> protobuf's JSON mapping (a ``{sec, nsec}`` time
+    as an RFC 3339 string, a ``lifetime`` as a ``"S.NNNNNNNNNs"`` duration)."""
+    if isinstance(value, dict):
+        if set(value) == {"sec", "nsec"}:
+            if key == "lifetime":
+                return f"{value['sec']}.{value['nsec']:09d}s"
+            from google.protobuf.timestamp_pb2 import Timestamp
+
+            ts = Timestamp()
+            ts.FromNanoseconds(int(value["sec"]) * 1_000_000_000 + int(value["nsec"]))
+            return ts.ToJsonString()
+        return {k: _protobuf_json(v, k) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_protobuf_json(v, key) for v in value]
+    return value
+
+
+def _diagnostics_cdr(msg: dict[str, Any]) -> bytes:
+    ts = _ros2_types()
+    T = ts.types
+    h = msg["header"]
+    header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=h["stamp"]["sec"],
+                                                                             nanosec=h["stamp"]["nanosec"]),
+                                      frame_id=h["frame_id"])
+    status = [T["diagnostic_msgs/msg/DiagnosticStatus"](
+        level=int(st["level"]), name=st["name"], message=st["message"], hardware_id=st["hardware_id"],
+        values=[T["diagnostic_msgs/msg/KeyValue"](key=kv["key"], value=kv["value"]) for kv in st["values"]])
+        for st in msg["status"]]
+    return bytes(ts.serialize_cdr(T[DIAGNOSTICS](header=header, status=status), DIAGNOSTICS))
+
+
+def encode(name: str, msg: dict[str, Any]) -> bytes:
+    """A message (a dict in its type's field names) in its channel's encoding
+    (:func:`channel_schema`): protobuf for Foxglove's types, CDR for ``/diagnostics``,
+    JSON for dfusion's own."""
+    if name in FOXGLOVE_TYPES:
+        from google.protobuf import json_format
+
+        return json_format.ParseDict(_protobuf_json(msg), _proto_class(name)(),
+                                     ignore_unknown_fields=False).SerializeToString()
+    if name == DIAGNOSTICS:
+        return _diagnostics_cdr(msg)
+    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
+
+
+_DIAG_OK, _DIAG_WARN = 0, 1   # diagnostic_msgs/DiagnosticStatus levels
 _LINE_STRIP, _LINE_LOOP, _LINE_LIST = 0, 1, 2
 _PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.58, 0.4, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76),
             (0.09, 0.75, 0.81), (0.74, 0.74, 0.13), (0.84, 0.15, 0.16), (0.5, 0.5, 0.5), (0.0, 0.0, 0.5)]
@@ -304,10 +380,10 @@ class _Builder:
                 for a, b, t0, t1 in outages:
                     if abs(t0 - tc) < 1e-9 or abs(t1 - tc) < 1e-9:
                         what = "down" if abs(t0 - tc) < 1e-9 else "up again"
-                        out.append(("/diagnostics", "foxglove.Log", lns,
-                                    {"timestamp": _stamp(lns), "level": _LOG_WARNING if what == "down" else _LOG_INFO,
-                                     "message": f"link {a} - {b} {what} (outage {t0:g}-{t1:g} s)", "name": "link",
-                                     "file": "", "line": 0}))
+                        out.append(_diagnostic(lns, _DIAG_WARN if what == "down" else _DIAG_OK, f"link {a} - {b}",
+                                               f"link {a} - {b} {what} (outage {t0:g}-{t1:g} s)",
+                                               {"link": f"{a} - {b}", "state": "down" if what == "down" else "up",
+                                                "outage_s": f"{t0:g}-{t1:g}"}))
         return out
 
     def event(self, i: int, ev: dict[str, Any]) -> list[Message]:
@@ -330,11 +406,20 @@ class _Builder:
                                                                metadata={"node": n, "outcome": ",".join(outcome)})]}))
         if not used and not delivered:
             why = ", ".join(outcome) or "no information"
-            out.append(("/diagnostics", "foxglove.Log", lns,
-                        {"timestamp": _stamp(lns), "level": _LOG_WARNING,
-                         "message": f"{n}: measurement of t={float(ev['t_meas']):.3f} s not used ({why})",
-                         "name": n, "file": "", "line": 0}))
+            out.append(_diagnostic(lns, _DIAG_WARN, n,
+                                   f"{n}: measurement of t={float(ev['t_meas']):.3f} s not used ({why})",
+                                   {"t_measurement_s": f"{float(ev['t_meas']):.9f}", "outcome": why}))
         return out
+
+
+def _diagnostic(ns: int, level: int, name: str, message: str, values: dict[str, str]) -> Message:
+    """A ``/diagnostics`` message: one ``DiagnosticStatus`` (``name`` under ``dfusion/``, the
+    node or link as its ``hardware_id``)."""
+    return ("/diagnostics", DIAGNOSTICS, ns,
+            {"header": {"stamp": {"sec": int(ns // 1_000_000_000), "nanosec": int(ns % 1_000_000_000)},
+                        "frame_id": "map"},
+             "status": [{"level": level, "name": f"dfusion/{name}", "message": message, "hardware_id": name,
+                         "values": [{"key": k, "value": v} for k, v in values.items()]}]})
 
 
 def messages_of_result(result, *, start_ns: int = 0) -> list[Message]:
@@ -387,8 +472,11 @@ class LiveView:
     def _to_server(self, topic: str, schema: str, log_ns: int, msg: dict[str, Any]) -> None:
         ch = self._channels.get(topic)
         if ch is None:
-            ch = self._channels[topic] = self._foxglove.Channel(topic, schema=SCHEMAS[schema])
-        ch.log(msg, log_time=log_ns)
+            schema_encoding, message_encoding, data = channel_schema(schema)
+            ch = self._channels[topic] = self._foxglove.Channel(
+                topic, schema=self._foxglove.Schema(name=schema, encoding=schema_encoding, data=data),
+                message_encoding=message_encoding)
+        ch.log(encode(schema, msg), log_time=log_ns)
 
     def __call__(self, t: float, estimates: dict[str, tuple[np.ndarray, np.ndarray]], truth: np.ndarray,
                  events: list[dict[str, Any]] = ()) -> None:
@@ -424,7 +512,8 @@ class LiveView:
 
 def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:
     """Write the run ``result`` (:class:`~dfusion.sim.runner.SimulationResult`) as an MCAP
-    file (module docstring for the topics)."""
+    file (module docstring for the topics); log times and stamps are ``start_ns`` plus
+    the scenario time (``dfusion replay``: the bag's stamp of time 0)."""
     from mcap.writer import Writer
 
     msgs = messages_of_result(result, start_ns=start_ns)
@@ -433,15 +522,17 @@ def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:
     with path.open("wb") as fh:
         w = Writer(fh)
         w.start(profile="", library="dfusion")
-        schema_ids = {name: w.register_schema(name, "jsonschema", json.dumps(s).encode()) for name, s in SCHEMAS.items()}
+        schema_ids: dict[str, int] = {}
         channels: dict[str, int] = {}
         seq: dict[str, int] = {}
         for topic, schema, log_ns, msg in msgs:
             if topic not in channels:
-                channels[topic] = w.register_channel(topic, "json", schema_ids[schema])
+                schema_encoding, message_encoding, data = channel_schema(schema)
+                if schema not in schema_ids:
+                    schema_ids[schema] = w.register_schema(schema, schema_encoding, data)
+                channels[topic] = w.register_channel(topic, message_encoding, schema_ids[schema])
                 seq[topic] = 0
             seq[topic] += 1
-            w.add_message(channels[topic], log_ns, json.dumps(msg, separators=(",", ":"), allow_nan=False).encode(), log_ns,
-                          seq[topic])
+            w.add_message(channels[topic], log_ns, encode(schema, msg), log_ns, seq[topic])
         w.finish()
     return path

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dfusion.errors import ValidationError
+
 
 def transient_end(times: np.ndarray, sigma: np.ndarray, factor: float = 2.0) -> float:
     """End of the start-up transient: the first time after which ``sigma`` (e.g. the
@@ -37,8 +39,10 @@ def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | No
     """Each node's X and Y error against the centralized EKF's, with 3-sigma bands
     (:func:`plot_track_errors`: steady-state y-range, start-up transient shaded and
     clipped, link outages shaded, one legend for every line and shading)."""
-    from dfusion.viz.topdown import Track
+    from dfusion.viz.topdown import Track, finite_rows
 
+    if not finite_rows(result.truth[:, :2]).any():
+        raise ValidationError("the error plot needs the truth, and this run has none (dfusion replay: give --truth)")
     names = sorted(result.node_mean)[:max_nodes]
     t = result.times
     tracks = [Track(n, t, result.node_mean[n][:, :2], result.node_cov[n][:, :2, :2]) for n in names]
@@ -51,7 +55,8 @@ def plot_result(result, path: str | Path, *, max_nodes: int = 6, title: str | No
 
 
 def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str | Path, *, title: str,
-                      reference=None, outages=(), truth_times: np.ndarray | None = None) -> Path:
+                      reference=None, outages=(), truth_times: np.ndarray | None = None,
+                      xlabel: str = "time [s]") -> Path:
     """Position errors (estimate − truth, X and Y in m) of several estimators over time.
 
     One row per :class:`~dfusion.viz.topdown.Track` (its own times; the truth, given at
@@ -63,6 +68,8 @@ def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str 
     95 % of the time (a band that balloons while a node is cut off leaves the panel:
     the outage shading says why). ``outages`` ``(a, b, t0, t1)`` are shaded red, dark where
     the link touches the row's track. One legend explains every line and shading.
+    ``xlabel`` names the horizontal axis (``"scan index"`` where the times are indices).
+    Times where the truth is unknown (NaN) are left out.
     """
     import matplotlib
 
@@ -73,9 +80,15 @@ def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str 
 
     tt = np.asarray(t if truth_times is None else truth_times, float)
     truth = np.asarray(truth, float)
+    known = np.isfinite(truth[:, :2]).all(axis=1)
+    if not known.any():
+        raise ValidationError("the error plot needs the truth, and none is known")
+    tt, truth = tt[known], truth[known]
 
-    def truth_at(ts):
-        return np.column_stack([np.interp(ts, tt, truth[:, 0]), np.interp(ts, tt, truth[:, 1])])
+    def truth_at(ts):   # NaN outside the known truth: no error is drawn there
+        out = np.column_stack([np.interp(ts, tt, truth[:, 0]), np.interp(ts, tt, truth[:, 1])])
+        out[(ts < tt[0] - 1e-9) | (ts > tt[-1] + 1e-9)] = np.nan
+        return out
 
     def sigma(tr):
         return np.sqrt(np.maximum(np.asarray(tr.cov)[:, [0, 1], [0, 1]], 0.0)).max(axis=1)
@@ -136,7 +149,7 @@ def plot_track_errors(t: np.ndarray, truth: np.ndarray, tracks: list, path: str 
     lim = lim * 1.1 if lim > 0 else 1.0
     axes[0][0].set_ylim(-lim, lim)
     for ax in axes[-1]:
-        ax.set_xlabel("time [s]")
+        ax.set_xlabel(xlabel)
         ax.set_xlim(t0_all, t1_all)
     handles = [Line2D([], [], color="tab:blue", lw=0.9, label="estimate − truth (colour: the row's estimator)")]
     if any(tr.cov is not None for tr in tracks):

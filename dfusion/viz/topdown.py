@@ -84,6 +84,8 @@ class Scene:
     truth_colors: dict[str, str] = field(default_factory=dict)
     #: Small text labels ``(xy, text)`` (landmark numbers, ...).
     labels: list[tuple[np.ndarray, str]] = field(default_factory=list)
+    #: How a time is written in the titles (``"scan {:.0f}"`` where times are indices).
+    time_format: str = "t = {:.1f} s"
 
 
 def camera_footprint(sensor: Any, n: int = 16) -> np.ndarray | None:
@@ -215,13 +217,48 @@ def _draw_layers(ax, scene: Scene, times: list[float], main: bool) -> list[Any]:
     return handles
 
 
+def finite_rows(*arrays: np.ndarray | None) -> np.ndarray:
+    """Rows (along the first axis) where every given array is finite: an estimate before
+    its node's first one, or an unknown truth, is NaN and is not drawn."""
+    ok = None
+    for a in arrays:
+        if a is None:
+            continue
+        a = np.asarray(a, float)
+        f = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+        ok = f if ok is None else ok & f
+    return ok
+
+
+def _finite_scene(scene: Scene) -> Scene:
+    """``scene`` without NaN rows in its truths and tracks (and without those left empty)."""
+    from dataclasses import replace
+
+    truth = {}
+    for name, (t, xy) in scene.truth.items():
+        ok = finite_rows(xy)
+        if ok.any():
+            truth[name] = (np.asarray(t)[ok], np.asarray(xy, float)[ok])
+    tracks = []
+    for tr in scene.tracks:
+        ok = finite_rows(tr.mean, tr.cov)
+        if ok.any():
+            tracks.append(replace(tr, t=np.asarray(tr.t)[ok], mean=np.asarray(tr.mean, float)[ok],
+                                  cov=None if tr.cov is None else np.asarray(tr.cov, float)[ok]))
+    return replace(scene, truth=truth, tracks=tracks)
+
+
 def draw_scene(scene: Scene, path: str | Path, *, figsize: tuple[float, float] = (13.5, 9.5),
                zoom: tuple[float, float, float, float] | None = None, zooms: bool = True) -> Path:
     """Draw ``scene`` to a PNG: the plane in metres (equal axes), below it one close-up
     per ellipse time (centred on the truth then, wide enough for every ellipse: on a
     long path the ellipses are too small to read in the whole view), on the right the
-    tree and the legend. ``zoom = (xmin, xmax, ymin, ymax)`` limits the main panel."""
+    tree and the legend. ``zoom = (xmin, xmax, ymin, ymax)`` limits the main panel.
+    NaN rows (no estimate yet, unknown truth) are left out; without a truth there are
+    no close-ups."""
     import matplotlib
+
+    scene = _finite_scene(scene)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -243,7 +280,7 @@ def draw_scene(scene: Scene, path: str | Path, *, figsize: tuple[float, float] =
     ax.set_ylabel("y [m]")
     ax.grid(alpha=0.25)
     if times:
-        t_txt = ", ".join(f"{i}: {t:.1f} s" for i, t in enumerate(times, 1))
+        t_txt = ", ".join(f"{i}: " + scene.time_format.format(t) for i, t in enumerate(times, 1))
         ax.set_title(f"3σ ellipses at {t_txt}" + (" (close-ups below)" if zooms else ""), fontsize=8.5)
     if zooms:
         sub = gs[2, 0].subgridspec(1, len(times), wspace=0.25)
@@ -265,7 +302,7 @@ def draw_scene(scene: Scene, path: str | Path, *, figsize: tuple[float, float] =
             zax.set_xlim(c[0] - half, c[0] + half)
             zax.set_ylim(c[1] - half, c[1] + half)
             zax.set_aspect("equal", adjustable="box")
-            zax.set_title(f"{i + 1}: t = {tq:.1f} s", fontsize=8)
+            zax.set_title(f"{i + 1}: " + scene.time_format.format(tq), fontsize=8)
             zax.tick_params(labelsize=7)
             zax.grid(alpha=0.25)
             if i == 0:
@@ -346,7 +383,8 @@ def scene_of_result(result, *, times: list[float] | None = None) -> Scene:
         times = [float(settled + f * (t[-1] - settled)) for f in (0.1, 0.4, 0.7, 1.0)]
     scene = Scene(title=f"{Path(sc.path).name}: top-down view (seed {sc.seed})", ellipse_times=times,
                   node_colors=colors)
-    scene.truth["target"] = (t, result.truth[:, :2])
+    if finite_rows(result.truth[:, :2]).any():
+        scene.truth["target"] = (t, result.truth[:, :2])
     for n in names:
         scene.tracks.append(Track(n, t, result.node_mean[n][:, :2], result.node_cov[n][:, :2, :2], colors[n]))
     scene.tracks.append(Track("centralized EKF", t, result.central_mean[:, :2], result.central_cov[:, :2, :2], "k",
@@ -379,7 +417,9 @@ def scene_of_result(result, *, times: list[float] | None = None) -> Scene:
     scene.tree = (names, [tuple(e) for e in sc.graph.edges])
     scene.outages = list(sc.outages())
     m = result.metrics.get("nodes", {})
-    if m:
+    if m and not scene.truth:
+        scene.note = "no truth: RMSE unknown"
+    elif m:
         scene.note = "RMSE " + ", ".join(f"{n} {v['rmse']:.2f} m" for n, v in m.items()) + \
             f"; centralized {result.metrics['centralized']['rmse']:.2f} m"
     return scene

@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import logging
+import re
 from pathlib import Path
 
 import networkx as nx
@@ -55,13 +56,18 @@ def test_demo_runs_in_process_shortened_and_writes_its_figures(tmp_path, capsys,
     demo = _demo_module()
     monkeypatch.setattr(demo, "have_run_command", lambda: False)     # the fallback path, with a warning
     caplog.set_level(logging.WARNING)
-    rc = demo.main(["--duration", "45", "--out", str(tmp_path), "--plot", str(tmp_path / "fig33.png")])
+    rc = demo.main(["--duration", "45", "--out", str(tmp_path)])
     assert rc == 0
     assert "not available" in caplog.text
     out = capsys.readouterr().out
     assert "centralized" in out and "mode: in-process" in out and "outage gateway - cam_left" in out
-    for name in ("fig33.png", "urus_nodes.png", "urus.json", "urus_topdown.png", "urus.mcap", "urus_series.csv"):
+    written = {p.name for p in tmp_path.iterdir()}
+    for name in written:
         assert (tmp_path / name).stat().st_size > 1000
+    # the README lists every file the demo writes (it once listed 3 of 6)
+    readme = (ROOT / "README.md").read_text()
+    assert set(re.findall(r"`out/(urus[\w.]+)`", readme)) == written == {
+        "urus_figure33.png", "urus_nodes.png", "urus.json", "urus_topdown.png", "urus.mcap", "urus_series.csv"}
     m = json.loads((tmp_path / "urus.json").read_text())
     assert m["demo"]["mode"] == "in-process" and m["steps"] == 451
     for name, v in m["nodes"].items():
@@ -93,3 +99,16 @@ def test_plot_figure33_needs_a_known_node(tmp_path):
     with pytest.raises(KeyError, match="nobody"):
         plot_figure33(res, "nobody", tmp_path / "x.png")
     assert plot_figure33(res, "wsn", tmp_path / "wsn.png").stat().st_size > 1000   # no view strip for the WSN
+
+
+def test_the_readme_sample_table_is_what_the_demo_prints():
+    """README.md shows the in-process demo's table (``urus_demo.py --in-process``: deterministic);
+    it must be the table of the full run, row for row (it once lacked the central oracle row)."""
+    from dfusion.sim import run_scenario
+
+    readme = (ROOT / "README.md").read_text()
+    block = re.search(r"```\n(node +RMSE \[m\].*?)\n```", readme, re.S)
+    assert block, "README.md has no sample table"
+    lines = run_scenario(load_scenario(SCENARIO)).table().splitlines()
+    table = lines[:next(i for i, line in enumerate(lines) if not line.strip())]
+    assert block.group(1).splitlines() == table, "README.md's sample table is stale; the run prints:\n" + "\n".join(table)

@@ -146,3 +146,33 @@ def carmen_records(log, *, fov: float = math.pi, max_range: float = 81.83) -> li
                 twist=T.geometry_msgs__msg__TwistWithCovariance(twist=twist_msg(T, v, w), covariance=np.zeros(36)))
         out.append(("/odom", "nav_msgs/msg/Odometry", ns(t), build))
     return out
+
+
+def as_humble_sqlite3(path: Path) -> Path:
+    """Turn a sqlite3 bag written by rosbags into what ROS 2 Humble's recorder writes: no
+    message definitions (sqlite3 schema 3: no ``message_definitions`` table, no type
+    hashes; ``metadata.yaml`` version 5), so only the reader's own type store can decode it."""
+    import sqlite3
+
+    import yaml
+
+    db = next(path.glob("*.db3"))
+    con = sqlite3.connect(db)
+    with con:
+        con.execute("DROP TABLE message_definitions")
+        con.execute("CREATE TABLE topics3(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, "
+                    "serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL)")
+        con.execute("INSERT INTO topics3 SELECT id, name, type, serialization_format, offered_qos_profiles FROM topics")
+        con.execute("DROP TABLE topics")
+        con.execute("ALTER TABLE topics3 RENAME TO topics")
+        con.execute("DELETE FROM metadata")
+        con.execute("UPDATE schema SET schema_version = 3, ros_distro = 'humble'")
+    con.close()
+    meta = yaml.safe_load((path / "metadata.yaml").read_text())
+    info = meta["rosbag2_bagfile_information"]
+    info["version"], info["ros_distro"] = 5, "humble"
+    for t in info["topics_with_message_count"]:
+        t["topic_metadata"].pop("type_description_hash", None)
+        t["topic_metadata"]["offered_qos_profiles"] = ""
+    (path / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    return path

@@ -166,3 +166,17 @@ def test_the_protection_table_is_checked_strictly(tmp_path):
         msg = error_of(write(tmp_path, GOOD.replace("[target]", f"[protection]\n{bad}\n\n[target]"), f"bad{i}.toml"))
         for part in words:
             assert part in msg, msg
+
+
+def test_an_odd_initial_mean_names_the_right_lengths_and_a_cycle_names_the_scenario_key(tmp_path):
+    """Issue 25: 3 entries once advised 2, which then ran silently as a 1-D target; the
+    cycle's hint named a Python function instead of the scenario key."""
+    msg = error_of(write(tmp_path, GOOD.replace("[0.0, 0.0, 1.0, 0.0]", "[0.0, 0.0, 1.0]")))
+    assert "2 entries per axis: [x, y, vx, vy] in 2-D" in msg and "got 3 entries; 2 would be a 1-D target" in msg
+    ring = GOOD + '\n[[nodes]]\nname = "c"\nsensor = "position"\nstd = 0.5\nrate = 5.0\n' \
+        '\n[[links]]\nbetween = ["b", "c"]\n\n[[links]]\nbetween = ["c", "a"]\n'
+    msg = error_of(write(tmp_path, ring, "ring.scenario.toml"))
+    assert "not a tree: cycle" in msg and "set spanning_tree = true at the top of the scenario file" in msg
+    assert "spanning_tree()" not in msg
+    sc = load_scenario(write(tmp_path, "spanning_tree = true\n" + ring, "ring2.scenario.toml"))
+    assert sc.graph.number_of_edges() == 2

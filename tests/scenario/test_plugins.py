@@ -54,6 +54,12 @@ def test_simulate_with_the_plugin_named_in_the_scenario(capsys):
     assert main(["simulate", str(SCENARIO), "-q"]) == 0
     out = capsys.readouterr().out
     assert all(name in out for name in ("west", "south", "east", "centralized"))
+    # the tutorial shows this table as printed (it once showed an older table's columns and rows)
+    table = out.splitlines()[:next(i for i, line in enumerate(out.splitlines()) if not line.strip())]
+    page = (ROOT / "docs" / "new-sensor-kind.md").read_text()
+    shown = re.search(r"```\n(node +RMSE \[m\].*?)\n```", page, re.S)
+    assert shown and shown.group(1).splitlines() == table, "docs/new-sensor-kind.md's table is stale:\n" + \
+        "\n".join(table)
 
 
 def test_simulate_with_the_plugin_on_the_command_line(tmp_path):

@@ -223,3 +223,96 @@ def test_replay_of_laser_scans_into_mcl_and_icp_nodes(tmp_path):
                           truth_topic="/truth")
     _compare(ref, got)
     assert max(v["rmse"] for v in got.metrics["nodes"].values()) < 0.2   # the robots are localized
+
+
+SCENARIO = str(ROOT / "topologies" / "chain3.scenario.toml")
+TOPICS = ["--topic", "/a/fix=a", "--topic", "/b/fix=b", "--topic", "/c/fix=c"]
+
+
+@pytest.fixture(scope="module")
+def chain_world():
+    sc = load_scenario(SCENARIO, duration=6.0)
+    return sc, simulate_world(sc)
+
+
+def test_replay_refuses_a_truth_topic_that_does_not_cover_the_run(chain_world, tmp_path, capsys):
+    """Issue 25: a truth topic that starts after the other topics printed RMSE nan and then
+    crashed --topdown; now it is refused in one line giving the part it covers."""
+    from dfusion.cli import main
+
+    sc, world = chain_world
+    recs = [_fix_record(m.node, m, "point") for m in world.measurements]
+    late_truth = [r for r in _truth_records(world) if r[2] >= ns(2.0, ORIGIN)]
+    bag = write_bag(tmp_path / "late", "mcap", recs + late_truth)
+    code = main(["replay", SCENARIO, str(bag), "--duration", "6", *TOPICS, "--truth", "/truth",
+                 "--topdown", str(tmp_path / "t.png"), "-q"])
+    err = capsys.readouterr().err
+    # time 0 is the first fix, at 0.2 s: the truth (2-6 s) covers 1.8-5.8 s of the run
+    assert code == 2 and "truth topic /truth covers 1.800-5.800 s of the run's 0.000-6.000 s" in err
+    assert f"--origin-ns {ns(2.0, ORIGIN)} --duration 4.000" in err and not (tmp_path / "t.png").exists()
+
+
+def test_replay_refuses_a_message_type_that_does_not_fit_the_node(chain_world, tmp_path):
+    """Issue 25: a LaserScan fed to a position node was cut to its first two ranges."""
+    sc, world = chain_world
+    scans = [_scan_record(m.node, Measurement(m.t, m.node, np.full(90, 3.0), m.arrival)) for m in world.measurements]
+    bag = write_bag(tmp_path / "scans", "mcap", scans)
+    with pytest.raises(ValidationError, match=r"topic /a/scan: a sensor_msgs/msg/LaserScan gives 90 numbers, but "
+                                              r"node 'a' \(position\) takes 2"):
+        world_from_bag(sc, bag, [TopicInput("/a/scan", "a")])
+
+
+def test_replay_without_truth_draws_no_nan_and_shows_progress_when_piped(chain_world, tmp_path, capsys, monkeypatch):
+    """Issue 25: without a truth the table says 'unknown' (not nan) and the top-down figure
+    is drawn (it crashed on NaN axis limits); --plot, which needs a truth, is refused; a
+    piped run prints progress lines (it printed nothing until the end)."""
+    import dfusion.sim.runner as runner
+    from dfusion.cli import main
+
+    sc, world = chain_world
+    bag = _write(tmp_path, world, {nm: "point" for nm in sc.nodes})
+    code = main(["replay", SCENARIO, str(bag), "--duration", "6", *TOPICS, "--plot", str(tmp_path / "e.png")])
+    assert code == 2 and "--plot draws errors against the truth: give --truth" in capsys.readouterr().err
+    monkeypatch.setattr(runner, "PROGRESS_INTERVAL", 0.0)
+    out = tmp_path / "out"
+    code = main(["replay", SCENARIO, str(bag), "--duration", "6", *TOPICS, "--topdown", str(out / "t.png")])
+    cap = capsys.readouterr()
+    assert code == 0 and "nan" not in cap.out.lower() and "unknown" in cap.out
+    assert f"progress: {sc.steps}/{sc.steps} steps (100 %)" in cap.err and cap.err.count("progress: ") == sc.steps
+    assert (out / "t.png").stat().st_size > 10_000
+
+
+def test_replay_records_the_mcap_in_the_bags_time_with_ros_diagnostics(tmp_path):
+    """Issue 25: the recording of a replay was stamped in scenario time from 0, so it could
+    not be overlaid on its bag; its /diagnostics were a foxglove.Log. Log times and stamps
+    are now the bag's header stamps, and /diagnostics decode with rosbags as
+    diagnostic_msgs/msg/DiagnosticArray."""
+    from mcap.reader import make_reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from dfusion.cli import main
+
+    sc = load_scenario(SCENARIO, duration=21.0)   # a link goes down at 20 s: a diagnostic
+    world = simulate_world(sc)
+    bag = _write(tmp_path, world, {nm: "point" for nm in sc.nodes})
+    out = tmp_path / "r.mcap"
+    assert main(["replay", SCENARIO, str(bag), "--duration", "21", *TOPICS, "--truth", "/truth", "--arrival",
+                 "record", "--mcap", str(out), "-q"]) == 0
+    ros2 = get_typestore(Stores.ROS2_HUMBLE)
+    est, diag = [], []
+    with out.open("rb") as fh:
+        for schema, ch, msg in make_reader(fh).iter_messages(topics=["/nodes/a/estimate", "/diagnostics"]):
+            if ch.topic == "/diagnostics":
+                assert (schema.name, schema.encoding, ch.message_encoding) == (
+                    "diagnostic_msgs/msg/DiagnosticArray", "ros2msg", "cdr")
+                diag.append((msg.log_time, ros2.deserialize_cdr(msg.data, schema.name)))
+            else:
+                est.append(msg.log_time)
+    ref = run_scenario(sc, world=world)
+    origin = ORIGIN   # the truth's first stamp, at t = 0: the earliest of the topics read
+    assert est == [origin + int(round(t * 1e9)) for t in ref.times]
+    [(log_time, d)] = diag
+    assert log_time == origin + 20 * 10**9 and d.status[0].level == 1 and " down " in d.status[0].message
+    for log_time, d in diag:
+        assert d.header.stamp.sec * 10**9 + d.header.stamp.nanosec == log_time >= origin
+        assert d.status[0].name.startswith("dfusion/") and d.status[0].level in (0, 1)
