@@ -147,8 +147,8 @@ class NodeStats:
     #: incarnation (a new ``seq_start``): this node forgot its acknowledgements and sent it a full
     #: message (:mod:`dfusion.fusion.channel`, resynchronization)
     resyncs: int = 0
-    #: links switched back to a neighbour's incarnation that a newer one had replaced, because
-    #: it went on sending (without a key, :mod:`dfusion.fusion.incarnation`)
+    #: messages that switched a link back to a neighbour's incarnation that a newer one had
+    #: replaced, because it went on sending (without a key, :mod:`dfusion.fusion.incarnation`)
     incarnations_reverted: int = 0
 
 
@@ -1117,6 +1117,7 @@ class FusionNode:
             raise self._reject(verdict, f"incarnation {msg.epoch} of {msg.src!r} is more than 24 h ahead of this "
                                         "node's clock")
         if verdict == "revert":
+            self.stats.incarnations_reverted += 1
             log.warning("%s: %s's incarnation %d goes on after %d replaced it: the link switches back to it", self.name,
                         msg.src, msg.epoch, current)
         return verdict, last
@@ -1382,7 +1383,6 @@ class FusionNode:
             self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.duplicates += int(duplicate)
         self.stats.resyncs += int(resync)
-        self.stats.incarnations_reverted += int(reverted)
         self.stats.blocks_outside_window += outside
         self.stats.blocks_too_far_ahead += len(too_far)
         if outside:
