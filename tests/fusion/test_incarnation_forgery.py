@@ -15,15 +15,11 @@ from dfusion.fusion.incarnation import MAX_EPOCH_AHEAD_NS, REVERT_STREAK, Incarn
 from dfusion.fusion.tree import initial_parents
 from dfusion.models import PositionSensor
 from dfusion.wire import FrameKey, decode, encode
-from tests.helpers.dynamic_harness import build_node, settle
+from tests.helpers.dynamic_harness import build_node, rel, settle
 from tests.helpers.fusion_harness import KEY, central_kalman, make_node, state_digest
 
 SENSOR = PositionSensor(2, 0.5)
 HOUR = 3600 * 10**9
-
-
-def rel(a, b) -> float:
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
 
 
 class Pair:

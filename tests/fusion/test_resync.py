@@ -13,15 +13,11 @@ from hypothesis import strategies as st
 from dfusion.fusion.tree import initial_parents
 from dfusion.models import PositionSensor
 from dfusion.wire import decode
-from tests.helpers.dynamic_harness import (DynamicSchedule, build_node, measurement_information, run_dynamic,
-                                           single_state_information)
+from tests.helpers.dynamic_harness import (DynamicSchedule, assert_exact, build_node, measurement_information, rel,
+                                           run_dynamic, single_state_information)
 from tests.helpers.fusion_harness import central_kalman
 
 STD = 0.6
-
-
-def rel(a, b) -> float:
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
 
 
 def pair_run(flicker: dict[int, list[tuple[str, str]]], steps: int, check_from: int | None = None):
@@ -152,15 +148,6 @@ def test_a_reordered_message_of_the_previous_channel_changes_nothing_it_should_n
     for x in nodes.values():
         m, P = x.estimate()
         assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9
-
-
-def assert_exact(run) -> None:
-    meas = [(t, z, std) for t, z, std, node in run.measurements if node in run.present]
-    mean, cov = central_kalman(meas, run.t_end)
-    for name in sorted(run.present):
-        m, P = run.nodes[name].estimate()
-        assert rel(m, mean) < 1e-9, (name, rel(m, mean))
-        assert rel(P, cov) < 1e-9, (name, rel(P, cov))
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
