@@ -1,0 +1,168 @@
+r"""A ROS 2 participant on an open Zenoh session: subscriptions, publishers, liveliness tokens.
+
+:class:`Ros2Link` subscribes to a node's input topics and to ``/tf_static``, and publishes its
+outputs, on the keys of the chosen convention (:mod:`dfusion.ros2.keys`), with CDR payloads
+(:mod:`dfusion.ros2.codec`). It declares the liveliness tokens of a ROS 2 node and of each of its
+subscriptions and publishers, so ``ros2 node list`` and ``ros2 topic list`` (rmw_zenoh, or through
+the bridge) show them.
+
+Zenoh delivers samples in its own threads: the callbacks only append the raw bytes to a bounded
+queue (:data:`QUEUE_LIMIT` samples; the oldest are shed and counted when the node falls behind), and
+the node's thread decodes them in :meth:`Ros2Link.take`. Bytes that do not decode, and messages
+whose frame is not connected to the node's, are counted and logged (rate-limited), never fused.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+from dfusion.errors import ValidationError
+from dfusion.ros2.codec import decode, encode
+from dfusion.ros2.inputs import Reading, reading_of
+from dfusion.ros2.keys import RMW_ZENOH, Convention, rmw_attachment
+from dfusion.ros2.tf import StaticTransforms
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Ros2Link", "Received", "QUEUE_LIMIT", "TF_STATIC"]
+
+#: Samples held per link between two looks of the node (the oldest are shed beyond it).
+QUEUE_LIMIT = 10_000
+TF_STATIC = ("/tf_static", "tf2_msgs/msg/TFMessage")
+#: Seconds between two log lines about refused input messages.
+LOG_PERIOD = 5.0
+
+
+@dataclass(frozen=True)
+class Received:
+    """An input message taken by the node: its topic, header stamp (ns) and :class:`Reading`."""
+
+    topic: str
+    stamp_ns: int
+    reading: Reading
+
+
+class Ros2Link:
+    """ROS 2 in and out for one node over ``session`` (see the module docstring).
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    convention : Convention
+    ros_node : str
+        The ROS 2 node name announced (``ros2 node list``).
+    frame : str
+        The node's frame: input poses are expressed in it, outputs are stamped with it.
+    inputs : mapping topic -> message type
+    outputs : mapping topic -> message type
+    """
+
+    def __init__(self, session: Any, convention: Convention, ros_node: str, frame: str,
+                 inputs: dict[str, str], outputs: dict[str, str]) -> None:
+        self.session, self.convention, self.ros_node, self.frame = session, convention, ros_node, frame
+        self.inputs, self.outputs = dict(inputs), dict(outputs)
+        self.tf = StaticTransforms()
+        self.counters = {"received": 0, "decode_errors": 0, "frame_errors": 0, "shed": 0, "published": 0,
+                         "tf_static": 0}
+        self._queue: deque[tuple[str, bytes]] = deque()
+        self._lock = threading.Lock()
+        self._last_log = 0.0
+        self._seq = 0
+        self._gid = os.urandom(16)
+        self._subs: list[Any] = []
+        self._pubs: dict[str, Any] = {}
+        self._tokens: list[Any] = []
+        zid = str(session.info.zid())
+        self.session_id = zid
+        try:
+            tok = convention.node_token(zid, ros_node)
+            if tok is not None:
+                self._tokens.append(session.liveliness().declare_token(tok))
+            entity = 1
+            for topic, msgtype in [*self.inputs.items(), TF_STATIC]:
+                self._subs.append(session.declare_subscriber(convention.data_key(topic, msgtype),
+                                                             self._callback(topic)))
+                self._tokens.append(session.liveliness().declare_token(
+                    convention.entity_token("MS", zid, ros_node, topic, msgtype, entity_id=entity)))
+                entity += 1
+            for topic, msgtype in self.outputs.items():
+                self._pubs[topic] = session.declare_publisher(convention.data_key(topic, msgtype))
+                self._tokens.append(session.liveliness().declare_token(
+                    convention.entity_token("MP", zid, ros_node, topic, msgtype, entity_id=entity)))
+                entity += 1
+        except BaseException:
+            self.close()
+            raise
+
+    def _callback(self, topic: str):
+        def on_sample(sample: Any) -> None:   # a Zenoh thread: keep it short
+            data = sample.payload.to_bytes()
+            with self._lock:
+                if len(self._queue) >= QUEUE_LIMIT:
+                    self._queue.popleft()
+                    self.counters["shed"] += 1
+                self._queue.append((topic, data))
+        return on_sample
+
+    def _refused(self, what: str, exc: Exception) -> None:
+        self.counters[what] += 1
+        now = time.monotonic()
+        if now - self._last_log >= LOG_PERIOD:
+            self._last_log = now
+            log.warning("%s: input refused (%s): %s (decode errors %d, frame errors %d so far)", self.ros_node,
+                        what, exc, self.counters["decode_errors"], self.counters["frame_errors"])
+
+    def take(self) -> list[Received]:
+        """The input messages that arrived since the last call, decoded, in arrival order
+        (``/tf_static`` messages update :attr:`tf` and are not returned)."""
+        with self._lock:
+            items = list(self._queue)
+            self._queue.clear()
+        out: list[Received] = []
+        for topic, data in items:
+            if topic == TF_STATIC[0]:
+                try:
+                    self.counters["tf_static"] += self.tf.add_message(decode(data, TF_STATIC[1]))
+                except ValidationError as exc:
+                    self._refused("decode_errors", exc)
+                continue
+            msgtype = self.inputs[topic]
+            try:
+                msg = decode(data, msgtype)
+                stamp = msg.header.stamp
+                ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+            except (ValidationError, AttributeError) as exc:
+                self._refused("decode_errors", exc)
+                continue
+            try:
+                reading = reading_of(msgtype, msg, self.frame, self.tf)
+            except ValidationError as exc:
+                self._refused("frame_errors", exc)
+                continue
+            self.counters["received"] += 1
+            out.append(Received(topic, ns, reading))
+        return out
+
+    def publish(self, topic: str, msg: Any) -> None:
+        """Publish ``msg`` on output ``topic`` (rmw_zenoh: with its attachment)."""
+        data = encode(msg)
+        self._seq += 1
+        if self.convention.kind == RMW_ZENOH:
+            self._pubs[topic].put(data, attachment=rmw_attachment(self._seq, time.time_ns(), self._gid))
+        else:
+            self._pubs[topic].put(data)
+        self.counters["published"] += 1
+
+    def close(self) -> None:
+        """Undeclare everything (tokens first, so ROS 2 tools see the node go at once)."""
+        for ent in [*self._tokens, *self._subs, *self._pubs.values()]:
+            try:
+                ent.undeclare()
+            except Exception as exc:   # the session may be closed already
+                log.debug("undeclare: %s", exc)
+        self._tokens, self._subs, self._pubs = [], [], {}
