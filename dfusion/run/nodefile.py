@@ -133,7 +133,7 @@ def _check(table: dict, schema: dict[str, type], where: str, src: Path) -> None:
         if key not in schema:
             near = difflib.get_close_matches(key, list(schema), n=1)
             hint = f" (did you mean {near[0]!r}?)" if near else f" (known: {', '.join(schema)})"
-            raise ValidationError(f"{src}: unknown key {where}{key!r}{hint}")
+            raise ValidationError(f"{src}: unknown key '{where}{key}'{hint}")
         want = schema[key]
         ok = (isinstance(value, (int, float)) and not isinstance(value, bool)) if want is float else \
             (isinstance(value, int) and not isinstance(value, bool)) if want is int else isinstance(value, want)
