@@ -8,7 +8,15 @@ the bridge) show them.
 
 Zenoh delivers samples in its own threads: the callbacks only append the raw bytes to a bounded
 queue (:data:`QUEUE_LIMIT` samples; the oldest are shed and counted when the node falls behind), and
-the node's thread decodes them in :meth:`Ros2Link.take`. Bytes that do not decode, and messages
+the node's thread decodes them in :meth:`Ros2Link.take`.
+
+``/tf_static`` is *transient local* in ROS 2: its publishers keep their last messages for
+subscriptions that come later. rmw_zenoh implements this with Zenoh's advanced publishers (a cache)
+and advanced subscriptions (a history query to every publisher, also to those detected later); the
+link subscribes to ``/tf_static`` the same way (``zenoh.ext.declare_advanced_subscriber`` with
+``HistoryConfig(detect_late_publishers=True)``), so a node started after the robot's static
+transforms were published still gets them from an rmw_zenoh publisher. Through
+``zenoh-bridge-ros2dds`` only what is published after the node subscribed is certain to arrive. Bytes that do not decode, and messages
 whose frame is not connected to the node's, are counted and logged (rate-limited), never fused.
 """
 from __future__ import annotations
@@ -20,6 +28,9 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
+
+import zenoh
+import zenoh.ext
 
 from dfusion.errors import ValidationError
 from dfusion.ros2.codec import decode, encode
@@ -85,8 +96,13 @@ class Ros2Link:
                 self._tokens.append(session.liveliness().declare_token(tok))
             entity = 1
             for topic, msgtype in [*self.inputs.items(), TF_STATIC]:
-                self._subs.append(session.declare_subscriber(convention.data_key(topic, msgtype),
-                                                             self._callback(topic)))
+                key = convention.data_key(topic, msgtype)
+                if topic == TF_STATIC[0]:   # transient local: also the samples published before we came
+                    self._subs.append(zenoh.ext.declare_advanced_subscriber(
+                        session, key, self._callback(topic),
+                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
+                else:
+                    self._subs.append(session.declare_subscriber(key, self._callback(topic)))
                 self._tokens.append(session.liveliness().declare_token(
                     convention.entity_token("MS", zid, ros_node, topic, msgtype, entity_id=entity)))
                 entity += 1
