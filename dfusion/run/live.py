@@ -11,8 +11,10 @@ from and where the estimate goes:
 * **in**: the node file's input topics (:class:`~dfusion.ros2.link.Ros2Link`, on the node's own
   Zenoh session, keys of the chosen convention). At every step the messages that arrived are
   taken; a message's measurement time is its header stamp, in scenario time
-  ``t = (stamp - start)``, ``start`` the wall-clock time the node started (so stamps are wall-clock
-  times, as a robot's drivers give them); it reaches the node at the step it was taken, and the
+  ``t = (stamp - start)``, ``start`` the wall-clock time of scenario time 0 (so stamps are wall-clock
+  times, as a robot's drivers give them; the nodes of one network share ``start``: their node
+  files give it, else a node alone starts its clock when it starts); it reaches the node at the
+  step it was taken, and the
   delayed-state filter fuses it at its own time (or refuses it, counted, when it is older than the
   window). A message stamped before the start or more than :data:`FUTURE_TOLERANCE` s after now
   is refused and counted. A position message's own covariance replaces the node's noise
@@ -94,13 +96,17 @@ class LiveNodeProcess(NodeProcess):
         super().__init__(sc, name, measurements=[], **kw)
         self.nf = nf
         self.ros: Ros2Link | None = None
-        self.origin_ns = 0
         self.counters.update(inputs_before_start=0, inputs_from_future=0, inputs_with_covariance=0)
         self._last_fused = -math.inf
         self._diag_due = 0.0
         self._refused_seen = 0
         sensor = sc.nodes[name].sensor
         self._dim = getattr(sensor, "dim_z", None)
+
+    @property
+    def origin_ns(self) -> int:
+        """Scenario time 0 as a ROS time stamp (nanoseconds since the epoch; 0 before the start is known)."""
+        return int(round(self.start * 1e9)) if self.start is not None else 0
 
     def attach(self, tr: ZenohTransport) -> None:
         super().attach(tr)
@@ -110,7 +116,6 @@ class LiveNodeProcess(NodeProcess):
     def collect(self, t: float) -> None:
         if self.ros is None:
             return
-        self.origin_ns = int(round(self.start * 1e9))
         batch = []
         for rec in self.ros.take():
             tm = round((rec.stamp_ns - self.origin_ns) * 1e-9, 9)
@@ -194,6 +199,8 @@ def build_parser(kind: str | None) -> argparse.ArgumentParser:
     p.add_argument("node_file", help="the node file (TOML; docs/ros.md, Live use)")
     p.add_argument("--result", default=None, help="write the final estimate and counters here (JSON)")
     p.add_argument("--duration", type=float, default=None, help="override the node file's duration (s)")
+    p.add_argument("--start-time", type=float, default=None,
+                   help="override the node file's start: UNIX time of scenario time 0, the same for every node")
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
 
@@ -228,8 +235,9 @@ def main(argv: list[str] | None = None, kind: str | None = None) -> int:
         sec = SecurityOptions(nf.network_key_file, None, nf.tls_ca, nf.tls_cert, nf.tls_key)
         zc = ZenohConfig(mode=nf.mode, listen=nf.listen, connect=nf.connect, extra=nf.zenoh_options,
                          tls=sec.tls_files(nf.name))
-        proc = LiveNodeProcess(sc, nf.name, nf, network=nf.network, zconfig=zc, network_key=load_network_key(
-            nf.network_key_file), result=args.result)
+        start = args.start_time if args.start_time is not None else nf.start
+        proc = LiveNodeProcess(sc, nf.name, nf, network=nf.network, zconfig=zc, start=start,
+                               network_key=load_network_key(nf.network_key_file), result=args.result)
         host = Host([proc], network=nf.network, zconfig=zc, label=nf.name)
         if early:
             return 0

@@ -6,6 +6,8 @@ A TOML file (``docs/ros.md``, "Live use", has a full example)::
     kind = "robot"                       # camera | wsn | robot | relay (checked against the scenario)
     scenario = "robot.scenario.toml"     # the models: node table, target motion, prior, dt, window, tree, links
     network = "dfusion"                  # Zenoh key space of the fusion messages (dfusion/NETWORK/...)
+    start = 1795000000.0                 # optional: UNIX time of scenario time 0, the same in every node
+                                         # file of one network (default: when this node starts: alone)
     duration = 3600.0                    # optional: seconds to run (default 86400); then the final phase
     plugins = []                         # optional: modules or .py files with sensor kinds / policies
 
@@ -65,7 +67,7 @@ DEFAULT_DURATION = 86400.0
 OUTPUT_TYPES = {"odometry": "nav_msgs/msg/Odometry", "pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
                 "diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
 
-_TOP = {"name": str, "kind": str, "scenario": str, "network": str, "duration": float, "plugins": list,
+_TOP = {"name": str, "kind": str, "scenario": str, "network": str, "start": float, "duration": float, "plugins": list,
         "zenoh": dict, "security": dict, "ros": dict, "inputs": list, "outputs": dict}
 _ZENOH = {"mode": str, "listen": list, "connect": list, "options": dict}
 _SECURITY = {"network_key_file": str, "tls_ca": str, "tls_cert": str, "tls_key": str}
@@ -115,6 +117,7 @@ class NodeFile:
     kind: str
     scenario: Path
     network: str
+    start: float | None
     duration: float
     plugins: tuple[str, ...]
     mode: str
@@ -221,7 +224,7 @@ def load_node_file(path: str | Path) -> NodeFile:
                             ros.get("child_frame", "base_link"), periods["diagnostics_period"],
                             periods["stale_after"], inputs, outputs)
     return NodeFile(src, data["name"], data["kind"], Path(_path(base, data["scenario"])),
-                    data.get("network", "dfusion"), duration,
+                    data.get("network", "dfusion"), float(data["start"]) if "start" in data else None, duration,
                     tuple(_path(base, p) if p.endswith(".py") else p
                           for p in _strings(data.get("plugins", []), "plugins", src)),
                     mode, _strings(z.get("listen", []), "zenoh.listen", src),

@@ -6,7 +6,8 @@ real time as nav_msgs/Odometry in an ``odom`` frame (with a pose covariance) plu
 node (``nodes/robot_localizer.py`` with a node file) must take the messages, express them in
 ``map`` through the static transform, use their covariance instead of its scenario's noise (its
 scenario says std 1 m, the messages 5 cm), and publish Odometry, PoseWithCovarianceStamped and
-DiagnosticArray that rosbags decodes. Its estimates are compared with the offline run of the same
+DiagnosticArray that rosbags decodes. A relay (``nodes/relay.py``, the scenario's sensorless
+neighbour, its own node file) runs next to it, linked over Zenoh, with the same start. Its estimates are compared with the offline run of the same
 data: ``dfusion.sim.replay.replay_scenario`` on the same poses in ``map`` with the same stamps and a
 scenario whose noise is the messages' (5 cm). Errors are against the log's corrected scan poses.
 """
@@ -35,7 +36,7 @@ from dfusion.sim.replay import TopicInput, replay_scenario
 ROOT = Path(__file__).resolve().parents[2]
 LOG = ROOT / "tests" / "data" / "carmen" / "intel-160scans.log.gz"
 T0, SPAN = 110.0, 10.0          # the slice of the log (s): the robot drives 4.6 m
-DURATION = 13.0                  # the node's run (s): the slice starts about 1 s after the node
+DURATION = 13.0                  # the nodes' run (s): the slice starts 1 s after their start
 SIGMA = 0.05                     # the messages' position std (m)
 MAP_TO_ODOM = (2.0, -1.0, 0.3)   # the static transform published on /tf_static
 TS = get_typestore(Stores.ROS2_JAZZY)   # rosbags' own, independent of dfusion.ros2.codec
@@ -122,9 +123,9 @@ def keys(convention):
     return key
 
 
-def session(connect):
+def session(*connect):
     cfg = zenoh.Config()
-    for path, value in {"mode": "peer", "listen/endpoints": ["tcp/127.0.0.1:0"], "connect/endpoints": [connect],
+    for path, value in {"mode": "peer", "listen/endpoints": ["tcp/127.0.0.1:0"], "connect/endpoints": list(connect),
                         "scouting/multicast/enabled": False, "scouting/gossip/enabled": False,
                         "timestamping/enabled": True, "connect/exit_on_failure": False,
                         "connect/retry": {"period_init_ms": 100, "period_max_ms": 200, "period_increase_factor": 2},
@@ -144,14 +145,31 @@ def test_live_node_follows_a_carmen_log_like_the_offline_run(tmp_path, conventio
     x0, y0 = poses[0, :2]
     (tmp_path / "live.scenario.toml").write_text(SCENARIO.format(duration=DURATION, x0=x0, y0=y0, std=1.0))
     (tmp_path / "offline.scenario.toml").write_text(SCENARIO.format(duration=DURATION, x0=x0, y0=y0, std=SIGMA))
-    port = free_port()
+    port, port_base = free_port(), free_port()
+    start = time.time() + 4.0   # scenario time 0 of both nodes: time to start them and see their tokens
+    (tmp_path / "base.node.toml").write_text(f"""
+name = "base"
+kind = "relay"
+scenario = "live.scenario.toml"
+start = {start!r}
+duration = {DURATION}
+[zenoh]
+listen = ["tcp/127.0.0.1:{port_base}"]
+connect = ["tcp/127.0.0.1:{port}"]
+[ros]
+convention = "{convention}"
+[outputs]
+odometry = "/dfusion/base/odom"
+""")
     (tmp_path / "robot.node.toml").write_text(f"""
 name = "robot"
 kind = "robot"
 scenario = "live.scenario.toml"
+start = {start!r}
 duration = {DURATION}
 [zenoh]
 listen = ["tcp/127.0.0.1:{port}"]
+connect = ["tcp/127.0.0.1:{port_base}"]
 [ros]
 convention = "{convention}"
 frame = "map"
@@ -165,11 +183,11 @@ diagnostics = "/diagnostics"
 """)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     key = keys(convention)
-    got: dict[str, list[bytes]] = {"odom": [], "pose": [], "diag": []}
-    s = node = None
+    got: dict[str, list[bytes]] = {"odom": [], "pose": [], "diag": [], "base": []}
+    s = node = base = None
     published: list[tuple[int, tuple]] = []
     try:
-        s = session(f"tcp/127.0.0.1:{port}")
+        s = session(f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{port_base}")   # peers do not route for others
         tf_key = key("/tf_static", "tf2_msgs/msg/TFMessage")
         tf_bytes = bytes(TS.serialize_cdr(tf_static("map", "odom", MAP_TO_ODOM), "tf2_msgs/msg/TFMessage"))
         if convention == "rmw_zenoh":   # transient local, as rmw_zenoh publishes /tf_static: before the node starts
@@ -179,10 +197,13 @@ diagnostics = "/diagnostics"
         node = subprocess.Popen([sys.executable, str(ROOT / "nodes" / "robot_localizer.py"),
                                  str(tmp_path / "robot.node.toml"), "--result", str(tmp_path / "result.json")],
                                 env=env, stderr=subprocess.PIPE, text=True)
+        base = subprocess.Popen([sys.executable, str(ROOT / "nodes" / "relay.py"), str(tmp_path / "base.node.toml"),
+                                 "--result", str(tmp_path / "base.json")], env=env, stderr=subprocess.PIPE, text=True)
         subs = [s.declare_subscriber(key(topic, t), lambda smp, k=k: got[k].append(smp.payload.to_bytes()))
                 for k, topic, t in (("odom", "/dfusion/robot/odom", "nav_msgs/msg/Odometry"),
                                     ("pose", "/dfusion/robot/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"),
-                                    ("diag", "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"))]
+                                    ("diag", "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+                                    ("base", "/dfusion/base/odom", "nav_msgs/msg/Odometry"))]
         # the node's liveliness tokens: its subscription of /odom must be seen before playing
         pattern = "@ros2_lv/0/**" if convention == "rmw_zenoh" else "@/*/@ros2_lv/**"
         deadline, tokens = time.time() + 20, []
@@ -197,22 +218,25 @@ diagnostics = "/diagnostics"
             s.put(tf_key, tf_bytes)
         pub = s.declare_publisher(key("/odom", "nav_msgs/msg/Odometry"))
         odom_of_map = se2_inv(MAP_TO_ODOM)
-        start = time.time() + 0.3
+        assert time.time() < start, "the nodes took too long to come up"
         for tl, p in zip(t_log, poses):
-            time.sleep(max(0.0, start + tl - time.time()))
+            time.sleep(max(0.0, start + 1.0 + tl - time.time()))
             stamp = time.time_ns()
             msg = odometry(stamp, "odom", se2_mul(odom_of_map, tuple(p)), SIGMA ** 2)
             pub.put(bytes(TS.serialize_cdr(msg, "nav_msgs/msg/Odometry")))
             published.append((stamp, tuple(p)))
         _, err = node.communicate(timeout=DURATION + 30)
         assert node.returncode == 0, err[-3000:]
+        _, err = base.communicate(timeout=30)
+        assert base.returncode == 0, err[-3000:]
         time.sleep(0.2)
         for sub in subs:
             sub.undeclare()
     finally:
-        if node is not None and node.poll() is None:
-            node.kill()
-            node.wait()
+        for proc in (node, base):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
         if s is not None:
             s.close()
 
@@ -228,6 +252,8 @@ diagnostics = "/diagnostics"
     assert int(values["inputs_with_covariance"]) == len(published)
     assert int(values["ros_frame_errors"]) == 0 and int(values["ros_tf_static"]) == 1
     start_ns = int(values["start_ns"])
+    assert start_ns == int(round(start * 1e9))
+    assert len(got["base"]) >= 100
 
     # the offline run of the same data: the same poses (in map) and stamps, noise = the messages'
     M = TS.types
@@ -261,3 +287,8 @@ diagnostics = "/diagnostics"
     # and the final estimates (every measurement fused in both) agree
     final = json.loads((tmp_path / "result.json").read_text())
     np.testing.assert_allclose(np.array(final["mean"])[:2], off.node_mean["robot"][-1, :2], atol=1e-6)
+    # the relay (nodes/relay.py) got the robot's information over Zenoh: the same final estimate
+    assert int(values["messages_received"]) > 0
+    final_base = json.loads((tmp_path / "base.json").read_text())
+    np.testing.assert_allclose(np.array(final_base["mean"])[:2], off.node_mean["base"][-1, :2], atol=1e-6)
+    np.testing.assert_allclose(final_base["mean"], final["mean"], atol=1e-9)
