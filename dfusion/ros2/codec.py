@@ -17,7 +17,7 @@ import numpy as np
 
 from dfusion.errors import ValidationError
 
-__all__ = ["typestore", "encode", "decode", "type_hash", "time_msg", "header", "estimate_messages",
+__all__ = ["typestore", "encode", "decode", "type_hash", "register_definition", "make", "time_msg", "header", "estimate_messages",
            "diagnostics", "planar_pose_covariance", "DIAGNOSTIC_LEVELS"]
 
 #: ``diagnostic_msgs/DiagnosticStatus`` levels.
@@ -45,6 +45,18 @@ def type_hash(msgtype: str) -> str:
     """``RIHS01_<sha256 hex>`` of ``msgtype`` (REP-2016), as rmw_zenoh puts it in keys."""
     _cls(msgtype)
     return typestore().hash_rihs01(msgtype)
+
+
+def register_definition(msgtype: str, text: str) -> None:
+    """Add a message type from its ``.msg`` definition (a custom type: a vendor's detections, ...)."""
+    from rosbags.typesys import get_types_from_msg   # noqa: PLC0415
+
+    try:
+        types = get_types_from_msg(text, msgtype)
+    except Exception as exc:   # rosbags' parser errors
+        raise ValidationError(f"the definition of {msgtype} does not parse: {exc}") from None
+    typestore().register(types)
+    type_hash.cache_clear()
 
 
 def encode(msg: Any) -> bytes:

@@ -27,8 +27,9 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
+import numpy as np
 import zenoh
 import zenoh.ext
 
@@ -71,15 +72,21 @@ class Ros2Link:
         The node's frame: input poses are expressed in it, outputs are stamped with it.
     inputs : mapping topic -> message type
     outputs : mapping topic -> message type
+    converters : mapping topic -> ``f(msg, stamp_s) -> z or None``, optional
+        User functions for inputs of other types, or another ``z`` (a camera's pixel, a WSN's
+        RSSI vector); ``stamp_s`` is the header stamp in seconds since the epoch, ``None`` skips
+        the message (counted). Their ``z`` is taken as it is (no frame change, the node's noise).
     """
 
     def __init__(self, session: Any, convention: Convention, ros_node: str, frame: str,
-                 inputs: dict[str, str], outputs: dict[str, str]) -> None:
+                 inputs: dict[str, str], outputs: dict[str, str],
+                 converters: dict[str, Callable[[Any, float], Any]] | None = None) -> None:
         self.session, self.convention, self.ros_node, self.frame = session, convention, ros_node, frame
         self.inputs, self.outputs = dict(inputs), dict(outputs)
+        self.converters = dict(converters or {})
         self.tf = StaticTransforms()
-        self.counters = {"received": 0, "decode_errors": 0, "frame_errors": 0, "shed": 0, "published": 0,
-                         "tf_static": 0}
+        self.counters = {"received": 0, "decode_errors": 0, "frame_errors": 0, "converter_errors": 0,
+                         "skipped": 0, "shed": 0, "published": 0, "tf_static": 0}
         self._queue: deque[tuple[str, bytes]] = deque()
         self._lock = threading.Lock()
         self._last_log = 0.0
@@ -130,8 +137,9 @@ class Ros2Link:
         now = time.monotonic()
         if now - self._last_log >= LOG_PERIOD:
             self._last_log = now
-            log.warning("%s: input refused (%s): %s (decode errors %d, frame errors %d so far)", self.ros_node,
-                        what, exc, self.counters["decode_errors"], self.counters["frame_errors"])
+            log.warning("%s: input refused (%s): %s (so far: decode errors %d, frame errors %d, converter errors %d)",
+                        self.ros_node, what, exc, self.counters["decode_errors"], self.counters["frame_errors"],
+                        self.counters["converter_errors"])
 
     def take(self) -> list[Received]:
         """The input messages that arrived since the last call, decoded, in arrival order
@@ -154,6 +162,22 @@ class Ros2Link:
                 ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
             except (ValidationError, AttributeError) as exc:
                 self._refused("decode_errors", exc)
+                continue
+            fn = self.converters.get(topic)
+            if fn is not None:
+                try:
+                    z = fn(msg, ns * 1e-9)
+                    if z is None:
+                        self.counters["skipped"] += 1
+                        continue
+                    z = np.atleast_1d(np.asarray(z, dtype=float))
+                    if z.ndim != 1 or not np.all(np.isfinite(z)):
+                        raise ValueError(f"z must be a finite vector, got shape {z.shape}")
+                except Exception as exc:   # a user function: whatever it raises is its message's fault
+                    self._refused("converter_errors", exc)
+                    continue
+                self.counters["received"] += 1
+                out.append(Received(topic, ns, Reading(z, None, str(getattr(msg.header, "frame_id", "")))))
                 continue
             try:
                 reading = reading_of(msgtype, msg, self.frame, self.tf)

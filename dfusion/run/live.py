@@ -38,6 +38,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -49,7 +50,7 @@ from dfusion.run.common import Status, load_network_key
 from dfusion.run.measurements import OwnMeasurement
 from dfusion.run.node_process import Host, NodeProcess
 from dfusion.run.nodefile import NodeFile, kind_of, load_node_file
-from dfusion.ros2.codec import diagnostics, estimate_messages
+from dfusion.ros2.codec import diagnostics, estimate_messages, register_definition
 from dfusion.ros2.link import Ros2Link
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.security import SecurityOptions
@@ -111,7 +112,14 @@ class LiveNodeProcess(NodeProcess):
     def attach(self, tr: ZenohTransport) -> None:
         super().attach(tr)
         r = self.nf.ros
-        self.ros = Ros2Link(tr.session, r.convention, r.node_name, r.frame, r.inputs, r.output_types())
+        for msgtype, path in r.definitions.items():
+            register_definition(msgtype, Path(path).read_text())
+        converters = {}
+        if r.converters:
+            from dfusion.sim.replay import load_function   # noqa: PLC0415  (the one loader of user converters)
+
+            converters = {topic: load_function(path, func) for topic, (path, func) in r.converters.items()}
+        self.ros = Ros2Link(tr.session, r.convention, r.node_name, r.frame, r.inputs, r.output_types(), converters)
 
     def collect(self, t: float) -> None:
         if self.ros is None:
@@ -169,7 +177,7 @@ class LiveNodeProcess(NodeProcess):
         c = dict(self.stats())
         c.update({f"ros_{k}": v for k, v in self.ros.counters.items()})
         refused = (c["measurements_refused"] + c["inputs_before_start"] + c["inputs_from_future"]
-                   + c["ros_decode_errors"] + c["ros_frame_errors"] + c["ros_shed"])
+                   + c["ros_decode_errors"] + c["ros_frame_errors"] + c["ros_converter_errors"] + c["ros_shed"])
         quiet = status.t - self._last_fused if self.nf.ros.inputs else 0.0
         if status.phase == "stopped":
             level, msg = "error", f"stopped: {self.stop_reason}"

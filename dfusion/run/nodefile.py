@@ -37,14 +37,20 @@ A TOML file (``docs/ros.md``, "Live use", has a full example)::
     topic = "/odom"
     type = "nav_msgs/msg/Odometry"
 
+    [[inputs]]                           # another type, or another z: a user function
+    topic = "/detections"
+    type = "vendor_msgs/msg/Detections"
+    definition = "Detections.msg"        # a type rosbags does not know: its .msg definition
+    convert = "my_convert.py:first_pixel"   # f(msg, stamp_s) -> z (None: skip the message)
+
     [outputs]                            # each optional; none: nothing published there
     odometry = "/dfusion/robot/odom"
     pose = "/dfusion/robot/pose"
     diagnostics = "/diagnostics"
 
 Relative paths are relative to the node file. The loader is strict: an unknown key (with the
-nearest known one suggested), a value of the wrong type, a missing required key or an input type
-the node cannot take is one clear line (:class:`~dfusion.errors.ValidationError`).
+nearest known one suggested), a value of the wrong type, a missing required key, a missing file or an
+input type the node cannot take is one clear line (:class:`~dfusion.errors.ValidationError`).
 """
 from __future__ import annotations
 
@@ -73,7 +79,7 @@ _ZENOH = {"mode": str, "listen": list, "connect": list, "options": dict}
 _SECURITY = {"network_key_file": str, "tls_ca": str, "tls_cert": str, "tls_key": str}
 _ROS = {"convention": str, "domain_id": int, "namespace": str, "node_name": str, "frame": str,
         "child_frame": str, "diagnostics_period": float, "stale_after": float}
-_INPUT = {"topic": str, "type": str}
+_INPUT = {"topic": str, "type": str, "convert": str, "definition": str}
 _OUTPUTS = {k: str for k in OUTPUT_TYPES}
 
 
@@ -102,6 +108,10 @@ class Ros2Settings:
     stale_after: float = 2.0
     inputs: dict[str, str] = field(default_factory=dict)
     outputs: dict[str, str] = field(default_factory=dict)
+    #: input topic -> (Python file, function name) of its user converter
+    converters: dict[str, tuple[str, str]] = field(default_factory=dict)
+    #: message type -> its .msg definition file (types rosbags does not know)
+    definitions: dict[str, str] = field(default_factory=dict)
 
     def output_types(self) -> dict[str, str]:
         """Output topic -> message type."""
@@ -195,19 +205,33 @@ def load_node_file(path: str | Path) -> NodeFile:
     if not duration > 0:
         raise ValidationError(f"{src}: duration must be positive, got {duration}")
     inputs: dict[str, str] = {}
+    converters: dict[str, tuple[str, str]] = {}
+    definitions: dict[str, str] = {}
     for i, item in enumerate(data.get("inputs", [])):
         if not isinstance(item, dict):
             raise ValidationError(f"{src}: inputs[{i}] must be a table with topic and type")
         _check(item, _INPUT, f"inputs[{i}].", src)
         if "topic" not in item or "type" not in item:
             raise ValidationError(f"{src}: inputs[{i}] needs topic and type")
-        if item["type"] not in SUPPORTED_INPUTS:
+        if item["type"] not in SUPPORTED_INPUTS and "convert" not in item:
             raise ValidationError(f"{src}: inputs[{i}].type {item['type']!r} is not supported "
-                                  f"(supported: {', '.join(SUPPORTED_INPUTS)})")
+                                  f"(supported: {', '.join(SUPPORTED_INPUTS)}; other types need convert = "
+                                  "\"FILE.py:FUNCTION\")")
         topic = _topic(item["topic"], f"inputs[{i}].topic", src)
         if topic in inputs:
             raise ValidationError(f"{src}: input topic {topic} is given twice")
         inputs[topic] = item["type"]
+        if "convert" in item:
+            file, sep, func = item["convert"].rpartition(":")
+            if not sep or not file.endswith(".py") or not func.isidentifier():
+                raise ValidationError(f"{src}: inputs[{i}].convert must be FILE.py:FUNCTION, got {item['convert']!r}")
+            if not Path(_path(base, file)).is_file():
+                raise ValidationError(f"{src}: inputs[{i}].convert: {_path(base, file)} does not exist")
+            converters[topic] = (_path(base, file), func)
+        if "definition" in item:
+            if not Path(_path(base, item["definition"])).is_file():
+                raise ValidationError(f"{src}: inputs[{i}].definition: {_path(base, item['definition'])} does not exist")
+            definitions[item["type"]] = _path(base, item["definition"])
     outputs = data.get("outputs", {"odometry": f"/dfusion/{data['name']}/odom",
                                    "pose": f"/dfusion/{data['name']}/pose", "diagnostics": "/diagnostics"})
     _check(outputs, _OUTPUTS, "outputs.", src)
@@ -222,7 +246,7 @@ def load_node_file(path: str | Path) -> NodeFile:
             raise ValidationError(f"{src}: ros.{k} must be positive, got {v}")
     settings = Ros2Settings(convention, ros.get("node_name", f"dfusion_{data['name']}"), ros.get("frame", "map"),
                             ros.get("child_frame", "base_link"), periods["diagnostics_period"],
-                            periods["stale_after"], inputs, outputs)
+                            periods["stale_after"], inputs, outputs, converters, definitions)
     return NodeFile(src, data["name"], data["kind"], Path(_path(base, data["scenario"])),
                     data.get("network", "dfusion"), float(data["start"]) if "start" in data else None, duration,
                     tuple(_path(base, p) if p.endswith(".py") else p

@@ -12,7 +12,7 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from dfusion.errors import ValidationError
-from dfusion.ros2.codec import decode, diagnostics, encode, estimate_messages
+from dfusion.ros2.codec import decode, diagnostics, encode, estimate_messages, make, register_definition
 from dfusion.ros2.inputs import reading_of
 from dfusion.ros2.keys import Convention, rmw_attachment
 from dfusion.ros2.link import Ros2Link
@@ -99,12 +99,56 @@ def test_a_pose_in_another_frame_comes_through_the_static_transform_with_its_cov
     assert reading_of("geometry_msgs/msg/PoseWithCovarianceStamped", m, "map", tf).R is None
 
 
-def test_bad_bytes_and_unknown_frames_are_counted_not_fused():
+def loopback_session():
     cfg = zenoh.Config()
     for path, value in {"mode": "peer", "listen/endpoints": ["tcp/127.0.0.1:0"], "scouting/multicast/enabled": False,
                         "scouting/gossip/enabled": False}.items():
         cfg.insert_json5(path, json.dumps(value))
-    s = zenoh.open(cfg)
+    return zenoh.open(cfg)
+
+
+def take_until(link, n, keys=("received", "decode_errors", "frame_errors", "converter_errors", "skipped")):
+    got, deadline = [], time.time() + 5
+    while time.time() < deadline and sum(link.counters[k] for k in keys) < n:
+        got += link.take()
+        time.sleep(0.02)
+    return got + link.take()
+
+
+RSSI_MSG = "std_msgs/Header header\nfloat64[] rssi\n"
+
+
+def test_a_custom_type_with_its_definition_and_a_user_converter():
+    register_definition("vendor_msgs/msg/Rssi", RSSI_MSG)
+    s = loopback_session()
+    link = None
+    try:
+        conv = Convention("ros2dds")
+
+        def first_two(msg, stamp_s):
+            if len(msg.rssi) == 0:
+                return None
+            if len(msg.rssi) == 1:
+                raise ValueError("one reading")
+            return msg.rssi[:2]
+
+        link = Ros2Link(s, conv, "dfusion_w", "map", {"/rssi": "vendor_msgs/msg/Rssi"}, {}, {"/rssi": first_two})
+        Header, Time = TS.types["std_msgs/msg/Header"], TS.types["builtin_interfaces/msg/Time"]
+        for values in ([-60.0, -70.0, -80.0], [], [-1.0]):
+            msg = make("vendor_msgs/msg/Rssi", header=Header(stamp=Time(sec=2, nanosec=0), frame_id="w"),
+                       rssi=np.array(values))
+            s.put(conv.data_key("/rssi", "vendor_msgs/msg/Rssi"), encode(msg))
+        got = take_until(link, 3)
+        assert [r.reading.z.tolist() for r in got] == [[-60.0, -70.0]]
+        assert (link.counters["skipped"], link.counters["converter_errors"]) == (1, 1)
+    finally:
+        if link is not None:
+            link.close()
+        s.close()
+
+
+def test_bad_bytes_and_unknown_frames_are_counted_not_fused():
+    s = loopback_session()
     link = None
     try:
         conv = Convention("rmw_zenoh")
@@ -118,12 +162,7 @@ def test_bad_bytes_and_unknown_frames_are_counted_not_fused():
         s.put(key, bytes(TS.serialize_cdr(good, "geometry_msgs/msg/PointStamped")))
         good.header.frame_id = "elsewhere"
         s.put(key, bytes(TS.serialize_cdr(good, "geometry_msgs/msg/PointStamped")))
-        got, deadline = [], time.time() + 5
-        while time.time() < deadline and sum(link.counters[k] for k in ("received", "decode_errors",
-                                                                        "frame_errors")) < 3:
-            got += link.take()
-            time.sleep(0.02)
-        got += link.take()
+        got = take_until(link, 3)
         assert [(r.stamp_ns, r.reading.z.tolist()) for r in got] == [(3_000_000_005, [1.0, 2.0])]
         assert (link.counters["decode_errors"], link.counters["frame_errors"]) == (1, 1)
     finally:
@@ -154,6 +193,10 @@ type = "nav_msgs/msg/Odometry"
     (("nav_msgs/msg/Odometry", "sensor_msgs/msg/Image"), "inputs[0].type 'sensor_msgs/msg/Image' is not supported"),
     (('topic = "/odom"', 'topic = "odom"'), "inputs[0].topic: a ROS 2 topic is a fully qualified name"),
     (('scenario = "s.toml"', 'scenario = "s.toml"\nduration = -1'), "duration must be positive"),
+    (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "nowhere.py:f"'),
+     "inputs[0].convert: "),
+    (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "f"'),
+     "inputs[0].convert must be FILE.py:FUNCTION, got 'f'"),
     (('convention = "rmw_zenoh"', 'convension = "rmw_zenoh"'), "unknown key 'ros.convension' (did you mean 'convention'?)"),
 ])
 def test_the_node_file_loader_is_strict(tmp_path, change, error):
