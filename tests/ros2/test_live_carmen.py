@@ -147,40 +147,16 @@ def test_live_node_follows_a_carmen_log_like_the_offline_run(tmp_path, conventio
     (tmp_path / "offline.scenario.toml").write_text(SCENARIO.format(duration=DURATION, x0=x0, y0=y0, std=SIGMA))
     port, port_base = free_port(), free_port()
     start = time.time() + 4.0   # scenario time 0 of both nodes: time to start them and see their tokens
-    (tmp_path / "base.node.toml").write_text(f"""
-name = "base"
-kind = "relay"
-scenario = "live.scenario.toml"
-start = {start!r}
-duration = {DURATION}
-[zenoh]
-listen = ["tcp/127.0.0.1:{port_base}"]
-connect = ["tcp/127.0.0.1:{port}"]
-[ros]
-convention = "{convention}"
-[outputs]
-odometry = "/dfusion/base/odom"
-""")
-    (tmp_path / "robot.node.toml").write_text(f"""
-name = "robot"
-kind = "robot"
-scenario = "live.scenario.toml"
-start = {start!r}
-duration = {DURATION}
-[zenoh]
-listen = ["tcp/127.0.0.1:{port}"]
-connect = ["tcp/127.0.0.1:{port_base}"]
-[ros]
-convention = "{convention}"
-frame = "map"
-[[inputs]]
-topic = "/odom"
-type = "nav_msgs/msg/Odometry"
-[outputs]
-odometry = "/dfusion/robot/odom"
-pose = "/dfusion/robot/pose"
-diagnostics = "/diagnostics"
-""")
+    common = f'scenario = "live.scenario.toml"\nstart = {start!r}\nduration = {DURATION}\n'
+    ros = f'[ros]\nconvention = "{convention}"\nframe = "map"\n'
+    (tmp_path / "base.node.toml").write_text(
+        f'name = "base"\nkind = "relay"\n{common}[zenoh]\nlisten = ["tcp/127.0.0.1:{port_base}"]\n'
+        f'connect = ["tcp/127.0.0.1:{port}"]\n{ros}[outputs]\nodometry = "/dfusion/base/odom"\n')
+    (tmp_path / "robot.node.toml").write_text(
+        f'name = "robot"\nkind = "robot"\n{common}[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
+        f'connect = ["tcp/127.0.0.1:{port_base}"]\n{ros}'
+        '[[inputs]]\ntopic = "/odom"\ntype = "nav_msgs/msg/Odometry"\n'
+        '[outputs]\nodometry = "/dfusion/robot/odom"\npose = "/dfusion/robot/pose"\ndiagnostics = "/diagnostics"\n')
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     key = keys(convention)
     got: dict[str, list[bytes]] = {"odom": [], "pose": [], "diag": [], "base": []}
