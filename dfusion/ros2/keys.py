@@ -1,6 +1,6 @@
 r"""Zenoh key expressions of ROS 2 topics and entities, in the two conventions ROS 2 speaks over Zenoh.
 
-``rmw_zenoh`` (ROS 2's Zenoh middleware, ``rmw_zenoh_cpp``, Jazzy and later; its ``docs/design.md``)
+``rmw_zenoh`` (ROS 2's Zenoh middleware, ``rmw_zenoh_cpp``, Jazzy and later; the design document in its repository)
     data key ``<domain_id>/<fully qualified topic name without its leading />/<DDS type name>/<type hash>``,
     e.g. ``0/robot1/chatter/std_msgs::msg::dds_::String_/RIHS01_df66...``; the DDS type name of
     ``pkg/msg/Type`` is ``pkg::msg::dds_::Type_``; the type hash is the RIHS01 hash of REP-2016
