@@ -7,7 +7,9 @@ subscriptions and publishers, so ``ros2 node list`` and ``ros2 topic list`` (rmw
 the bridge) show them.
 
 Zenoh delivers samples in its own threads: the callbacks only append the raw bytes to a bounded
-queue (:data:`QUEUE_LIMIT` samples; the oldest are shed and counted when the node falls behind), and
+queue (:data:`QUEUE_LIMIT` samples and :data:`QUEUE_BYTES` bytes; the oldest are shed and counted
+when the node falls behind; a sample over :data:`MAX_SAMPLE_BYTES` is refused before it is
+copied), and
 the node's thread decodes them in :meth:`Ros2Link.take`.
 
 ``/tf_static`` is *transient local* in ROS 2: its publishers keep their last messages for
@@ -45,6 +47,10 @@ __all__ = ["Ros2Link", "Received", "QUEUE_LIMIT", "TF_STATIC"]
 
 #: Samples held per link between two looks of the node (the oldest are shed beyond it).
 QUEUE_LIMIT = 10_000
+#: Bytes held per link between two looks of the node (the oldest are shed beyond it).
+QUEUE_BYTES = 64 * 1024 * 1024
+#: A larger sample is refused before it is copied (a 4,000-beam float32 scan is 16 kB; an image would not fit).
+MAX_SAMPLE_BYTES = 4 * 1024 * 1024
 TF_STATIC = ("/tf_static", "tf2_msgs/msg/TFMessage")
 #: Seconds between two log lines about refused input messages.
 LOG_PERIOD = 5.0
@@ -86,8 +92,9 @@ class Ros2Link:
         self.converters = dict(converters or {})
         self.tf = StaticTransforms()
         self.counters = {"received": 0, "decode_errors": 0, "frame_errors": 0, "converter_errors": 0,
-                         "skipped": 0, "shed": 0, "published": 0, "tf_static": 0}
+                         "skipped": 0, "shed": 0, "oversized": 0, "published": 0, "tf_static": 0}
         self._queue: deque[tuple[str, bytes]] = deque()
+        self._bytes = 0
         self._lock = threading.Lock()
         self._last_log = 0.0
         self._seq = 0
@@ -124,12 +131,17 @@ class Ros2Link:
 
     def _callback(self, topic: str):
         def on_sample(sample: Any) -> None:   # a Zenoh thread: keep it short
+            if len(sample.payload) > MAX_SAMPLE_BYTES:   # before copying it
+                with self._lock:
+                    self.counters["oversized"] += 1
+                return
             data = sample.payload.to_bytes()
             with self._lock:
-                if len(self._queue) >= QUEUE_LIMIT:
-                    self._queue.popleft()
+                while self._queue and (len(self._queue) >= QUEUE_LIMIT or self._bytes + len(data) > QUEUE_BYTES):
+                    self._bytes -= len(self._queue.popleft()[1])
                     self.counters["shed"] += 1
                 self._queue.append((topic, data))
+                self._bytes += len(data)
         return on_sample
 
     def _refused(self, what: str, exc: Exception) -> None:
@@ -147,6 +159,7 @@ class Ros2Link:
         with self._lock:
             items = list(self._queue)
             self._queue.clear()
+            self._bytes = 0
         out: list[Received] = []
         for topic, data in items:
             if topic == TF_STATIC[0]:

@@ -176,13 +176,15 @@ class LiveNodeProcess(NodeProcess):
         """The DiagnosticArray of the node's health (module docstring)."""
         c = dict(self.stats())
         c.update({f"ros_{k}": v for k, v in self.ros.counters.items()})
-        refused = (c["measurements_refused"] + c["inputs_before_start"] + c["inputs_from_future"]
-                   + c["ros_decode_errors"] + c["ros_frame_errors"] + c["ros_converter_errors"] + c["ros_shed"])
+        refused = sum(c[k] for k in ("measurements_refused", "inputs_before_start", "inputs_from_future",
+                                     "ros_decode_errors", "ros_frame_errors", "ros_converter_errors", "ros_shed",
+                                     "ros_oversized"))
         quiet = status.t - self._last_fused if self.nf.ros.inputs else 0.0
         if status.phase == "stopped":
             level, msg = "error", f"stopped: {self.stop_reason}"
         elif quiet > self.nf.ros.stale_after:
-            level, msg = "warn", f"no input fused for {quiet:.1f} s"
+            level, msg = "warn", (f"no input fused for {quiet:.1f} s" if math.isfinite(quiet)
+                                  else f"no input fused yet (inputs: {', '.join(self.nf.ros.inputs)})")
         elif refused > self._refused_seen:
             level, msg = "warn", f"{refused - self._refused_seen} inputs refused since the last report"
         else:

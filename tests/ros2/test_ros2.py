@@ -173,6 +173,35 @@ def test_bad_bytes_and_unknown_frames_are_counted_not_fused():
         decode(b"\x00\x01\x00\x00", "nav_msgs/msg/Odometry")
 
 
+def test_the_input_queue_is_bounded_in_bytes_and_oversized_samples_are_refused(monkeypatch):
+    import dfusion.ros2.link as link_mod
+
+    s = loopback_session()
+    link = None
+    try:
+        conv = Convention("rmw_zenoh")
+        link = Ros2Link(s, conv, "dfusion_a", "map", {"/fix": "geometry_msgs/msg/PointStamped"}, {})
+        M = TS.types
+        msg = M["geometry_msgs/msg/PointStamped"](
+            header=M["std_msgs/msg/Header"](stamp=M["builtin_interfaces/msg/Time"](sec=3, nanosec=5), frame_id="map"),
+            point=M["geometry_msgs/msg/Point"](x=1.0, y=2.0, z=0.0))
+        data = bytes(TS.serialize_cdr(msg, "geometry_msgs/msg/PointStamped"))
+        monkeypatch.setattr(link_mod, "QUEUE_BYTES", 2 * len(data))   # room for two samples
+        key = conv.data_key("/fix", "geometry_msgs/msg/PointStamped")
+        for _ in range(5):
+            s.put(key, data)
+        s.put(key, data + bytes(link_mod.MAX_SAMPLE_BYTES))
+        deadline = time.time() + 5
+        while time.time() < deadline and link.counters["shed"] + link.counters["oversized"] < 4:
+            time.sleep(0.02)
+        assert len(link.take()) == 2
+        assert (link.counters["shed"], link.counters["oversized"]) == (3, 1)
+    finally:
+        if link is not None:
+            link.close()
+        s.close()
+
+
 NODE = """name = "robot"
 kind = "robot"
 scenario = "s.toml"
