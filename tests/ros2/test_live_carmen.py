@@ -222,6 +222,10 @@ def test_live_node_follows_a_carmen_log_like_the_offline_run(tmp_path, conventio
     diags = [TS.deserialize_cdr(b, "diagnostic_msgs/msg/DiagnosticArray") for b in got["diag"]]
     assert len(odoms) >= 100 and len(poses_out) == len(odoms) and len(diags) >= 5
     assert all(o.header.frame_id == "map" and o.child_frame_id == "base_link" for o in odoms)
+    # health: WARN before the first input (the slice starts 1 s after the start), then OK while fusing
+    levels = [(d.status[0].level, d.status[0].message) for d in diags]
+    assert levels[0][0] == 1 and levels[0][1].startswith("no input fused yet"), levels
+    assert sum(lv == (0, "fusing") for lv in levels) >= 5, levels
     values = {kv.key: kv.value for kv in diags[-1].status[0].values}
     assert diags[-1].status[0].name == "dfusion/robot" and values["phase"] == "final"
     assert int(values["measurements_fused"]) == len(published)
