@@ -17,7 +17,8 @@ import numpy as np
 
 from dfusion.errors import ValidationError
 
-__all__ = ["typestore", "encode", "decode", "type_hash", "register_definition", "make", "time_msg", "header", "estimate_messages",
+__all__ = ["typestore", "encode", "decode", "type_hash", "register_definition", "make", "time_msg", "header",
+           "estimate_messages",
            "diagnostics", "planar_pose_covariance", "DIAGNOSTIC_LEVELS"]
 
 #: ``diagnostic_msgs/DiagnosticStatus`` levels.

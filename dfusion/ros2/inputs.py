@@ -34,17 +34,24 @@ from dfusion.bags.convert import PoseReading, PositionFix, RangeReading, ScanRea
 from dfusion.errors import ValidationError
 from dfusion.ros2.tf import StaticTransforms, rotate_covariance
 
-__all__ = ["Reading", "SUPPORTED_INPUTS", "reading_of"]
+__all__ = ["Reading", "SUPPORTED_INPUTS", "Z_SIZE", "reading_of"]
 
 #: The input message types a live node takes.
-SUPPORTED_INPUTS = (
-    "nav_msgs/msg/Odometry",
-    "geometry_msgs/msg/PoseWithCovarianceStamped",
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/PointStamped",
-    "sensor_msgs/msg/Range",
-    "sensor_msgs/msg/LaserScan",
-)
+
+
+#: The size of ``z`` each input type gives (``None``: the message says, e.g. a scan's beams).
+Z_SIZE: dict[str, int | None] = {
+    "nav_msgs/msg/Odometry": 2,
+    "geometry_msgs/msg/PoseWithCovarianceStamped": 2,
+    "geometry_msgs/msg/PoseStamped": 2,
+    "geometry_msgs/msg/PointStamped": 2,
+    "sensor_msgs/msg/Range": 1,
+    "sensor_msgs/msg/LaserScan": None,
+}
+
+
+#: The input message types a live node takes without a user converter.
+SUPPORTED_INPUTS = tuple(Z_SIZE)
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,10 @@ and advanced subscriptions (a history query to every publisher, also to those de
 link subscribes to ``/tf_static`` the same way (``zenoh.ext.declare_advanced_subscriber`` with
 ``HistoryConfig(detect_late_publishers=True)``), so a node started after the robot's static
 transforms were published still gets them from an rmw_zenoh publisher. Through
-``zenoh-bridge-ros2dds`` only what is published after the node subscribed is certain to arrive. Bytes that do not decode, and messages
-whose frame is not connected to the node's, are counted and logged (rate-limited), never fused.
+``zenoh-bridge-ros2dds`` only what is published after the node subscribed is certain to arrive.
+
+Bytes that do not decode, and messages whose frame is not connected to the node's, are counted and
+logged (rate-limited), never fused.
 """
 from __future__ import annotations
 

@@ -51,6 +51,7 @@ from dfusion.run.measurements import OwnMeasurement
 from dfusion.run.node_process import Host, NodeProcess
 from dfusion.run.nodefile import NodeFile, kind_of, load_node_file
 from dfusion.ros2.codec import diagnostics, estimate_messages, register_definition
+from dfusion.ros2.inputs import Z_SIZE
 from dfusion.ros2.link import Ros2Link
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.security import SecurityOptions
@@ -97,7 +98,8 @@ class LiveNodeProcess(NodeProcess):
         super().__init__(sc, name, measurements=[], **kw)
         self.nf = nf
         self.ros: Ros2Link | None = None
-        self.counters.update(inputs_before_start=0, inputs_from_future=0, inputs_with_covariance=0)
+        self.counters.update(inputs_before_start=0, inputs_from_future=0, inputs_wrong_size=0,
+                             inputs_with_covariance=0)
         self._last_fused = -math.inf
         self._diag_due = 0.0
         self._refused_seen = 0
@@ -134,8 +136,12 @@ class LiveNodeProcess(NodeProcess):
                 self.counters["inputs_from_future"] += 1
                 continue
             z = rec.reading.z
-            if self._dim is not None and z.size > self._dim:
-                z = z[: self._dim]
+            if self._dim is not None and z.size != self._dim:   # never cut or padded: refused, counted
+                self.counters["inputs_wrong_size"] += 1
+                if self.counters["inputs_wrong_size"] == 1:
+                    log.warning("%s: a message of %s gives %d values, the node's sensor takes %d: refused (counted "
+                                "in inputs_wrong_size)", self.name, rec.topic, z.size, self._dim)
+                continue
             batch.append(LiveMeasurement(tm, z, t, rec.reading.R))
         batch.sort(key=lambda m: m.t)
         self.meas.extend(batch)
@@ -177,8 +183,8 @@ class LiveNodeProcess(NodeProcess):
         c = dict(self.stats())
         c.update({f"ros_{k}": v for k, v in self.ros.counters.items()})
         refused = sum(c[k] for k in ("measurements_refused", "inputs_before_start", "inputs_from_future",
-                                     "ros_decode_errors", "ros_frame_errors", "ros_converter_errors", "ros_shed",
-                                     "ros_oversized"))
+                                     "inputs_wrong_size", "ros_decode_errors", "ros_frame_errors",
+                                     "ros_converter_errors", "ros_shed", "ros_oversized"))
         quiet = status.t - self._last_fused if self.nf.ros.inputs else 0.0
         if status.phase == "stopped":
             level, msg = "error", f"stopped: {self.stop_reason}"
@@ -200,6 +206,19 @@ class LiveNodeProcess(NodeProcess):
             self.ros.close()
             self.ros = None
         super().close()
+
+
+def check_inputs(nf: NodeFile, sc) -> None:
+    """Refuse (one line) an input whose messages give another number of values than the node's
+    sensor takes (a pose for a range sensor, a range for a position sensor); a scan's beams are
+    checked per message, a converter's ``z`` too."""
+    spec = sc.nodes[nf.name]
+    dim = getattr(spec.sensor, "dim_z", None)
+    for topic, msgtype in nf.ros.inputs.items():
+        size = Z_SIZE.get(msgtype)
+        if topic not in nf.ros.converters and dim is not None and size is not None and size != dim:
+            raise DfusionError(f"{nf.path}: input {topic} ({msgtype}) gives {size} value(s), but node {nf.name!r} "
+                               f"({spec.sensor_kind}) takes {dim}: give a converter (convert = \"FILE.py:FUNCTION\")")
 
 
 def build_parser(kind: str | None) -> argparse.ArgumentParser:
@@ -242,6 +261,7 @@ def main(argv: list[str] | None = None, kind: str | None = None) -> int:
                                f"{actual} node")
         if nf.kind == "relay" and nf.ros.inputs:
             raise DfusionError(f"{nf.path}: a relay node has no sensor: it takes no inputs")
+        check_inputs(nf, sc)
         sec = SecurityOptions(nf.network_key_file, None, nf.tls_ca, nf.tls_cert, nf.tls_key)
         zc = ZenohConfig(mode=nf.mode, listen=nf.listen, connect=nf.connect, extra=nf.zenoh_options,
                          tls=sec.tls_files(nf.name))

@@ -229,9 +229,10 @@ def load_node_file(path: str | Path) -> NodeFile:
                 raise ValidationError(f"{src}: inputs[{i}].convert: {_path(base, file)} does not exist")
             converters[topic] = (_path(base, file), func)
         if "definition" in item:
-            if not Path(_path(base, item["definition"])).is_file():
-                raise ValidationError(f"{src}: inputs[{i}].definition: {_path(base, item['definition'])} does not exist")
-            definitions[item["type"]] = _path(base, item["definition"])
+            definition = _path(base, item["definition"])
+            if not Path(definition).is_file():
+                raise ValidationError(f"{src}: inputs[{i}].definition: {definition} does not exist")
+            definitions[item["type"]] = definition
     outputs = data.get("outputs", {"odometry": f"/dfusion/{data['name']}/odom",
                                    "pose": f"/dfusion/{data['name']}/pose", "diagnostics": "/diagnostics"})
     _check(outputs, _OUTPUTS, "outputs.", src)

@@ -7,8 +7,8 @@ node (``nodes/robot_localizer.py`` with a node file) must take the messages, exp
 ``map`` through the static transform, use their covariance instead of its scenario's noise (its
 scenario says std 1 m, the messages 5 cm), and publish Odometry, PoseWithCovarianceStamped and
 DiagnosticArray that rosbags decodes. A relay (``nodes/relay.py``, the scenario's sensorless
-neighbour, its own node file) runs next to it, linked over Zenoh, with the same start. Its estimates are compared with the offline run of the same
-data: ``dfusion.sim.replay.replay_scenario`` on the same poses in ``map`` with the same stamps and a
+neighbour, its own node file) runs next to it, linked over Zenoh, with the same start. The
+robot's estimates are compared with the offline run of the same data: ``dfusion.sim.replay.replay_scenario`` on the same poses in ``map`` with the same stamps and a
 scenario whose noise is the messages' (5 cm). Errors are against the log's corrected scan poses.
 """
 from __future__ import annotations

@@ -226,7 +226,8 @@ type = "nav_msgs/msg/Odometry"
      "inputs[0].convert: "),
     (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "f"'),
      "inputs[0].convert must be FILE.py:FUNCTION, got 'f'"),
-    (('convention = "rmw_zenoh"', 'convension = "rmw_zenoh"'), "unknown key 'ros.convension' (did you mean 'convention'?)"),
+    (('convention = "rmw_zenoh"', 'convension = "rmw_zenoh"'),
+     "unknown key 'ros.convension' (did you mean 'convention'?)"),
 ])
 def test_the_node_file_loader_is_strict(tmp_path, change, error):
     f = tmp_path / "n.toml"
@@ -234,6 +235,33 @@ def test_the_node_file_loader_is_strict(tmp_path, change, error):
     with pytest.raises(ValidationError) as e:
         load_node_file(f)
     assert error in str(e.value) and "\n" not in str(e.value)
+
+
+SCENARIO = """duration = 5.0
+dt = 0.1
+[target]
+motion = "constant_velocity"
+initial_mean = [0.0, 0.0, 0.0, 0.0]
+initial_cov_diag = [1.0, 1.0, 1.0, 1.0]
+[[nodes]]
+name = "robot"
+sensor = "position"
+std = 1.0
+[[nodes]]
+name = "base"
+[[links]]
+between = ["robot", "base"]
+"""
+
+
+def test_an_input_that_does_not_fit_the_node_is_refused_at_start(tmp_path, capsys):
+    (tmp_path / "s.toml").write_text(SCENARIO)
+    f = tmp_path / "n.toml"
+    f.write_text(NODE.replace("/odom", "/range").replace("nav_msgs/msg/Odometry", "sensor_msgs/msg/Range"))
+    assert main([str(f)], kind="robot") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "input /range (sensor_msgs/msg/Range) gives 1 value(s), but node 'robot' (position) " \
+        "takes 2" in err[0], err
 
 
 def test_a_program_refuses_a_node_file_of_another_kind(tmp_path, capsys):
