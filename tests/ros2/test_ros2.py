@@ -99,6 +99,18 @@ def test_a_pose_in_another_frame_comes_through_the_static_transform_with_its_cov
     assert reading_of("geometry_msgs/msg/PoseWithCovarianceStamped", m, "map", tf).R is None
 
 
+def test_a_scan_gives_its_ranges_and_an_unsupported_type_is_refused():
+    M = TS.types
+    scan = M["sensor_msgs/msg/LaserScan"](
+        header=M["std_msgs/msg/Header"](stamp=M["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="laser"),
+        angle_min=-1.0, angle_max=1.0, angle_increment=1.0, time_increment=0.0, scan_time=0.1, range_min=0.1,
+        range_max=30.0, ranges=np.array([1.5, np.inf, 2.25], dtype=np.float32), intensities=np.zeros(0, np.float32))
+    r = reading_of("sensor_msgs/msg/LaserScan", scan, "map", StaticTransforms())
+    assert r.z.tolist() == [1.5, math.inf, 2.25] and r.R is None and r.frame == "laser"
+    with pytest.raises(ValidationError, match="is not supported"):
+        reading_of("sensor_msgs/msg/Image", scan, "map", StaticTransforms())
+
+
 def loopback_session():
     cfg = zenoh.Config()
     for path, value in {"mode": "peer", "listen/endpoints": ["tcp/127.0.0.1:0"], "scouting/multicast/enabled": False,
