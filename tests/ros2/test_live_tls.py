@@ -12,31 +12,16 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from dfusion.transport.zenoh import TlsFiles, ZenohConfig
+from tests.ros2.scenarios import TWO_NODES
 
 ROOT = Path(__file__).resolve().parents[2]
 TS = get_typestore(Stores.ROS2_JAZZY)
-SCENARIO = """duration = 3.0
-dt = 0.1
-[target]
-motion = "constant_velocity"
-initial_mean = [0.0, 0.0, 0.0, 0.0]
-initial_cov_diag = [1.0, 1.0, 1.0, 1.0]
-[[nodes]]
-name = "robot"
-sensor = "position"
-[[nodes]]
-name = "base"
-[[links]]
-between = ["robot", "base"]
-"""
-
-
 def test_a_node_file_with_mutual_tls_and_a_network_key(tmp_path):
     certs = tmp_path / "certs"
     subprocess.run([sys.executable, "-m", "dfusion.run.certs", str(certs), "base", "viewer"], check=True,
                    env=dict(os.environ, PYTHONPATH=str(ROOT)), capture_output=True)
     (tmp_path / "network.key").write_bytes(os.urandom(32))
-    (tmp_path / "s.toml").write_text(SCENARIO)
+    (tmp_path / "s.toml").write_text(TWO_NODES.format(duration=3.0))
     with socket.socket() as sk:
         sk.bind(("127.0.0.1", 0))
         port = sk.getsockname()[1]

@@ -19,6 +19,7 @@ from dfusion.ros2.link import Ros2Link
 from dfusion.ros2.tf import StaticTransforms
 from dfusion.run.live import main
 from dfusion.run.nodefile import load_node_file
+from tests.ros2.scenarios import TWO_NODES
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 #: rmw_zenoh's docs/design.md: the `chatter` topic (std_msgs/String) in namespace /robot1, and the
@@ -249,25 +250,8 @@ def test_the_node_file_loader_is_strict(tmp_path, change, error):
     assert error in str(e.value) and "\n" not in str(e.value)
 
 
-SCENARIO = """duration = 5.0
-dt = 0.1
-[target]
-motion = "constant_velocity"
-initial_mean = [0.0, 0.0, 0.0, 0.0]
-initial_cov_diag = [1.0, 1.0, 1.0, 1.0]
-[[nodes]]
-name = "robot"
-sensor = "position"
-std = 1.0
-[[nodes]]
-name = "base"
-[[links]]
-between = ["robot", "base"]
-"""
-
-
 def test_an_input_that_does_not_fit_the_node_is_refused_at_start(tmp_path, capsys):
-    (tmp_path / "s.toml").write_text(SCENARIO)
+    (tmp_path / "s.toml").write_text(TWO_NODES.format(duration=5.0))
     f = tmp_path / "n.toml"
     f.write_text(NODE.replace("/odom", "/range").replace("nav_msgs/msg/Odometry", "sensor_msgs/msg/Range"))
     assert main([str(f)], kind="robot") == 2
