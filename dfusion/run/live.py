@@ -126,6 +126,7 @@ class LiveNodeProcess(NodeProcess):
     def collect(self, t: float) -> None:
         if self.ros is None:
             return
+        self.forget_fused()   # live, the list of measurements would grow for as long as the node runs
         batch = []
         for rec in self.ros.take():
             tm = round((rec.stamp_ns - self.origin_ns) * 1e-9, 9)

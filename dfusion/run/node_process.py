@@ -479,6 +479,11 @@ class NodeProcess:
         Nothing here: the measurements are known in advance; a live node takes its topics'
         (:class:`dfusion.run.live.LiveNodeProcess`)."""
 
+    def forget_fused(self) -> None:
+        """Drop the measurements fused so far from :attr:`meas` (a live node's list would grow without end)."""
+        del self.meas[: getattr(self, "_im", 0)]
+        self._im = 0
+
     def fuse_one(self, m: OwnMeasurement) -> None:
         """Fuse one measurement with the node's front end (raises ``OutsideWindowError`` when it
         is older than the window)."""
