@@ -131,7 +131,7 @@ class Ros2Link:
             self.close()
             raise
 
-    def _callback(self, topic: str):
+    def _callback(self, topic: str) -> Callable[[Any], None]:
         def on_sample(sample: Any) -> None:   # a Zenoh thread: keep it short
             if len(sample.payload) > MAX_SAMPLE_BYTES:   # before copying it
                 with self._lock:

@@ -39,6 +39,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -55,6 +56,7 @@ from dfusion.ros2.inputs import Z_SIZE
 from dfusion.ros2.link import Ros2Link
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.security import SecurityOptions
+from dfusion.scenario.spec import Scenario
 from dfusion.transport.zenoh import ZenohConfig, ZenohTransport
 
 log = logging.getLogger("dfusion.live")
@@ -73,14 +75,14 @@ class MessageNoise(MeasurementModel):
         self.dim_z = sensor.dim_z
         self.is_linear = getattr(sensor, "is_linear", False)
 
-    def h(self, x):
+    def h(self, x: np.ndarray) -> np.ndarray:
         return self.sensor.h(x)
 
-    def H(self, x):
+    def H(self, x: np.ndarray) -> np.ndarray:
         return self.sensor.H(x)
 
     @property
-    def R(self):
+    def R(self) -> np.ndarray:
         return self._R
 
 
@@ -94,7 +96,7 @@ class LiveMeasurement(OwnMeasurement):
 class LiveNodeProcess(NodeProcess):
     """:class:`NodeProcess` fed from ROS 2 topics and publishing to them (module docstring)."""
 
-    def __init__(self, sc, name: str, nf: NodeFile, **kw) -> None:
+    def __init__(self, sc: Scenario, name: str, nf: NodeFile, **kw: Any) -> None:
         super().__init__(sc, name, measurements=[], **kw)
         self.nf = nf
         self.ros: Ros2Link | None = None
@@ -179,7 +181,7 @@ class LiveNodeProcess(NodeProcess):
         except Exception as exc:   # a closed session at shutdown: the estimate is in the result file
             log.warning("%s: ROS 2 publication failed: %s", self.name, exc)
 
-    def _health(self, status: Status, stamp: int):
+    def _health(self, status: Status, stamp: int) -> Any:
         """The DiagnosticArray of the node's health (module docstring)."""
         c = dict(self.stats())
         c.update({f"ros_{k}": v for k, v in self.ros.counters.items()})
@@ -209,7 +211,7 @@ class LiveNodeProcess(NodeProcess):
         super().close()
 
 
-def check_inputs(nf: NodeFile, sc) -> None:
+def check_inputs(nf: NodeFile, sc: Scenario) -> None:
     """Refuse (one line) an input whose messages give another number of values than the node's
     sensor takes (a pose for a range sensor, a range for a position sensor); a scan's beams are
     checked per message, a converter's ``z`` too."""
