@@ -145,7 +145,9 @@ class LiveNodeProcess(NodeProcess):
                     log.warning("%s: a message of %s gives %d values, the node's sensor takes %d: refused (counted "
                                 "in inputs_wrong_size)", self.name, rec.topic, z.size, self._dim)
                 continue
-            batch.append(LiveMeasurement(tm, z, t, rec.reading.R))
+            # it reaches the node now, or at its stamp when that is ahead of the node's clock (another
+            # machine's clock): never fused before the filter has reached its time
+            batch.append(LiveMeasurement(tm, z, max(t, tm), rec.reading.R))
         batch.sort(key=lambda m: m.t)
         self.meas.extend(batch)
 
