@@ -10,13 +10,14 @@ from and where the estimate goes:
 
 * **in**: the node file's input topics (:class:`~dfusion.ros2.link.Ros2Link`, on the node's own
   Zenoh session, keys of the chosen convention). At every step the messages that arrived are
-  taken; a message's measurement time is its header stamp, in scenario time
-  ``t = (stamp - start)``, ``start`` the wall-clock time of scenario time 0 (so stamps are wall-clock
-  times, as a robot's drivers give them; the nodes of one network share ``start``: their node
-  files give it, else a node alone starts its clock when it starts); it reaches the node at the
-  step it was taken, and the
-  delayed-state filter fuses it at its own time (or refuses it, counted, when it is older than the
-  window). A message stamped before the start or more than :data:`FUTURE_TOLERANCE` s after now
+  taken (step ``k`` runs ``latency`` seconds after its time ``start + k dt``: a message on its
+  way that long is still fused before the estimate of its time goes out, which is that much
+  later); a message's measurement time is its header stamp, in scenario time
+  ``t = (stamp - start)``, ``start`` the wall-clock time of scenario time 0 (so stamps are
+  wall-clock times, as a robot's drivers give them; the nodes of one network share ``start``:
+  their node files give it, else a node alone starts its clock when it starts); it reaches the
+  node at the step it was taken (at its stamp when that is ahead), and the delayed-state filter
+  fuses it at its own time (or refuses it, counted, when it is older than the window). A message stamped before the start or more than :data:`FUTURE_TOLERANCE` s after now
   is refused and counted. A position message's own covariance replaces the node's noise
   (:func:`dfusion.ros2.inputs.reading_of`).
 * **out**: after every step, the fused estimate (the policy's output when the policy is not plain
@@ -97,6 +98,8 @@ class LiveNodeProcess(NodeProcess):
     """:class:`NodeProcess` fed from ROS 2 topics and publishing to them (module docstring)."""
 
     def __init__(self, sc: Scenario, name: str, nf: NodeFile, **kw: Any) -> None:
+        if kw.get("start") is not None:   # each step runs `latency` after its time (module docstring)
+            kw["start"] = kw["start"] + nf.ros.latency
         super().__init__(sc, name, measurements=[], **kw)
         self.nf = nf
         self.ros: Ros2Link | None = None
@@ -110,8 +113,9 @@ class LiveNodeProcess(NodeProcess):
 
     @property
     def origin_ns(self) -> int:
-        """Scenario time 0 as a ROS time stamp (nanoseconds since the epoch; 0 before the start is known)."""
-        return int(round(self.start * 1e9)) if self.start is not None else 0
+        """Scenario time 0 as a ROS time stamp (nanoseconds since the epoch; 0 before the start is known):
+        the start, ``latency`` before the wall-clock time of the node's step 0."""
+        return int(round((self.start - self.nf.ros.latency) * 1e9)) if self.start is not None else 0
 
     def attach(self, tr: ZenohTransport) -> None:
         super().attach(tr)

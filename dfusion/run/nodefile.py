@@ -31,6 +31,7 @@ A TOML file (``docs/ros.md``, "Live use", has a full example)::
     frame = "map"                        # the frame of inputs (via /tf_static) and outputs
     child_frame = "base_link"            # the odometry's child frame
     diagnostics_period = 1.0             # seconds between DiagnosticArray messages
+    latency = 0.2                        # seconds a step waits for late messages (the estimate is that late)
     stale_after = 2.0                    # warn when no input was fused for this long (s)
 
     [[inputs]]
@@ -78,7 +79,7 @@ _TOP = {"name": str, "kind": str, "scenario": str, "network": str, "start": floa
 _ZENOH = {"mode": str, "listen": list, "connect": list, "options": dict}
 _SECURITY = {"network_key_file": str, "tls_ca": str, "tls_cert": str, "tls_key": str}
 _ROS = {"convention": str, "domain_id": int, "namespace": str, "node_name": str, "frame": str,
-        "child_frame": str, "diagnostics_period": float, "stale_after": float}
+        "child_frame": str, "diagnostics_period": float, "stale_after": float, "latency": float}
 _INPUT = {"topic": str, "type": str, "convert": str, "definition": str}
 _OUTPUTS = {k: str for k in OUTPUT_TYPES}
 
@@ -106,6 +107,8 @@ class Ros2Settings:
     child_frame: str = "base_link"
     diagnostics_period: float = 1.0
     stale_after: float = 2.0
+    #: Wall-clock seconds each step of the node waits after its time for messages still on their way
+    latency: float = 0.2
     inputs: dict[str, str] = field(default_factory=dict)
     outputs: dict[str, str] = field(default_factory=dict)
     #: input topic -> (Python file, function name) of its user converter
@@ -245,9 +248,12 @@ def load_node_file(path: str | Path) -> NodeFile:
     for k, v in periods.items():
         if not v > 0:
             raise ValidationError(f"{src}: ros.{k} must be positive, got {v}")
+    latency = float(ros.get("latency", 0.2))
+    if not 0 <= latency <= 10:
+        raise ValidationError(f"{src}: ros.latency must be in [0, 10] seconds, got {latency}")
     settings = Ros2Settings(convention, ros.get("node_name", f"dfusion_{data['name']}"), ros.get("frame", "map"),
                             ros.get("child_frame", "base_link"), periods["diagnostics_period"],
-                            periods["stale_after"], inputs, outputs, converters, definitions)
+                            periods["stale_after"], latency, inputs, outputs, converters, definitions)
     return NodeFile(src, data["name"], data["kind"], Path(_path(base, data["scenario"])),
                     data.get("network", "dfusion"), float(data["start"]) if "start" in data else None, duration,
                     tuple(_path(base, p) if p.endswith(".py") else p
