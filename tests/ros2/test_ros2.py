@@ -239,6 +239,7 @@ type = "nav_msgs/msg/Odometry"
      "inputs[0].convert: "),
     (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "f"'),
      "inputs[0].convert must be FILE.py:FUNCTION, got 'f'"),
+    (('convention = "rmw_zenoh"', 'convention = "rmw_zenoh"\nlatency = -0.1'), "ros.latency must be in [0, 10]"),
     (('convention = "rmw_zenoh"', 'convension = "rmw_zenoh"'),
      "unknown key 'ros.convension' (did you mean 'convention'?)"),
 ])
