@@ -363,6 +363,7 @@ class NodeProcess:
             t = float(self.times[k])
             yield Wait(self.start + t / self.speed)
             self.node.predict(t)
+            self.collect(t)
             self._fuse_until(t)
             self.sync_links(t)
             self.receive()
@@ -466,12 +467,31 @@ class NodeProcess:
         if self._mlog is not None and not replayed:
             self._mlog.append(m)   # write-ahead: logged before it is fused
         try:
-            self.front.process(self.node, m.t, m.z)
+            self.fuse_one(m)
             self.counters["measurements_fused"] += 1
             self.counters["measurements_replayed"] += replayed
         except OutsideWindowError:
             self.counters["measurements_refused"] += 1
             log.info("%s: measurement at t=%.3f arrived after it left the window", self.name, m.t)
+
+    def collect(self, t: float) -> None:
+        """Before fusing at scenario time ``t``: append what arrived to :attr:`meas` (arrival ``t``).
+        Nothing here: the measurements are known in advance; a live node takes its topics'
+        (:class:`dfusion.run.live.LiveNodeProcess`)."""
+
+    def forget_fused(self) -> None:
+        """Drop the measurements fused so far from :attr:`meas` (a live node's list would grow without end)."""
+        del self.meas[: getattr(self, "_im", 0)]
+        self._im = 0
+
+    def fuse_one(self, m: OwnMeasurement) -> None:
+        """Fuse one measurement with the node's front end (raises ``OutsideWindowError`` when it
+        is older than the window)."""
+        self.front.process(self.node, m.t, m.z)
+
+    def published(self, status: Status) -> None:
+        """After every publication to the monitor (``ready``, each step, ``final``, ``stopped``).
+        Nothing here; a live node publishes its estimate and health to ROS 2."""
 
     def linked(self) -> tuple[str, ...]:
         """The neighbours this node has a link to now: with links that change, those
@@ -655,6 +675,7 @@ class NodeProcess:
                 self._pub.put(st.encode(self.node.frame_key))
         except Exception as exc:   # the monitor is optional
             log.debug("%s: monitor publication failed: %s", self.name, exc)
+        self.published(st)
         return st
 
 

@@ -1,0 +1,109 @@
+r"""ROS 2 input messages to a node's measurements: ``z``, the message's own covariance, its frame.
+
+The message is first turned into a plain reading by the standard conversion of its type
+(:mod:`dfusion.bags.convert`, the one ``dfusion replay`` uses), then into what the node's sensor
+kind takes:
+
+=====================================================  ============================  ===============
+message type                                           ``z``                         covariance
+=====================================================  ============================  ===============
+``nav_msgs/Odometry``                                  ``(x, y)`` of the pose        its pose
+                                                                                     covariance's
+                                                                                     ``(x, y)`` block
+``geometry_msgs/PoseWithCovarianceStamped``            ``(x, y)``                    same
+``geometry_msgs/PoseStamped``, ``PointStamped``        ``(x, y)``                    none
+``sensor_msgs/Range``                                  ``(range,)``                  none
+``sensor_msgs/LaserScan``                              the ranges                    none
+=====================================================  ============================  ===============
+
+A covariance is used only when it is a finite, symmetric positive definite 2x2 block: ROS's
+convention for "unknown" (all zeros, or ``-1`` in the first entry) leaves the node's own noise
+(the ``std`` of its scenario table) in place. Poses and positions in another frame than the node's
+are expressed in the node's frame with the static transforms (:mod:`dfusion.ros2.tf`); a message
+whose frame is not connected to the node's is refused (counted). Scans and ranges are taken as
+they are (the sensor's mounting is the node's model's business).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dfusion.bags.convert import PoseReading, PositionFix, RangeReading, ScanReading, convert
+from dfusion.errors import ValidationError
+from dfusion.ros2.tf import StaticTransforms, rotate_covariance
+
+__all__ = ["Reading", "SUPPORTED_INPUTS", "Z_SIZE", "reading_of"]
+
+#: The input message types a live node takes.
+
+
+#: The size of ``z`` each input type gives (``None``: the message says, e.g. a scan's beams).
+Z_SIZE: dict[str, int | None] = {
+    "nav_msgs/msg/Odometry": 2,
+    "geometry_msgs/msg/PoseWithCovarianceStamped": 2,
+    "geometry_msgs/msg/PoseStamped": 2,
+    "geometry_msgs/msg/PointStamped": 2,
+    "sensor_msgs/msg/Range": 1,
+    "sensor_msgs/msg/LaserScan": None,
+}
+
+
+#: The input message types a live node takes without a user converter.
+SUPPORTED_INPUTS = tuple(Z_SIZE)
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One input message as a measurement: ``z`` in the node's frame, ``R`` its covariance from
+    the message (``None``: the node's own), ``frame`` the message's frame."""
+
+    z: np.ndarray
+    R: np.ndarray | None
+    frame: str
+
+
+def _known_cov(C: np.ndarray | None) -> np.ndarray | None:
+    """The 2x2 block when the message states one (finite, symmetric, positive definite), else None."""
+    if C is None:
+        return None
+    C = np.asarray(C, dtype=float)[:2, :2]
+    if not np.all(np.isfinite(C)) or C[0, 0] <= 0 or not np.allclose(C, C.T, rtol=1e-9, atol=1e-12):
+        return None
+    try:
+        np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return None
+    return 0.5 * (C + C.T)
+
+
+def reading_of(msgtype: str, msg: Any, frame: str, tf: StaticTransforms) -> Reading:
+    """``msg`` of ``msgtype`` as a :class:`Reading` in ``frame`` (see the module docstring).
+
+    Raises
+    ------
+    ValidationError
+        For a message type that is not supported, or a frame not connected to ``frame``.
+    """
+    if msgtype not in SUPPORTED_INPUTS:
+        raise ValidationError(f"input type {msgtype!r} is not supported (supported: {', '.join(SUPPORTED_INPUTS)})")
+    r = convert(msgtype, msg, 0.0)
+    if isinstance(r, ScanReading):
+        return Reading(np.asarray(r.ranges, dtype=float), None, r.frame)
+    if isinstance(r, RangeReading):
+        return Reading(np.array([r.r]), None, r.frame)
+    if isinstance(r, PoseReading):
+        z, C = r.pose[:2], (r.cov[:2, :2] if r.cov is not None else None)
+    elif isinstance(r, PositionFix):
+        z, C = r.z[:2], r.R
+    else:   # pragma: no cover - SUPPORTED_INPUTS lists only the types above
+        raise ValidationError(f"input type {msgtype!r} gives no measurement")
+    src = r.frame.lstrip("/") or frame
+    T = tf.lookup(frame, src)
+    if T is None:
+        raise ValidationError(f"frame {src!r} of a {msgtype} is not connected to {frame!r} by /tf_static")
+    c, s = np.cos(T[2]), np.sin(T[2])
+    z = np.array([T[0] + c * z[0] - s * z[1], T[1] + s * z[0] + c * z[1]])
+    R = _known_cov(C)
+    return Reading(z, rotate_covariance(R, float(T[2])) if R is not None else None, src)
