@@ -31,10 +31,10 @@ from dfusion.bags.datasets import (
     sightings,
 )
 from dfusion.bags.reader import Bag, BagMessage, msgdefs_from_files, read_bag, stamp_ns
-from dfusion.bags.tf import TF_STATIC, StaticTransforms, compose
+from dfusion.bags.tf import TF_STATIC, StaticTransforms, rotate_covariance
 
 __all__ = [
-    "Bag", "BagMessage", "read_bag", "stamp_ns", "msgdefs_from_files", "TF_STATIC", "StaticTransforms", "compose",
+    "Bag", "BagMessage", "read_bag", "stamp_ns", "msgdefs_from_files", "TF_STATIC", "StaticTransforms", "rotate_covariance",
     "CONVERTERS", "Converter", "PoseReading", "PositionFix", "RangeReading", "ScanReading", "Velocity",
     "convert", "quaternion_of_yaw", "yaw_of", "read_pose", "POSE_TYPES",
     "MRCLAM_TOPICS", "POSE_TOLERANCE", "SIGHTINGS_MSGDEF", "SIGHTINGS_TYPE", "carmen_from_bag", "mrclam_from_bag", "sightings",

@@ -27,11 +27,11 @@ import numpy as np
 
 from dfusion.bags.convert import PoseReading, Velocity, convert, laser_scan, read_pose
 from dfusion.bags.reader import Bag, read_bag
-from dfusion.bags.tf import TF_STATIC, StaticTransforms, compose
+from dfusion.bags.tf import TF_STATIC, StaticTransforms
 from dfusion.datasets.carmen import CarmenLog, LaserScan
 from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog
 from dfusion.errors import ValidationError
-from dfusion.geometry import wrap_angle
+from dfusion.geometry import se2_compose, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -236,10 +236,10 @@ def carmen_from_bag(
                 raise ValidationError(f"{bag.path}: scan at {t:.6f} s has no pose: no scan pose topic and no odometry")
             k = max(int(np.searchsorted(out.odom_t, t, side="right")) - 1, 0)
             pose = out.odom[k]
-        mount = tf.mount(s.frame, base) if s.frame else None
+        mount = tf.lookup(base, s.frame) if s.frame else None
         if mount is None:
             unmounted.add(s.frame)
-        laser_pose = compose(pose, mount) if mount is not None else pose.copy()
+        laser_pose = se2_compose(pose, mount) if mount is not None else pose.copy()
         out.scans.append(LaserScan(t, s.ranges, s.angles, laser_pose, pose.copy(), s.valid, None, 0))
     if unmounted:
         log.info("%s: no static transform from the scans' frame %s to %s: the pose is the laser's", bag.path,

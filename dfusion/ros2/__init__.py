@@ -4,7 +4,7 @@
   conventions: ``rmw_zenoh`` (ROS 2's Zenoh middleware) and ``ros2dds`` (``zenoh-bridge-ros2dds``);
 * :mod:`dfusion.ros2.codec` -- CDR (de)serialization and RIHS01 type hashes with rosbags, and the
   messages a live node publishes (``Odometry``, ``PoseWithCovarianceStamped``, ``DiagnosticArray``);
-* :mod:`dfusion.ros2.tf` -- planar static transforms (``/tf_static``);
+* static transforms (``/tf_static``) come from :mod:`dfusion.bags.tf`, shared with bags;
 * :mod:`dfusion.ros2.inputs` -- input messages to measurements with their own covariances;
 * :mod:`dfusion.ros2.link` -- :class:`Ros2Link`: subscriptions, publishers and tokens on a session.
 """
@@ -19,7 +19,7 @@ _WHERE = {
     "decode": ("dfusion.ros2.codec", "decode"),
     "estimate_messages": ("dfusion.ros2.codec", "estimate_messages"),
     "diagnostics": ("dfusion.ros2.codec", "diagnostics"),
-    "StaticTransforms": ("dfusion.ros2.tf", "StaticTransforms"),
+    "StaticTransforms": ("dfusion.bags.tf", "StaticTransforms"),
     "Reading": ("dfusion.ros2.inputs", "Reading"),
     "reading_of": ("dfusion.ros2.inputs", "reading_of"),
     "SUPPORTED_INPUTS": ("dfusion.ros2.inputs", "SUPPORTED_INPUTS"),

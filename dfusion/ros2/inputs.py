@@ -19,7 +19,7 @@ message type                                           ``z``                    
 A covariance is used only when it is a finite, symmetric positive definite 2x2 block: ROS's
 convention for "unknown" (all zeros, or ``-1`` in the first entry) leaves the node's own noise
 (the ``std`` of its scenario table) in place. Poses and positions in another frame than the node's
-are expressed in the node's frame with the static transforms (:mod:`dfusion.ros2.tf`); a message
+are expressed in the node's frame with the static transforms (:mod:`dfusion.bags.tf`); a message
 whose frame is not connected to the node's is refused (counted). Scans and ranges are taken as
 they are (the sensor's mounting is the node's model's business).
 """
@@ -32,7 +32,7 @@ import numpy as np
 
 from dfusion.bags.convert import PoseReading, PositionFix, RangeReading, ScanReading, convert
 from dfusion.errors import ValidationError
-from dfusion.ros2.tf import StaticTransforms, rotate_covariance
+from dfusion.bags.tf import StaticTransforms, rotate_covariance
 
 __all__ = ["Reading", "SUPPORTED_INPUTS", "Z_SIZE", "reading_of"]
 

@@ -41,7 +41,7 @@ from dfusion.errors import ValidationError
 from dfusion.ros2.codec import decode, encode
 from dfusion.ros2.inputs import Reading, reading_of
 from dfusion.ros2.keys import RMW_ZENOH, Convention, rmw_attachment
-from dfusion.ros2.tf import StaticTransforms
+from dfusion.bags.tf import StaticTransforms
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from dfusion.ros2.codec import decode, diagnostics, encode, estimate_messages, m
 from dfusion.ros2.inputs import reading_of
 from dfusion.ros2.keys import Convention, rmw_attachment
 from dfusion.ros2.link import Ros2Link
-from dfusion.ros2.tf import StaticTransforms
+from dfusion.bags.tf import StaticTransforms
 from dfusion.run.live import main
 from dfusion.run.nodefile import load_node_file
 from tests.ros2.scenarios import TWO_NODES
