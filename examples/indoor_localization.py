@@ -44,7 +44,7 @@ SETTINGS = dict(
     pf=MagneticPFSettings(),
     track_init_std=1.0,
     radio_weight=0.5, contribute_max_std=3.0,
-    network_q=0.5,
+    network_q=0.5, use_beacon=True,
     localized_within=2.0, long_walk=30.0,
 )
 
@@ -223,7 +223,7 @@ def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int)
     gl.initialize(tstart)
     phone = MagneticFrontEnd(gl, cfg["radio_weight"], cfg["contribute_max_std"])
     radios = {"wifi": FingerprintFrontEnd(fold.wifi) if fold.wifi else None,
-              "beacon": FingerprintFrontEnd(fold.beacon) if fold.beacon else None}
+              "beacon": FingerprintFrontEnd(fold.beacon) if (fold.beacon and cfg["use_beacon"]) else None}
     ev = sorted([(t, 0, k) for k, t in enumerate(st.t)] + [(t, 1, k) for k, t in enumerate(times)])
     T, X = [], []
     for t, kind, k in ev:

@@ -15,7 +15,7 @@ within a walk).
 
     delta <- delta + N(0, sigma_delta^2)           s <- s exp(N(0, sigma_s^2))
     L = K s w (1 + N(0, sigma_L^2))                 a = psi + theta_floor + delta + N(0, sigma_psi^2)
-    (x, y) <- (x, y) + L (cos a, sin a)
+    (x, y) <- (x, y) + L (cos a, sin a) + N(0, sigma_pos^2 I)
 
 **Magnetic likelihood** of the step's world-frame features ``f_j`` (``docs/indoor.md``), with the
 map's mean ``m_j(p)`` and variance ``v_j(p)``::
@@ -58,6 +58,7 @@ class MagneticPFSettings:
     sigma_s: float = 0.01
     sigma_len: float = 0.15
     sigma_psi: float = np.radians(8.0)
+    sigma_pos: float = 0.0
     delta0_std: float = np.radians(15.0)
     s0_std: float = 0.1
     sensor_var: float = 1.0
@@ -138,6 +139,8 @@ class MagneticLocalizer:
         a = psi + self.theta + x[:, 2] + rng.standard_normal(n) * c.sigma_psi
         x[:, 0] += L * np.cos(a)
         x[:, 1] += L * np.sin(a)
+        if c.sigma_pos > 0:
+            x[:, :2] += rng.standard_normal((n, 2)) * c.sigma_pos
         pf.move(x)
         self.time = float(t)
         if field is not None:
