@@ -43,8 +43,8 @@ SETTINGS = dict(
     kf_step_var=0.15, kf_init_scale=1.0,
     pf=MagneticPFSettings(),
     track_init_std=1.0,
-    radio_weight=0.5, contribute_max_std=3.0,
-    network_q=0.5, use_beacon=True,
+    radio_weight=1.0, contribute_max_std=3.0, inject=0.0, mode_output=False,
+    network_q=0.5, use_beacon=False,
     localized_within=2.0, long_walk=30.0,
 )
 
@@ -115,11 +115,8 @@ class Fold:
         S, P, G = [], [], []
         for i in train:
             trc = floor.traces[i]
-            if kind == "wifi":
-                scans = trc.wifi
-            else:
-                times = np.array([s.t for s in trc.wifi]) if trc.wifi else np.arange(2.0, trc.duration + 2.0, 2.0)
-                scans = [RadioScan(t, d) for t, d in zip(times, beacon_epochs(trc, times)) if d]
+            times, wifi, beac = radio_epochs(trc)
+            scans = [RadioScan(t, d) for t, d in zip(times, wifi if kind == "wifi" else beac) if d]
             for sc, p in scan_positions(trc, steps[i], self.gain, self.off, scans):
                 if sc:
                     S.append(sc)
@@ -206,7 +203,7 @@ def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int)
     for k in range(len(st)):
         loc.step(st.t[k], st.w[k], st.psi[k], st.field[k])
         T.append(st.t[k])
-        X.append(loc.estimate()[0])
+        X.append(loc.mode_estimate() if cfg["mode_output"] else loc.estimate()[0])
     tracks["magnetic_true_start"] = (np.array(T), np.array(X))
     cpu["magnetic_true_start"] = time.process_time() - t0
 
@@ -221,7 +218,7 @@ def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int)
              "beacon": FusionNode("beacon", ["phone"], motion, window=400, prior=prior)}
     gl = MagneticLocalizer(fold.map, fold.gain, fold.off, cfg["pf"], seed=seed + 1)
     gl.initialize(tstart)
-    phone = MagneticFrontEnd(gl, cfg["radio_weight"], cfg["contribute_max_std"])
+    phone = MagneticFrontEnd(gl, cfg["radio_weight"], cfg["contribute_max_std"], cfg["inject"])
     radios = {"wifi": FingerprintFrontEnd(fold.wifi) if fold.wifi else None,
               "beacon": FingerprintFrontEnd(fold.beacon) if (fold.beacon and cfg["use_beacon"]) else None}
     ev = sorted([(t, 0, k) for k, t in enumerate(st.t)] + [(t, 1, k) for k, t in enumerate(times)])
@@ -243,7 +240,7 @@ def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int)
                 nodes[r].receive(nodes["phone"].message_to(r))
             phone.absorb(nodes["phone"], t)
         T.append(t)
-        X.append(phone.estimate()[0])
+        X.append(gl.mode_estimate() if cfg["mode_output"] else phone.estimate()[0])
     tracks["fused_network"] = (np.array(T), np.array(X).reshape(-1, 2))
     cpu["fused_network"] = time.process_time() - t0
     return tracks, cpu, {"pdr_distance": np.concatenate([[0.0], np.cumsum(fold.gain * st.w)]),
@@ -286,9 +283,9 @@ def evaluate_floor(floor_dir: Path, cfg: dict, figure_walk: int | None = 0) -> d
         test = [i for i in range(n) if i % cfg["folds"] == f]
         train = [i for i in range(n) if i % cfg["folds"] != f]
         fold = Fold(floor, steps, train, cfg)
-        log.info("%s fold %d: K=%.3f offset=%.1f deg, map support %d cells, wifi scale %.2f",
+        log.info("%s fold %d: K=%.3f offset=%.1f deg, map support %d cells, wifi covariance scale %s",
                  floor.name, f, fold.gain, math.degrees(fold.off), int(fold.map.support.sum()),
-                 fold.wifi.scale if fold.wifi else float("nan"))
+                 f"{fold.wifi.scale:.2f}" if fold.wifi else "none (no WiFi database: fewer than 2 training walks)")
         for i in test:
             tr, st = floor.traces[i], steps[i]
             if len(tr.waypoints) < 2 or len(st) < 2:

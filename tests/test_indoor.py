@@ -299,3 +299,43 @@ def test_network_gives_the_phone_exactly_the_radio_information():
     assert len(seen) == 2
     for (eta, Om), (e_eta, e_Om) in zip(seen, expected):
         assert eta == pytest.approx(e_eta, rel=1e-9) and Om == pytest.approx(e_Om, rel=1e-9)
+
+
+def test_wifi_node_fed_by_the_magnetic_filter_is_not_over_confident():
+    """The WiFi node fuses its own fixes (exact Gaussian noise) and the phone's magnetic contributions;
+    its average NEES against the truth over a synthetic walk stays below the chi-square 95 % bound."""
+    mp, truth = synthetic_map()
+    rng = np.random.default_rng(11)
+    motion = ConstantVelocity(2, 0.5)
+    start = np.array([5.0, 5.0])
+    prior = (0.0, np.array([*start, 0, 0]), np.diag([4.0, 4.0, 4, 4]))
+    nodes = {"phone": FusionNode("phone", ["wifi"], motion, window=200, prior=prior),
+             "wifi": FusionNode("wifi", ["phone"], motion, window=200, prior=prior)}
+    loc = MagneticLocalizer(mp, 0.7, 0.0, MagneticPFSettings(n_particles=1000), seed=5)
+    loc.initialize(0.0, start, 4 * np.eye(2))
+    phone = MagneticFrontEnd(loc, radio_weight=1.0)
+    C = np.diag([9.0, 4.0])
+    p = start.copy()
+    nees = []
+    for k in range(1, 61):
+        t = 0.5 * k
+        psi = 0.0 if k <= 30 else np.pi / 2
+        p = p + 0.7 * np.array([np.cos(psi), np.sin(psi)])
+        f = np.append(truth(p[None])[0], 0.0) + rng.normal(0, 0.5, 3)
+        phone.step(t, 1.0, psi + rng.normal(0, 0.05), f)
+        if k % 4 == 0:
+            for nd in nodes.values():
+                nd.predict(t)
+            z = p + rng.multivariate_normal(np.zeros(2), C)
+            Lam, y = position_information(z, C, 4)
+            nodes["wifi"].add_local_information(t, Lam, y)
+            phone.process(nodes["phone"], t)
+            nodes["phone"].receive(nodes["wifi"].message_to("phone"))
+            nodes["wifi"].receive(nodes["phone"].message_to("wifi"))
+            phone.absorb(nodes["phone"], t)
+            m, P = nodes["wifi"].estimate()
+            e = m[:2] - p
+            nees.append(float(e @ np.linalg.solve(P[:2, :2], e)))
+    assert phone.stats.contributed > 0
+    # chi-square with 2 * 15 degrees of freedom, 95 % upper bound 43.8, divided by 15
+    assert np.mean(nees) < 43.8 / 15, nees

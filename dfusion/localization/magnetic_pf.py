@@ -58,13 +58,13 @@ class MagneticPFSettings:
     sigma_s: float = 0.01
     sigma_len: float = 0.15
     sigma_psi: float = np.radians(8.0)
-    sigma_pos: float = 0.0
+    sigma_pos: float = 0.5
     delta0_std: float = np.radians(15.0)
     s0_std: float = 0.1
     sensor_var: float = 1.0
     bias_var: float = 36.0
     temper: float = 2.0
-    off_map: float = 0.2
+    off_map: float = 1.0
     features: tuple[int, ...] = (0, 1)
     roughening: float = 0.05
 
@@ -101,7 +101,17 @@ class MagneticLocalizer:
         """Draw the particles at time ``t``: Gaussian ``(mean, cov)`` on ``(x, y)`` or, without a mean,
         uniform over the map's support (global localization)."""
         rng = self._seed if isinstance(self._seed, np.random.Generator) else np.random.default_rng(self._seed)
-        c, n = self.cfg, self.cfg.n_particles
+        c = self.cfg
+        x = self._draw(c.n_particles, mean, cov, rng)
+        self.pf = ParticleFilter(x, rng=rng, roughening=c.roughening)
+        self.pf.roughening_dims = (0, 1)
+        self.time = float(t)
+        self._ref = self._fit()
+
+    def _draw(self, n: int, mean: ArrayLike | None, cov: ArrayLike | None, rng: np.random.Generator) -> Array:
+        """``n`` particles: positions from ``N(mean, cov)`` (uniform over the support without a mean),
+        heading offset, scale and bias from their initial laws."""
+        c = self.cfg
         if mean is None:
             pos = self.map.sample_support(n, rng)
         else:
@@ -114,10 +124,7 @@ class MagneticLocalizer:
         x[:, 3] = np.exp(rng.standard_normal(n) * c.s0_std)
         x[:, 4:4 + m] = 0.0
         x[:, 4 + m:] = c.bias_var
-        self.pf = ParticleFilter(x, rng=rng, roughening=c.roughening)
-        self.pf.roughening_dims = (0, 1)
-        self.time = float(t)
-        self._ref = self._fit()
+        return x
 
     def _require(self) -> ParticleFilter:
         if self.pf is None:
@@ -172,14 +179,31 @@ class MagneticLocalizer:
             return
         pf.resample_if_needed()
 
-    def reweight_information(self, eta: ArrayLike, omega: ArrayLike) -> None:
+    def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0) -> None:
         """Multiply the weights by ``exp(eta^T p - p^T Omega p / 2)`` (information from the network on
         ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
-        prediction, this resets the reference of :meth:`information_contribution`."""
+        prediction, this resets the reference of :meth:`information_contribution`.
+
+        ``inject`` in ``[0, 1)``: first the fraction ``inject`` of the particles with the lowest weights
+        is replaced by draws from the Gaussian ``N(Omega^-1 eta, Omega^-1)`` (heading offset, scale and
+        bias from their initial laws) at the mean weight of the set: the mixture proposal of Monte
+        Carlo localization with sensor resetting (Lenser and Veloso, "Sensor resetting localization for
+        poorly modelled mobile robots", ICRA 2000; Thrun, Burgard and Fox, *Probabilistic Robotics*,
+        2005, sec. 8.3.5), so that a set locked onto the wrong corridor can recover."""
         pf = self._require()
-        p = pf.particles[:, :2]
         e = np.asarray(eta, dtype=float)
         O = np.asarray(omega, dtype=float)
+        k = int(float(inject) * pf.n)
+        if k > 0 and np.all(np.linalg.eigvalsh(O) > 0):
+            x = pf.particles.copy()
+            lw = pf.log_weights.copy()
+            worst = np.argsort(lw)[:k]
+            C = np.linalg.inv(O)
+            x[worst] = self._draw(k, np.linalg.solve(O, e), 0.5 * (C + C.T), pf.rng)
+            top = lw.max()
+            lw[worst] = top + np.log(np.mean(np.exp(lw - top)))
+            pf.set_particles(x, lw)
+        p = pf.particles[:, :2]
         ll = p @ e - 0.5 * np.einsum("ij,jk,ik->i", p, O, p)
         self._update(ll - ll.max())
         self._ref = self._fit()
@@ -192,6 +216,24 @@ class MagneticLocalizer:
     def estimate(self) -> tuple[Array, Array]:
         """Weighted mean and covariance of ``(x, y)``."""
         return self._fit()
+
+    def mode_estimate(self, radius: float = 5.0, cell: float = 2.0) -> Array:
+        """The weighted mean of the particles within ``radius`` of the densest ``cell`` x ``cell`` square
+        (weights binned, summed over 3 x 3 squares): the main mode of a multi-modal set, where the
+        overall mean may lie between corridors."""
+        pf = self._require()
+        p = pf.particles[:, :2]
+        w = pf.weights
+        lo = p.min(axis=0)
+        ij = np.floor((p - lo) / cell).astype(np.int64)
+        shape = tuple(ij.max(axis=0) + 3)
+        H = np.zeros(shape)
+        np.add.at(H, (ij[:, 0] + 1, ij[:, 1] + 1), w)
+        S = sum(np.roll(np.roll(H, a, 0), b, 1) for a in (-1, 0, 1) for b in (-1, 0, 1))
+        i, j = np.unravel_index(np.argmax(S), shape)
+        c = lo + (np.array([i, j]) - 0.5) * cell
+        near = np.hypot(p[:, 0] - c[0], p[:, 1] - c[1]) <= radius
+        return (w[near] @ p[near]) / w[near].sum()
 
     def information_contribution(self, max_std: float = 3.0) -> InformationGaussian:
         r"""What the magnetic readings since the last call added on ``(x, y)``: ``Omega = P_1^-1 - P_0^-1``,
