@@ -280,7 +280,7 @@ def test_network_gives_the_phone_exactly_the_radio_information():
     loc.initialize(0.0, [20.0, 20.0], 4 * np.eye(2))
     phone = MagneticFrontEnd(loc, radio_weight=1.0)
     seen = []
-    phone.localizer.reweight_information = lambda eta, Om: seen.append((eta, Om))
+    phone.localizer.reweight_information = lambda eta, Om, inject, floor: seen.append((eta, Om))
     expected = []
     for t, q in ((1.0, {"a": -60.0, "b": -62.0}), (2.0, {"a": -61.0, "b": -60.0})):
         for nd in nodes.values():

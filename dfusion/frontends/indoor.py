@@ -73,11 +73,12 @@ class MagneticFrontEnd(FrontEnd):
     """The phone node's front end (module docstring)."""
 
     def __init__(self, localizer: MagneticLocalizer, radio_weight: float = 0.5, max_std: float = 3.0,
-                 inject: float = 0.0) -> None:
+                 inject: float = 0.0, floor: float = 0.0) -> None:
         self.localizer = localizer
         self.radio_weight = float(radio_weight)
         self.max_std = float(max_std)
         self.inject = float(inject)
+        self.floor = float(floor)
         self.stats = MagneticStats()
         self._absorbed_until = -np.inf
 
@@ -113,7 +114,8 @@ class MagneticFrontEnd(FrontEnd):
         eta = sum(y[:2] for _, _, y in got)
         if not np.any(Om):
             return False
-        self.localizer.reweight_information(self.radio_weight * eta, self.radio_weight * Om, self.inject)
+        self.localizer.reweight_information(self.radio_weight * eta, self.radio_weight * Om, self.inject,
+                                             self.floor)
         self.stats.absorbed += 1
         return True
 

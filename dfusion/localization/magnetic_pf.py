@@ -51,16 +51,25 @@ __all__ = ["MagneticLocalizer", "MagneticPFSettings", "build_bias_free_map"]
 
 @dataclass
 class MagneticPFSettings:
-    """Settings of :class:`MagneticLocalizer` (one set for the whole data family)."""
+    """Settings of :class:`MagneticLocalizer` (one set for the whole data family; the defaults are the
+    ones ``examples/indoor_localization.py`` evaluates, docs/indoor.md).
+
+    ``n_particles``; per step: ``sigma_delta`` [rad] random walk of the heading offset, ``sigma_s`` of the
+    log step scale, ``sigma_len`` relative step-length noise, ``sigma_psi`` [rad] heading noise,
+    ``sigma_pos`` [m] isotropic position noise; initial laws ``delta0_std`` [rad], ``s0_std`` (log scale);
+    magnetic likelihood: ``sensor_var`` [uT^2], ``bias_var`` [uT^2] (prior of the per-walk bias),
+    ``temper`` (divides the log-likelihood), ``off_map`` (likelihood factor off the map's support; 1:
+    none), ``features`` (columns of the field features used: 0 = B_z, 1 = B_h, 2 = |B|);
+    ``roughening`` (Gordon's K, position only)."""
 
     n_particles: int = 2000
-    sigma_delta: float = np.radians(1.0)
+    sigma_delta: float = np.radians(0.5)
     sigma_s: float = 0.01
     sigma_len: float = 0.15
-    sigma_psi: float = np.radians(8.0)
-    sigma_pos: float = 0.5
-    delta0_std: float = np.radians(15.0)
-    s0_std: float = 0.1
+    sigma_psi: float = np.radians(5.0)
+    sigma_pos: float = 0.3
+    delta0_std: float = np.radians(5.0)
+    s0_std: float = 0.05
     sensor_var: float = 1.0
     bias_var: float = 36.0
     temper: float = 2.0
@@ -179,7 +188,8 @@ class MagneticLocalizer:
             return
         pf.resample_if_needed()
 
-    def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0) -> None:
+    def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0,
+                             floor: float = 0.0) -> None:
         """Multiply the weights by ``exp(eta^T p - p^T Omega p / 2)`` (information from the network on
         ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
         prediction, this resets the reference of :meth:`information_contribution`.
@@ -205,6 +215,9 @@ class MagneticLocalizer:
             pf.set_particles(x, lw)
         p = pf.particles[:, :2]
         ll = p @ e - 0.5 * np.einsum("ij,jk,ik->i", p, O, p)
+        if floor > 0 and np.all(np.linalg.eigvalsh(O) > 0):
+            d = p - np.linalg.solve(O, e)
+            ll = np.logaddexp(-0.5 * np.einsum("ij,jk,ik->i", d, O, d), np.log(floor))
         self._update(ll - ll.max())
         self._ref = self._fit()
 
