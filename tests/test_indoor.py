@@ -201,9 +201,11 @@ def test_fingerprint_calibration_gives_mean_nees_two():
 def synthetic_map():
     rng = np.random.default_rng(7)
     p = rng.uniform(0, 40, (40000, 2))
-    f = np.column_stack([30 + 8 * np.sin(p[:, 0] / 2.5) * np.cos(p[:, 1] / 3.0), 20 + 6 * np.cos(p[:, 0] / 3.5)])
-    truth = lambda q: np.column_stack([30 + 8 * np.sin(q[:, 0] / 2.5) * np.cos(q[:, 1] / 3.0),  # noqa: E731
-                                       20 + 6 * np.cos(q[:, 0] / 3.5)])
+    def truth(q):  # B_z, B_h and the magnitude
+        bz, bh = 30 + 8 * np.sin(q[:, 0] / 2.5) * np.cos(q[:, 1] / 3.0), 20 + 6 * np.cos(q[:, 0] / 3.5)
+        return np.column_stack([bz, bh, np.hypot(bz, bh)])
+
+    f = truth(p)
     return MagneticMap.build(p, f + rng.normal(0, 0.5, f.shape), bounds=(0, 0, 40, 40), cell=0.5, sigma=0.5), truth
 
 
@@ -213,7 +215,7 @@ def test_magnetic_pf_with_a_bias_corrects_a_wrong_step_length():
     n = 60
     psi = np.where(np.arange(n) < 30, 0.0, np.pi / 2)
     true = np.vstack([[5.0, 5.0], [5.0, 5.0] + np.cumsum(0.7 * np.column_stack([np.cos(psi), np.sin(psi)]), axis=0)])
-    fld = np.column_stack([truth(true[1:]), np.zeros(n)]) + [3.0, -2.0, 0.0] + rng.normal(0, 0.5, (n, 3))
+    fld = truth(true[1:]) + [3.0, -2.0, 1.0] + rng.normal(0, 0.5, (n, 3))
     loc = MagneticLocalizer(mp, gain=0.7 / 1.25, theta_floor=0.0, settings=MagneticPFSettings(n_particles=1500), seed=1)
     loc.initialize(0.0, true[0], np.eye(2))
     for k in range(n):
@@ -321,7 +323,7 @@ def test_wifi_node_fed_by_the_magnetic_filter_is_not_over_confident():
         t = 0.5 * k
         psi = 0.0 if k <= 30 else np.pi / 2
         p = p + 0.7 * np.array([np.cos(psi), np.sin(psi)])
-        f = np.append(truth(p[None])[0], 0.0) + rng.normal(0, 0.5, 3)
+        f = truth(p[None])[0] + rng.normal(0, 0.5, 3)
         phone.step(t, 1.0, psi + rng.normal(0, 0.05), f)
         if k % 4 == 0:
             for nd in nodes.values():

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dfusion.frontends.base import FrontEnd, FrontEndStats, position_information
+from dfusion.frontends.base import FrontEnd, FrontEndStats, embed_position_information, position_information
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
 from dfusion.localization.fingerprint import FingerprintLocalizer
@@ -94,11 +94,7 @@ class MagneticFrontEnd(FrontEnd):
         if not np.any(info.Omega):
             self.stats.withheld += 1
             return False
-        n = node.filter.n
-        Lam = np.zeros((n, n))
-        y = np.zeros(n)
-        Lam[:2, :2] = info.Omega
-        y[:2] = info.eta
+        Lam, y = embed_position_information(info.Omega, info.eta, node.filter.n)
         node.add_local_information(t, Lam, y)
         self.stats.contributed += 1
         return True

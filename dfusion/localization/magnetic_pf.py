@@ -74,7 +74,7 @@ class MagneticPFSettings:
     bias_var: float = 36.0
     temper: float = 2.0
     off_map: float = 1.0
-    features: tuple[int, ...] = (0, 1)
+    features: tuple[int, ...] = (0, 1, 2)
     roughening: float = 0.05
 
 
