@@ -30,7 +30,7 @@ tempered (``temper > 1``) as the WSN tracker's ``std_scale`` does for correlated
 
 :meth:`MagneticLocalizer.reweight_information` multiplies the weights by the Gaussian likelihood an
 information pair ``(eta, Omega)`` on ``(x, y)`` represents (WiFi's from the network);
-:meth:`information_contribution` gives what the magnetic readings since the last call added, as
+:meth:`MagneticLocalizer.information_contribution` gives what the magnetic readings since the last call added, as
 the WSN tracker's quotient of Gaussian fits (``docs/indoor.md`` says when it is withheld).
 """
 from __future__ import annotations
