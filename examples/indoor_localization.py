@@ -271,7 +271,7 @@ def localized_at(errors: list[float | None], within: float) -> int | None:
     return None
 
 
-def evaluate_floor(floor_dir: Path, cfg: dict, figure_walk: int | None = 0) -> dict:
+def evaluate_floor(floor_dir: Path, cfg: dict) -> dict:
     t0 = time.time()
     floor = read_floor(floor_dir, max_wifi_age=cfg["wifi_max_age"])
     steps = [pdr_steps(tr) for tr in floor.traces]
@@ -309,8 +309,8 @@ def evaluate_floor(floor_dir: Path, cfg: dict, figure_walk: int | None = 0) -> d
                         g["success"] += 1
                         g["distance"].append(float(np.interp(tr.waypoints[1 + k, 0], extra["step_t"],
                                                              extra["pdr_distance"])))
-            if figure_walk is not None and fig_data is None and i >= figure_walk and tr.duration >= 60:
-                fig_data = {"walk": tr.name, "truth": tr.waypoints[:, 1:].tolist(),
+            if fig_data is None or tr.duration > fig_data["duration"]:  # the figure shows the longest walk
+                fig_data = {"walk": tr.name, "duration": tr.duration, "truth": tr.waypoints[:, 1:].tolist(),
                             **{m: tracks[m][1].tolist() for m in ("pdr_true_start", "magnetic_true_start",
                                                                    "wifi_knn", "fused_network")}}
     rows = {}
@@ -378,7 +378,7 @@ def figure(results: list[dict], path: Path) -> None:
         ax.set_ylim(0, r["size"][1])
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
-        ax.set_title(f"{r['floor']}, walk {d['walk']}")
+        ax.set_title(f"{r['floor']}, walk {d['walk']} ({d['duration']:.0f} s)")
         ax.legend(loc="lower left", fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
