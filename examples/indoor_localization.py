@@ -2,16 +2,17 @@
 
 Usage::
 
-    python examples/indoor_localization.py --all DIR [--folds 5] [--json out/indoor.json] [--figure out/indoor.png]
+    python examples/indoor_localization.py --all DIR [--folds 10] [--json out/indoor.json] [--figure out/indoor.png]
     python examples/indoor_localization.py DIR/site1-F1 [...]
 
 ``DIR`` holds one folder per floor (``floor_info.json``, ``geojson_map.json``, ``path_data_files/``),
 the layout of the Indoor Location Competition 2.0 data (docs/indoor.md). Every floor is evaluated with
 the same settings (this file's ``SETTINGS``), by k-fold cross-validation over walks: walk ``i`` (in
-file-name order) is in fold ``i mod k``; the maps, the Weinberg gain, the floor's heading offset and
+file-name order) is in fold ``i mod k``, ``k = 10`` by default; the maps, the Weinberg gain, the floor's heading offset and
 the fingerprint databases are built from the other folds' walks only. Errors are measured at the
 waypoints' times, a walk's first waypoint excluded; each method's estimate at a waypoint is its
-estimate interpolated linearly between its outputs before and after (at most one step later).
+estimate interpolated linearly between its outputs before and after (at most one step later); the
+radio k-NN fixes are held from the latest scan.
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ log = logging.getLogger("indoor")
 
 #: One set of settings for the whole data family (never per floor).
 SETTINGS = dict(
-    folds=5,
+    folds=10,
     map_cell=1.0, map_sigma=1.0, map_n0=2.0,
     knn_k=4, wifi_max_age=2.0,
     kf_step_var=0.15, kf_init_scale=1.0,
