@@ -56,6 +56,10 @@ def test_floor_outline_is_in_metres_and_spans_the_floor():
     pts = np.vstack(fl.outline)
     assert pts.min(axis=0) == pytest.approx([0, 0], abs=1e-9)
     assert pts.max(axis=0) == pytest.approx([fl.width, fl.height], rel=1e-9)
+    from matplotlib.path import Path as Polygon  # an independent point-in-polygon test
+
+    wp = np.vstack([t.waypoints[:, 1:] for t in fl.traces])
+    assert any(Polygon(r).contains_points(wp).all() for r in fl.outline)  # the walks lie on the floor
     with pytest.raises(ValidationError, match="floor_info"):
         read_floor(DATA / "path_data_files")
 
