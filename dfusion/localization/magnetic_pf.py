@@ -265,14 +265,6 @@ class MagneticLocalizer:
         Om, eta, _ = project_psd_information(O1 - O0, O1 @ m1 - O0 @ m1, 1e-9)
         return InformationGaussian(eta, Om)
 
-    @property
-    def particles(self) -> Array:
-        return self._require().particles
-
-    @property
-    def weights(self) -> Array:
-        return self._require().weights
-
 
 def build_bias_free_map(tracks: list[Array], fields: list[Array], *, bounds: ArrayLike, cell: float = 1.0,
                         sigma: float = 1.0, n0: float = 2.0, iterations: int = 3) -> tuple[MagneticMap, list[Array]]:
