@@ -102,12 +102,12 @@ class FingerprintLocalizer:
 
     def calibrate(self, target: float = 2.0) -> float:
         """Set :attr:`scale` so that the leave-one-walk-out mean NEES of the training scans is ``target``
-        (needs ``groups``); returns the scale. Scans of inverse-scan order (``reverse``) are not used."""
+        (needs ``groups``); returns the scale. Each training scan is located from the scans of the
+        other walks only (its own walk's scans are excluded: they were taken at nearly the same place)."""
         if self.groups is None:
             raise ValidationError("calibrate() needs the walk index of each training scan (groups)")
         self.scale = 1.0
-        inv = {a: j for a, j in self.index.items()}
-        ids = np.array(sorted(inv, key=inv.get))
+        ids = np.array(sorted(self.index, key=self.index.get))  # transmitter id of each column
         nees = []
         for i in range(self.F.shape[0]):
             heard = self.F[i] > self.missing
