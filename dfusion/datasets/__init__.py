@@ -6,11 +6,18 @@ from typing import TYPE_CHECKING
 from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.datasets.indoor import IndoorTrace, RadioScan, Floor, read_trace, read_floor, read_floor_outline
     from dfusion.datasets.ble_rssi import BLERSSIDataset, Receiver, Track, find_dataset_root, read_devices, read_track
     from dfusion.datasets.carmen import CarmenLog, LaserScan, beam_angles, read_carmen
     from dfusion.datasets.mrclam import ROBOTS, MRCLAMDataset, RobotLog, integrate_odometry, interpolate_poses, mean_velocities, perturb_mrclam, PERTURBATIONS, read_landmarks, read_mrclam
 
 __all__ = [
+    "IndoorTrace",
+    "RadioScan",
+    "Floor",
+    "read_trace",
+    "read_floor",
+    "read_floor_outline",
     "BLERSSIDataset",
     "Receiver",
     "Track",
@@ -34,6 +41,12 @@ __all__ = [
 ]
 
 _WHERE = {
+    "IndoorTrace": ("dfusion.datasets.indoor", "IndoorTrace"),
+    "RadioScan": ("dfusion.datasets.indoor", "RadioScan"),
+    "Floor": ("dfusion.datasets.indoor", "Floor"),
+    "read_trace": ("dfusion.datasets.indoor", "read_trace"),
+    "read_floor": ("dfusion.datasets.indoor", "read_floor"),
+    "read_floor_outline": ("dfusion.datasets.indoor", "read_floor_outline"),
     "read_landmarks": ("dfusion.datasets.mrclam", "read_landmarks"),
     "BLERSSIDataset": ("dfusion.datasets.ble_rssi", 'BLERSSIDataset'),
     "Receiver": ("dfusion.datasets.ble_rssi", 'Receiver'),

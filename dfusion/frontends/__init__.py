@@ -6,6 +6,8 @@ from typing import TYPE_CHECKING
 from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.frontends.indoor import FingerprintFrontEnd, MagneticFrontEnd, MagneticStats
+    from dfusion.frontends.base import embed_position_information
     from dfusion.frontends.base import EIFFrontEnd, FrontEnd, FrontEndStats, embed_source, fit_difference_information, position_information
     from dfusion.frontends.camera import CameraFrame, CameraFrontEnd, CameraStats, gate_threshold
     from dfusion.frontends.env_camera import EnvCameraFrontEnd
@@ -15,6 +17,10 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.frontends.wsn import WSNFrontEnd, WSNStats
 
 __all__ = [
+    "FingerprintFrontEnd",
+    "MagneticFrontEnd",
+    "MagneticStats",
+    "embed_position_information",
     "FrontEnd",
     "FrontEndStats",
     "EIFFrontEnd",
@@ -35,6 +41,10 @@ __all__ = [
 ]
 
 _WHERE = {
+    "FingerprintFrontEnd": ("dfusion.frontends.indoor", "FingerprintFrontEnd"),
+    "MagneticFrontEnd": ("dfusion.frontends.indoor", "MagneticFrontEnd"),
+    "MagneticStats": ("dfusion.frontends.indoor", "MagneticStats"),
+    "embed_position_information": ("dfusion.frontends.base", "embed_position_information"),
     "EIFFrontEnd": ("dfusion.frontends.base", 'EIFFrontEnd'),
     "FrontEnd": ("dfusion.frontends.base", 'FrontEnd'),
     "FrontEndStats": ("dfusion.frontends.base", 'FrontEndStats'),

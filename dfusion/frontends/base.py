@@ -49,7 +49,7 @@ from dfusion.linalg import Array, as_spd, spd_inverse
 from dfusion.models.base import MeasurementModel
 
 __all__ = ["FrontEnd", "FrontEndStats", "EIFFrontEnd", "position_information", "fit_difference_information",
-           "embed_source"]
+           "embed_position_information", "embed_source"]
 
 
 @dataclass
@@ -147,6 +147,18 @@ def position_information(mean: ArrayLike, cov: ArrayLike, n: int) -> tuple[Array
     y = np.zeros(n)
     Lam[:d, :d] = W
     y[:d] = W @ m
+    return Lam, y
+
+
+def embed_position_information(Omega: ArrayLike, eta: ArrayLike, n: int) -> tuple[Array, Array]:
+    """Information ``(Omega, eta)`` on the position (the first ``d`` entries) as ``(Lambda, y)`` on an
+    ``n``-state: ``Omega`` in the position block, zeros elsewhere."""
+    O = np.asarray(Omega, dtype=float)
+    d = O.shape[0]
+    Lam = np.zeros((n, n))
+    y = np.zeros(n)
+    Lam[:d, :d] = O
+    y[:d] = np.asarray(eta, dtype=float)
     return Lam, y
 
 

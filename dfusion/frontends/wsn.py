@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dfusion.errors import OutsideWindowError, ValidationError
-from dfusion.frontends.base import FrontEnd, FrontEndStats
+from dfusion.frontends.base import FrontEnd, FrontEndStats, embed_position_information
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
 from dfusion.localization.wsn_tracker import WSNTracker
@@ -157,11 +157,7 @@ class WSNFrontEnd(FrontEnd):
             self.stats.empty += 1
             self.stats.rejected += 1
             return False
-        n = f.n
-        Lam = np.zeros((n, n))
-        y = np.zeros(n)
-        Lam[:2, :2] = info.Omega
-        y[:2] = info.eta
+        Lam, y = embed_position_information(info.Omega, info.eta, f.n)
         node.add_local_information(t, Lam, y)
         self.stats.contributed += 1
         return True

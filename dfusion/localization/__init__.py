@@ -6,6 +6,8 @@ from typing import TYPE_CHECKING
 from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.localization.magnetic_pf import MagneticLocalizer, MagneticPFSettings, build_bias_free_map
+    from dfusion.localization.fingerprint import FingerprintLocalizer, FingerprintFix
     from dfusion.localization.correlative import CorrelativeResult, CorrelativeScanMatcher, enclosing_covariance
     from dfusion.localization.env_camera import EnvironmentCameraLocalizer
     from dfusion.localization.scan_matching import (
@@ -52,6 +54,11 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.localization.wsn_tracker import MOTIONS, WSNTracker
 
 __all__ = [
+    "MagneticLocalizer",
+    "MagneticPFSettings",
+    "build_bias_free_map",
+    "FingerprintLocalizer",
+    "FingerprintFix",
     "CorrelativeResult",
     "CorrelativeScanMatcher",
     "enclosing_covariance",
@@ -97,6 +104,11 @@ __all__ = [
 ]
 
 _WHERE = {
+    "MagneticLocalizer": ("dfusion.localization.magnetic_pf", "MagneticLocalizer"),
+    "MagneticPFSettings": ("dfusion.localization.magnetic_pf", "MagneticPFSettings"),
+    "build_bias_free_map": ("dfusion.localization.magnetic_pf", "build_bias_free_map"),
+    "FingerprintLocalizer": ("dfusion.localization.fingerprint", "FingerprintLocalizer"),
+    "FingerprintFix": ("dfusion.localization.fingerprint", "FingerprintFix"),
     "CorrelativeResult": ("dfusion.localization.correlative", 'CorrelativeResult'),
     "CorrelativeScanMatcher": ("dfusion.localization.correlative", 'CorrelativeScanMatcher'),
     "enclosing_covariance": ("dfusion.localization.correlative", 'enclosing_covariance'),

@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.maps.magnetic import MagneticMap
     from dfusion.maps.nearest import NearestPointGrid
     from dfusion.maps.buildings import (
         GENERATORS,
@@ -28,6 +29,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.maps.raycast import RayCastTable, cast_rays
 
 __all__ = [
+    "MagneticMap",
     "NearestPointGrid",
     "rooms",
     "corridor",
@@ -52,6 +54,7 @@ __all__ = [
 ]
 
 _WHERE = {
+    "MagneticMap": ("dfusion.maps.magnetic", "MagneticMap"),
     "NearestPointGrid": ("dfusion.maps.nearest", 'NearestPointGrid'),
     "GENERATORS": ("dfusion.maps.buildings", 'GENERATORS'),
     "corridor": ("dfusion.maps.buildings", 'corridor'),

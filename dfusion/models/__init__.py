@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
+    from dfusion.models.pdr import StepDetector, PDRSteps, detect_steps, pdr_steps, fit_weinberg_gain, fit_heading_offset, dead_reckon, anchored_track, world_field, quaternion_matrices
     from dfusion.models.base import MeasurementModel, MotionModel, model_at
     from dfusion.models.camera import MountedCamera, PinholeCamera, SceneCamera
     from dfusion.models.laser import BeamErfcModel, LaserConfig, LaserScanSensor, LikelihoodFieldModel
@@ -14,6 +15,16 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.models.odometry import OdometryMotionModel, VelocityOdometry, odometry_increment
 
 __all__ = [
+    "StepDetector",
+    "PDRSteps",
+    "detect_steps",
+    "pdr_steps",
+    "fit_weinberg_gain",
+    "fit_heading_offset",
+    "dead_reckon",
+    "anchored_track",
+    "world_field",
+    "quaternion_matrices",
     "MotionModel",
     "MeasurementModel",
     "PinholeCamera",
@@ -39,6 +50,16 @@ __all__ = [
 ]
 
 _WHERE = {
+    "StepDetector": ("dfusion.models.pdr", "StepDetector"),
+    "PDRSteps": ("dfusion.models.pdr", "PDRSteps"),
+    "detect_steps": ("dfusion.models.pdr", "detect_steps"),
+    "pdr_steps": ("dfusion.models.pdr", "pdr_steps"),
+    "fit_weinberg_gain": ("dfusion.models.pdr", "fit_weinberg_gain"),
+    "fit_heading_offset": ("dfusion.models.pdr", "fit_heading_offset"),
+    "dead_reckon": ("dfusion.models.pdr", "dead_reckon"),
+    "anchored_track": ("dfusion.models.pdr", "anchored_track"),
+    "world_field": ("dfusion.models.pdr", "world_field"),
+    "quaternion_matrices": ("dfusion.models.pdr", "quaternion_matrices"),
     "MeasurementModel": ("dfusion.models.base", 'MeasurementModel'),
     "MotionModel": ("dfusion.models.base", 'MotionModel'),
     "PinholeCamera": ("dfusion.models.camera", 'PinholeCamera'),

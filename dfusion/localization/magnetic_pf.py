@@ -1,0 +1,285 @@
+r"""Particle-filter localization of a walking phone from pedestrian dead reckoning and a magnetic map.
+
+The survey behind dfusion's localization row (infrastructure-free global localization in
+repetitive environments) finds the magnetic-field particle filter the most robust of its sources
+but not accurate enough alone; this is that filter, on the one particle-filter engine
+(:class:`~dfusion.estimation.particle_filter.ParticleFilter`) the WSN tracker and MCL use.
+
+**State** per particle: position ``(x, y)`` [m], the walk's heading offset ``delta`` [rad] (how the
+phone is held; added to the floor's offset from East), its step-length scale ``s`` (multiplies the
+Weinberg gain), and a Rao-Blackwellized magnetometer bias per feature: mean ``b_j`` and variance
+``P_j`` (phones differ by several uT; measured on site1-F1, per-walk bias std 4-7 uT against 3 uT
+within a walk).
+
+**Motion** per step (``w`` = Weinberg factor, ``psi`` = heading from the rotation vector)::
+
+    delta <- delta + N(0, sigma_delta^2)           s <- s exp(N(0, sigma_s^2))
+    L = K s w (1 + N(0, sigma_L^2))                 a = psi + theta_floor + delta + N(0, sigma_psi^2)
+    (x, y) <- (x, y) + L (cos a, sin a) + N(0, sigma_pos^2 I)
+
+**Magnetic likelihood** of the step's world-frame features ``f_j`` (``docs/indoor.md``), with the
+map's mean ``m_j(p)`` and variance ``v_j(p)``::
+
+    f_j ~ N(m_j(p) + b_j, v_j(p) + r + P_j)     (log-likelihood divided by ``temper``)
+
+then the bias is updated by the scalar Kalman step ``k = P_j / (v_j + r + P_j)``,
+``b_j <- b_j + k (f_j - m_j - b_j)``, ``P_j <- (1 - k) P_j``; a particle whose position is off the
+map's support gets ``log(off_map)`` added (corridors where nobody walked). Successive steps' map
+errors are correlated in space (the map is smooth and the walker slow), so the likelihood is
+tempered (``temper > 1``) as the WSN tracker's ``std_scale`` does for correlated RSSI.
+
+:meth:`MagneticLocalizer.reweight_information` multiplies the weights by the Gaussian likelihood an
+information pair ``(eta, Omega)`` on ``(x, y)`` represents (WiFi's from the network);
+:meth:`MagneticLocalizer.information_contribution` gives what the magnetic readings since the last call added, as
+the WSN tracker's quotient of Gaussian fits (``docs/indoor.md`` says when it is withheld).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from dfusion.errors import NotInitializedError, ValidationError
+from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
+from dfusion.estimation.particle_filter import ParticleDepletionError, ParticleFilter, weighted_mean_cov
+from dfusion.linalg import Array, spd_inverse
+from dfusion.maps.magnetic import MagneticMap
+
+__all__ = ["MagneticLocalizer", "MagneticPFSettings", "build_bias_free_map"]
+
+
+@dataclass
+class MagneticPFSettings:
+    """Settings of :class:`MagneticLocalizer` (one set for the whole data family; the defaults are the
+    ones ``examples/indoor_localization.py`` evaluates, docs/indoor.md).
+
+    ``n_particles``; per step: ``sigma_delta`` [rad] random walk of the heading offset, ``sigma_s`` of the
+    log step scale, ``sigma_len`` relative step-length noise, ``sigma_psi`` [rad] heading noise,
+    ``sigma_pos`` [m] isotropic position noise; initial laws ``delta0_std`` [rad], ``s0_std`` (log scale);
+    magnetic likelihood: ``sensor_var`` [uT^2], ``bias_var`` [uT^2] (prior of the per-walk bias),
+    ``temper`` (divides the log-likelihood), ``off_map`` (likelihood factor off the map's support; 1:
+    none), ``features`` (columns of the field features used: 0 = B_z, 1 = B_h, 2 = |B|);
+    ``roughening`` (Gordon's K, position only)."""
+
+    n_particles: int = 2000
+    sigma_delta: float = np.radians(0.5)
+    sigma_s: float = 0.01
+    sigma_len: float = 0.15
+    sigma_psi: float = np.radians(5.0)
+    sigma_pos: float = 0.3
+    delta0_std: float = np.radians(5.0)
+    s0_std: float = 0.05
+    sensor_var: float = 1.0
+    bias_var: float = 36.0
+    temper: float = 2.0
+    off_map: float = 1.0
+    features: tuple[int, ...] = (0, 1, 2)
+    roughening: float = 0.05
+
+
+class MagneticLocalizer:
+    """PDR + magnetic-map particle filter (module docstring).
+
+    Parameters
+    ----------
+    mag_map : MagneticMap
+        The floor's map (features as in :func:`dfusion.models.pdr.world_field`).
+    gain, theta_floor : float
+        Weinberg ``K`` [m] and the floor frame's rotation from East [rad] (fitted on training walks).
+    settings : MagneticPFSettings
+    seed : int, Generator or None
+    """
+
+    def __init__(self, mag_map: MagneticMap, gain: float, theta_floor: float,
+                 settings: MagneticPFSettings | None = None, seed: int | np.random.Generator | None = None) -> None:
+        if not (np.isfinite(gain) and gain > 0):
+            raise ValidationError(f"gain must be positive, got {gain}")
+        self.map = mag_map
+        self.gain = float(gain)
+        self.theta = float(theta_floor)
+        self.cfg = settings or MagneticPFSettings()
+        self._seed = seed
+        self.pf: ParticleFilter | None = None
+        self.time: float | None = None
+        self._ref: tuple[Array, Array] | None = None
+        self._fj = np.asarray(self.cfg.features, dtype=np.int64)
+
+    # ---------------------------------------------------------------- set-up
+    def initialize(self, t: float, mean: ArrayLike | None = None, cov: ArrayLike | None = None) -> None:
+        """Draw the particles at time ``t``: Gaussian ``(mean, cov)`` on ``(x, y)`` or, without a mean,
+        uniform over the map's support (global localization)."""
+        rng = self._seed if isinstance(self._seed, np.random.Generator) else np.random.default_rng(self._seed)
+        c = self.cfg
+        x = self._draw(c.n_particles, mean, cov, rng)
+        self.pf = ParticleFilter(x, rng=rng, roughening=c.roughening)
+        self.pf.roughening_dims = (0, 1)
+        self.time = float(t)
+        self._ref = self._fit()
+
+    def _draw(self, n: int, mean: ArrayLike | None, cov: ArrayLike | None, rng: np.random.Generator) -> Array:
+        """``n`` particles: positions from ``N(mean, cov)`` (uniform over the support without a mean),
+        heading offset, scale and bias from their initial laws."""
+        c = self.cfg
+        if mean is None:
+            pos = self.map.sample_support(n, rng)
+        else:
+            C = np.eye(2) if cov is None else np.asarray(cov, dtype=float)
+            pos = np.asarray(mean, dtype=float)[:2] + rng.standard_normal((n, 2)) @ np.linalg.cholesky(C).T
+        m = self._fj.size
+        x = np.empty((n, 4 + 2 * m))
+        x[:, :2] = pos
+        x[:, 2] = rng.standard_normal(n) * c.delta0_std
+        x[:, 3] = np.exp(rng.standard_normal(n) * c.s0_std)
+        x[:, 4:4 + m] = 0.0
+        x[:, 4 + m:] = c.bias_var
+        return x
+
+    def _require(self) -> ParticleFilter:
+        if self.pf is None:
+            raise NotInitializedError("MagneticLocalizer used before initialize()")
+        return self.pf
+
+    # ------------------------------------------------------------------ step
+    def step(self, t: float, w: float, psi: float, field: ArrayLike | None) -> None:
+        """One detected step at ``t``: move by it (Weinberg factor ``w``, heading ``psi``), then weight
+        by the step's world-frame ``field`` (``None``: no magnetic update)."""
+        pf = self._require()
+        c = self.cfg
+        x = pf.particles.copy()
+        n = x.shape[0]
+        rng = pf.rng
+        x[:, 2] += rng.standard_normal(n) * c.sigma_delta
+        x[:, 3] *= np.exp(rng.standard_normal(n) * c.sigma_s)
+        L = self.gain * w * x[:, 3] * (1.0 + rng.standard_normal(n) * c.sigma_len)
+        a = psi + self.theta + x[:, 2] + rng.standard_normal(n) * c.sigma_psi
+        x[:, 0] += L * np.cos(a)
+        x[:, 1] += L * np.sin(a)
+        if c.sigma_pos > 0:
+            x[:, :2] += rng.standard_normal((n, 2)) * c.sigma_pos
+        pf.move(x)
+        self.time = float(t)
+        if field is not None:
+            self._magnetic(np.asarray(field, dtype=float)[self._fj])
+
+    def _magnetic(self, f: Array) -> None:
+        pf = self._require()
+        c = self.cfg
+        x = pf.particles.copy()
+        m = self._fj.size
+        mu, v = self.map.lookup(x[:, :2])
+        mu, v = mu[:, self._fj], v[:, self._fj]
+        b, P = x[:, 4:4 + m], x[:, 4 + m:]
+        S = v + c.sensor_var + P
+        r = f - mu - b
+        ll = -0.5 * np.sum(r * r / S + np.log(S), axis=1) / c.temper
+        ll += np.where(self.map.on_support(x[:, :2]), 0.0, np.log(c.off_map))
+        k = P / S
+        x[:, 4:4 + m] = b + k * r
+        x[:, 4 + m:] = (1.0 - k) * P
+        pf.move(x)
+        self._update(ll)
+
+    def _update(self, ll: Array) -> None:
+        pf = self._require()
+        try:
+            pf.update(ll)
+        except ParticleDepletionError:
+            return
+        pf.resample_if_needed()
+
+    def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0,
+                             floor: float = 0.0) -> None:
+        """Multiply the weights by ``exp(eta^T p - p^T Omega p / 2)`` (information from the network on
+        ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
+        prediction, this resets the reference of :meth:`information_contribution`.
+
+        ``inject`` in ``[0, 1)``: first the fraction ``inject`` of the particles with the lowest weights
+        is replaced by draws from the Gaussian ``N(Omega^-1 eta, Omega^-1)`` (heading offset, scale and
+        bias from their initial laws) at the mean weight of the set: the mixture proposal of Monte
+        Carlo localization with sensor resetting (Lenser and Veloso, "Sensor resetting localization for
+        poorly modelled mobile robots", ICRA 2000; Thrun, Burgard and Fox, *Probabilistic Robotics*,
+        2005, sec. 8.3.5), so that a set locked onto the wrong corridor can recover."""
+        pf = self._require()
+        e = np.asarray(eta, dtype=float)
+        O = np.asarray(omega, dtype=float)
+        k = int(float(inject) * pf.n)
+        if k > 0 and np.all(np.linalg.eigvalsh(O) > 0):
+            x = pf.particles.copy()
+            lw = pf.log_weights.copy()
+            worst = np.argsort(lw)[:k]
+            C = np.linalg.inv(O)
+            x[worst] = self._draw(k, np.linalg.solve(O, e), 0.5 * (C + C.T), pf.rng)
+            top = lw.max()
+            lw[worst] = top + np.log(np.mean(np.exp(lw - top)))
+            pf.set_particles(x, lw)
+        p = pf.particles[:, :2]
+        ll = p @ e - 0.5 * np.einsum("ij,jk,ik->i", p, O, p)
+        if floor > 0 and np.all(np.linalg.eigvalsh(O) > 0):
+            d = p - np.linalg.solve(O, e)
+            ll = np.logaddexp(-0.5 * np.einsum("ij,jk,ik->i", d, O, d), np.log(floor))
+        self._update(ll - ll.max())
+        self._ref = self._fit()
+
+    # --------------------------------------------------------------- outputs
+    def _fit(self) -> tuple[Array, Array]:
+        pf = self._require()
+        return weighted_mean_cov(pf.particles[:, :2], pf.weights)
+
+    def estimate(self) -> tuple[Array, Array]:
+        """Weighted mean and covariance of ``(x, y)``."""
+        return self._fit()
+
+    def mode_estimate(self, radius: float = 5.0, cell: float = 2.0) -> Array:
+        """The weighted mean of the particles within ``radius`` of the densest ``cell`` x ``cell`` square
+        (weights binned, summed over 3 x 3 squares): the main mode of a multi-modal set, where the
+        overall mean may lie between corridors."""
+        pf = self._require()
+        p = pf.particles[:, :2]
+        w = pf.weights
+        lo = p.min(axis=0)
+        ij = np.floor((p - lo) / cell).astype(np.int64)
+        shape = tuple(ij.max(axis=0) + 3)
+        H = np.zeros(shape)
+        np.add.at(H, (ij[:, 0] + 1, ij[:, 1] + 1), w)
+        S = sum(np.roll(np.roll(H, a, 0), b, 1) for a in (-1, 0, 1) for b in (-1, 0, 1))
+        i, j = np.unravel_index(np.argmax(S), shape)
+        c = lo + (np.array([i, j]) - 0.5) * cell
+        near = np.hypot(p[:, 0] - c[0], p[:, 1] - c[1]) <= radius
+        return (w[near] @ p[near]) / w[near].sum()
+
+    def information_contribution(self, max_std: float = 3.0) -> InformationGaussian:
+        r"""What the magnetic readings since the last call added on ``(x, y)``: ``Omega = P_1^-1 - P_0^-1``,
+        ``eta = P_1^-1 m_1 - P_0^-1 m_0`` (Gaussian fits now and at the reference, made PSD), the PDR
+        motion in between counted in the reference by moving its mean with the particles' mean motion.
+        Zero while the posterior fit is wider than ``max_std`` in some direction (a multi-modal set,
+        ``docs/indoor.md``). The reference is reset to now."""
+        m1, P1 = self._fit()
+        m0, P0 = self._ref
+        self._ref = (m1, P1)
+        if np.sqrt(np.linalg.eigvalsh(P1).max()) > max_std:
+            return InformationGaussian(np.zeros(2), np.zeros((2, 2)))
+        reg = 1e-4 * np.eye(2)  # a collapsed set (all copies of one particle) has a singular fit
+        O1 = spd_inverse(P1 + reg, "posterior particle covariance")
+        O0 = spd_inverse(P0 + reg, "reference particle covariance")
+        Om, eta, _ = project_psd_information(O1 - O0, O1 @ m1 - O0 @ m1, 1e-9)
+        return InformationGaussian(eta, Om)
+
+
+def build_bias_free_map(tracks: list[Array], fields: list[Array], *, bounds: ArrayLike, cell: float = 1.0,
+                        sigma: float = 1.0, n0: float = 2.0, iterations: int = 3) -> tuple[MagneticMap, list[Array]]:
+    """A :class:`MagneticMap` from training walks with each walk's magnetometer bias removed.
+
+    Alternates ``iterations`` times: build the map from ``f - b_w``; set each walk's bias ``b_w`` to the
+    mean residual ``f - m(p)`` of its samples. Returns the map and the biases.
+    """
+    if len(tracks) != len(fields) or not tracks:
+        raise ValidationError("tracks and fields must be non-empty lists of the same length")
+    bias = [np.zeros(np.asarray(f).shape[1]) for f in fields]
+    P = np.vstack(tracks)
+    mp = None
+    for _ in range(max(1, iterations)):
+        F = np.vstack([f - b for f, b in zip(fields, bias)])
+        mp = MagneticMap.build(P, F, bounds=bounds, cell=cell, sigma=sigma, n0=n0)
+        bias = [np.mean(f - mp.lookup(p)[0], axis=0) for p, f in zip(tracks, fields)]
+    return mp, bias
