@@ -1,0 +1,84 @@
+r"""Deleters: when a confirmed track ends.
+
+* :class:`MissDeleter`: after ``max_misses`` consecutive scans in which the track was in
+  view and took no detection (GNN: not assigned; JPDA: ``beta_t0 >= 1/2``). With
+  detection probability ``P_D`` a target in view is missed ``K`` times in a row with
+  probability ``(1 - P_D)^K`` (1e-5 for ``P_D = 0.9``, ``K = 5``).
+* :class:`CovarianceDeleter`: when the trace of the position covariance exceeds
+  ``max_trace`` (m^2): the track no longer says where the target is (e.g. it left every
+  view, where it is never missed).
+* :class:`StaleDeleter`: when the track's last hit is more than ``max_age`` seconds older
+  than its state (it left every view, or every sensor stopped seeing it; Stone Soup's
+  ``UpdateTimeDeleter`` rule).
+* :class:`AnyDeleter`: when any of its deleters says so.
+"""
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from dfusion.errors import ValidationError
+from dfusion.tracking.track import Track
+
+__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "AnyDeleter"]
+
+
+class Deleter(ABC):
+    """Component kind: whether a confirmed track should be deleted."""
+
+    @abstractmethod
+    def should_delete(self, track: Track) -> bool:
+        """Whether ``track`` ends now."""
+
+
+class MissDeleter(Deleter):
+    """Delete after ``max_misses`` consecutive misses in view."""
+
+    def __init__(self, max_misses: int = 5) -> None:
+        if not (isinstance(max_misses, int) and max_misses >= 1):
+            raise ValidationError(f"max_misses must be an integer >= 1, got {max_misses!r}")
+        self.max_misses = max_misses
+
+    def should_delete(self, track: Track) -> bool:
+        return track.consecutive_misses >= self.max_misses
+
+
+class CovarianceDeleter(Deleter):
+    """Delete when ``trace(P_pos) > max_trace`` over the first ``axes`` state components."""
+
+    def __init__(self, max_trace: float = 4.0, axes: int = 2) -> None:
+        if not (math.isfinite(max_trace) and max_trace > 0):
+            raise ValidationError(f"max_trace must be positive and finite, got {max_trace!r}")
+        self.max_trace = float(max_trace)
+        self.axes = int(axes)
+
+    def should_delete(self, track: Track) -> bool:
+        _, P = track.estimate()
+        return float(np.trace(P[: self.axes, : self.axes])) > self.max_trace
+
+
+class StaleDeleter(Deleter):
+    """Delete when ``time - last_hit > max_age`` (seconds)."""
+
+    def __init__(self, max_age: float = 1.0) -> None:
+        if not (math.isfinite(max_age) and max_age > 0):
+            raise ValidationError(f"max_age must be positive and finite, got {max_age!r}")
+        self.max_age = float(max_age)
+
+    def should_delete(self, track: Track) -> bool:
+        last = track.born if track.last_hit is None else track.last_hit
+        return track.time - last > self.max_age
+
+
+class AnyDeleter(Deleter):
+    """Delete when any of ``deleters`` says so."""
+
+    def __init__(self, *deleters: Deleter) -> None:
+        if not deleters:
+            raise ValidationError("AnyDeleter needs at least one deleter")
+        self.deleters = deleters
+
+    def should_delete(self, track: Track) -> bool:
+        return any(d.should_delete(track) for d in self.deleters)
