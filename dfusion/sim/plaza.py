@@ -50,9 +50,9 @@ class CameraView:
     def area(self) -> float:
         return (self.x1 - self.x0) * (self.y1 - self.y0)
 
-    def contains(self, p: Array) -> bool:
-        """Whether position (or state) ``p`` is in view."""
-        return bool(self.x0 <= p[0] <= self.x1 and self.y0 <= p[1] <= self.y1)
+    def contains(self, p: Array, margin: float = 0.0) -> bool:
+        """Whether position (or state) ``p`` is in view, or within ``margin`` metres of it."""
+        return bool(self.x0 - margin <= p[0] <= self.x1 + margin and self.y0 - margin <= p[1] <= self.y1 + margin)
 
 
 def plaza_cameras(count: int, width: float = 40.0, height: float = 30.0, overlap: float = 4.0) -> tuple[CameraView, ...]:
@@ -146,11 +146,17 @@ class PlazaWorld:
     def sensor(self) -> PositionSensor:
         return PositionSensor(2, self.config.std)
 
-    def scans(self, k: int) -> list[Scan]:
-        """Frame ``k`` as one :class:`~dfusion.tracking.track.Scan` per camera (with its view)."""
+    def scans(self, k: int, margin: float = 1.0) -> list[Scan]:
+        """Frame ``k`` as one :class:`~dfusion.tracking.track.Scan` per camera.
+
+        A track counts as in a camera's view (``P_D > 0``: it can be updated and missed)
+        when its estimated position is within ``margin`` metres of the view: an estimate
+        a little outside the view of a target just inside must still take its detections.
+        """
         c = self.config
         sensor = self.sensor
-        return [Scan(float(self.times[k]), f.z, sensor, c.clutter_density, c.detection, view.contains, view.name)
+        return [Scan(float(self.times[k]), f.z, sensor, c.clutter_density, c.detection,
+                     (lambda x, v=view: v.contains(x, margin)), view.name)
                 for view, f in zip(c.cameras, self.frames[k])]
 
     def truth_positions(self, k: int) -> tuple[list[int], Array]:

@@ -10,19 +10,24 @@ r"""Deleters: when a confirmed track ends.
 * :class:`StaleDeleter`: when the track's last hit is more than ``max_age`` seconds older
   than its state (it left every view, or every sensor stopped seeing it; Stone Soup's
   ``UpdateTimeDeleter`` rule).
+* :class:`RegionDeleter`: when the track's estimated position has left the region where
+  targets can be (the surveillance region, e.g. the union of a node's views): a target
+  that walks out of a plaza is gone at once, where the rules above wait for misses.
 * :class:`AnyDeleter`: when any of its deleters says so.
 """
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from typing import Callable
 
 import numpy as np
 
 from dfusion.errors import ValidationError
+from dfusion.linalg import Array
 from dfusion.tracking.track import Track
 
-__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "AnyDeleter"]
+__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "RegionDeleter", "AnyDeleter"]
 
 
 class Deleter(ABC):
@@ -70,6 +75,19 @@ class StaleDeleter(Deleter):
     def should_delete(self, track: Track) -> bool:
         last = track.born if track.last_hit is None else track.last_hit
         return track.time - last > self.max_age
+
+
+class RegionDeleter(Deleter):
+    """Delete when ``inside(mean)`` is false: the estimate left the region where targets can be."""
+
+    def __init__(self, inside: Callable[[Array], bool]) -> None:
+        if not callable(inside):
+            raise ValidationError("RegionDeleter needs a callable inside(x) -> bool")
+        self.inside = inside
+
+    def should_delete(self, track: Track) -> bool:
+        mean, _ = track.estimate()
+        return not self.inside(mean)
 
 
 class AnyDeleter(Deleter):

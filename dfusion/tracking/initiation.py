@@ -99,16 +99,21 @@ class MofNInitiator(Initiator):
     k_sigma : pairing radius in standard deviations of the difference of two detections.
     min_dt, max_seed_age : a seed pairs only with detections ``min_dt`` to ``max_seed_age`` seconds later.
     gate : gate probability of the tentative tracks' association.
+    velocity_std : optional prior standard deviation of a target's velocity (m/s) per axis.
     """
 
     def __init__(self, motion: MotionModel, *, m: int = 3, n: int = 5, max_speed: float = 3.0, k_sigma: float = 3.0,
-                 min_dt: float = 0.05, max_seed_age: float = 0.35, gate: float = 0.99) -> None:
+                 min_dt: float = 0.05, max_seed_age: float = 0.35, gate: float = 0.99,
+                 velocity_std: float | None = None) -> None:
         if not (isinstance(m, int) and isinstance(n, int) and 2 <= m <= n):
             raise ValidationError(f"M of N needs integers 2 <= m <= n, got m={m!r}, n={n!r}")
         for name, v in (("max_speed", max_speed), ("k_sigma", k_sigma), ("min_dt", min_dt),
                         ("max_seed_age", max_seed_age)):
             if not (math.isfinite(v) and v > 0):
                 raise ValidationError(f"{name} must be positive and finite, got {v!r}")
+        if velocity_std is not None and not (math.isfinite(velocity_std) and velocity_std > 0):
+            raise ValidationError(f"velocity_std must be positive and finite, got {velocity_std!r}")
+        self.velocity_std = velocity_std
         if max_seed_age < min_dt:
             raise ValidationError(f"max_seed_age ({max_seed_age}) must be >= min_dt ({min_dt})")
         self.motion = motion
@@ -196,6 +201,9 @@ class MofNInitiator(Initiator):
             P = symmetrize(P + self.motion.Q(dt, x))
             filt = ExtendedInformationFilter(self.motion)
             filt.initialize(x, P)
+            if self.velocity_std is not None:
+                axes = n // 2
+                filt.Omega = symmetrize(filt.Omega + np.diag([0.0] * axes + [self.velocity_std**-2] * axes))
             track = Track(self.candidate_ids.next(), filt, scan.time, s.time, confirmed=False)
             track.record(True, self.n)
             track.record(True, self.n)
