@@ -41,8 +41,7 @@ from dfusion.tracking import GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, 
 #: One setting for the family (chosen once on seed 0 of the one-view layout, never per seed).
 Q = 0.05                # acceleration noise spectral density of every tracker's motion model (m^2/s^3)
 GATE = 0.99
-REGION_MARGIN = float(os.environ.get("MARGIN", "0.3"))
-VSTD = float(os.environ.get("VSTD", "1.5")) or None
+VELOCITY_STD = 1.5      # prior std of a person's velocity per axis (m/s), for both libraries' initiators
 C, P_ORDER, MATCH = 2.0, 1.0, 1.0
 STONESOUP = "stonesoup==1.9.1"
 
@@ -65,10 +64,10 @@ def run_dfusion(world: PlazaWorld, association: str) -> tuple[list[tuple[list, n
     whole = CameraView("plaza", 0.0, c.width, 0.0, c.height)
 
     def plaza(x: np.ndarray) -> bool:
-        return whole.contains(x, REGION_MARGIN)
+        return whole.contains(x)
 
     tracker = MultiTargetTracker(motion, JPDA() if association == "jpda" else GNN(),
-                                 MofNInitiator(motion, m=3, n=5, gate=GATE, velocity_std=VSTD),
+                                 MofNInitiator(motion, m=3, n=5, gate=GATE, velocity_std=VELOCITY_STD),
                                  AnyDeleter(MissDeleter(5), StaleDeleter(0.45), RegionDeleter(plaza)), origin="central")
     out, cpu = [], np.zeros(len(world.times))
     for k in range(len(world.times)):
@@ -116,7 +115,7 @@ def run_stonesoup(world: PlazaWorld, association: str) -> tuple[list[tuple[list,
 
     deleter = CovarianceBasedDeleter(covar_trace_thresh=1.0, mapping=[0, 2])
     initiator = MultiMeasurementInitiator(
-        prior_state=GaussianState(np.zeros((4, 1)), np.diag([0.0, 1.5**2, 0.0, 1.5**2])),
+        prior_state=GaussianState(np.zeros((4, 1)), np.diag([0.0, VELOCITY_STD**2, 0.0, VELOCITY_STD**2])),
         measurement_model=measurement, deleter=UpdateTimeStepsDeleter(3 * len(c.cameras)),
         data_associator=GNNWith2DAssignment(DistanceHypothesiser(predictor, updater, Mahalanobis(), missed_distance=3)),
         updater=updater, min_points=3)

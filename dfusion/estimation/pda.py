@@ -238,7 +238,7 @@ def pda_moments(x: Array, P: Array, H: Array, S: Array, innovations: Array, beta
     Huang 2009, eq. 45-47, which have the same form with ``beta_i`` the marginal
     probability that detection ``i`` is this target's).
     """
-    nv = np.asarray(innovations, dtype=float).reshape(len(beta), -1)
+    nv = np.asarray(innovations, dtype=float).reshape(len(beta), S.shape[0])
     nu = beta @ nv
     K = np.linalg.solve(S, (P @ H.T).T).T     # P H^T S^-1 (S symmetric)
     spread = (nv * beta[:, None]).T @ nv - np.outer(nu, nu)

@@ -11,8 +11,10 @@ r"""Deleters: when a confirmed track ends.
   than its state (it left every view, or every sensor stopped seeing it; Stone Soup's
   ``UpdateTimeDeleter`` rule).
 * :class:`RegionDeleter`: when the track's estimated position has left the region where
-  targets can be (the surveillance region, e.g. the union of a node's views): a target
-  that walks out of a plaza is gone at once, where the rules above wait for misses.
+  targets can be (the surveillance region, e.g. the union of a node's views) and its last
+  scan in view was a miss: a target that walks out of a plaza is gone after one missed
+  scan, where the rules above wait for several; a track whose estimate overshoots the
+  border while its target, just inside, is still detected is kept.
 * :class:`AnyDeleter`: when any of its deleters says so.
 """
 from __future__ import annotations
@@ -78,14 +80,19 @@ class StaleDeleter(Deleter):
 
 
 class RegionDeleter(Deleter):
-    """Delete when ``inside(mean)`` is false: the estimate left the region where targets can be."""
+    """Delete when ``inside(mean)`` is false and the last ``after_misses`` scans in view were misses."""
 
-    def __init__(self, inside: Callable[[Array], bool]) -> None:
+    def __init__(self, inside: Callable[[Array], bool], after_misses: int = 1) -> None:
         if not callable(inside):
             raise ValidationError("RegionDeleter needs a callable inside(x) -> bool")
+        if not (isinstance(after_misses, int) and after_misses >= 0):
+            raise ValidationError(f"after_misses must be an integer >= 0, got {after_misses!r}")
         self.inside = inside
+        self.after_misses = after_misses
 
     def should_delete(self, track: Track) -> bool:
+        if track.consecutive_misses < self.after_misses:
+            return False
         mean, _ = track.estimate()
         return not self.inside(mean)
 

@@ -62,10 +62,10 @@ class Initiator(ABC):
 
 def _position_axes(sensor: MeasurementModel, n: int) -> int:
     m = int(sensor.dim_z)
-    H = np.asarray(sensor.H(np.zeros(n)), dtype=float)
     expect = np.zeros((m, n))
     expect[:, :m] = np.eye(m)
-    if not getattr(sensor, "is_linear", False) or H.shape != (m, n) or not np.array_equal(H, expect) or 2 * m != n:
+    if (not getattr(sensor, "is_linear", False) or 2 * m != n
+            or not np.array_equal(np.asarray(sensor.H(np.zeros(n)), dtype=float), expect)):
         raise ValidationError("two-point initiation needs a linear sensor measuring the position (H = [I 0]) "
                               "of a constant-velocity state [position, velocity]")
     return m
@@ -131,6 +131,7 @@ class MofNInitiator(Initiator):
         return list(self.candidates)
 
     def initiate(self, scan: Scan, detections: Array, issuer: IdentityIssuer) -> list[Track]:
+        _position_axes(scan.sensor, self.motion.dim)
         Z = np.asarray(detections, dtype=float).reshape(-1, int(scan.sensor.dim_z))
         if self.candidate_ids is None:
             self.candidate_ids = IdentityIssuer(issuer.origin + "~tentative")
@@ -174,7 +175,6 @@ class MofNInitiator(Initiator):
     def _pair_seeds(self, scan: Scan, Z: Array, left: list[int]) -> list[int]:
         """Pair seeds with detections into tentative tracks; returns the detections left."""
         n = self.motion.dim
-        _position_axes(scan.sensor, n)
         seeds = [s for s in self.seeds if scan.time - s.time >= self.min_dt - 1e-9]
         if not seeds or not left:
             return left
