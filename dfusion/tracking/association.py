@@ -55,6 +55,12 @@ class Association:
     miss: Array
     active: Array
 
+    @classmethod
+    def none(cls, hyp: Hypotheses) -> "Association":
+        """Every track missed (``beta_t0 = 1``), to be filled in by an associator; ``active``: tracks in view."""
+        T, k = hyp.shape
+        return cls(np.zeros((T, k)), np.ones(T), hyp.detection > 0)
+
     def hit(self, t: int) -> bool:
         """Whether track ``t`` counts as detected in this scan: ``beta_t0 < 1/2``."""
         return bool(self.active[t] and self.miss[t] < 0.5)
@@ -72,11 +78,9 @@ class GNN(DataAssociator):
     """Global nearest neighbour: the most probable joint hypothesis (module docstring)."""
 
     def associate(self, hyp: Hypotheses) -> Association:
-        T, k = hyp.shape
-        active = hyp.detection > 0
-        W = np.zeros((T, k))
-        miss = np.ones(T)
-        rows = np.flatnonzero(active)
+        out = Association.none(hyp)
+        W, miss, k = out.weights, out.miss, hyp.shape[1]
+        rows = np.flatnonzero(out.active)
         if rows.size:
             cost = np.full((rows.size, k + rows.size), np.inf)
             cost[:, :k] = -hyp.log_weight[rows]
@@ -89,7 +93,7 @@ class GNN(DataAssociator):
                 if j < k and finite[i, j]:
                     W[rows[i], j] = 1.0
                     miss[rows[i]] = 0.0
-        return Association(W, miss, active)
+        return out
 
 
 def gated_clusters(gated: Array) -> list[tuple[Array, Array]]:
@@ -138,35 +142,31 @@ def ehm_marginals(weight: Array, miss: Array) -> tuple[Array, Array]:
     future = [0] * (T + 1)                       # detections tracks >= i can use
     for i in range(T - 1, -1, -1):
         future[i] = future[i + 1] | masks[i]
+
+    def moves(i: int, key: int):
+        """``(detection, weight, child node)`` of every option of track ``i`` at node ``key``."""
+        keep = future[i + 1]
+        for j, w in options[i]:
+            if j < 0:
+                yield j, w, key & keep
+            elif not key >> j & 1:
+                yield j, w, (key | 1 << j) & keep
+
     layers: list[dict[int, float]] = [{0: 1.0}]
     for i in range(T):
         nxt: dict[int, float] = {}
-        keep = future[i + 1]
         for key, f in layers[i].items():
-            for j, w in options[i]:
-                if j >= 0:
-                    if key >> j & 1:
-                        continue
-                    child = (key | 1 << j) & keep
-                else:
-                    child = key & keep
+            for _, w, child in moves(i, key):
                 nxt[child] = nxt.get(child, 0.0) + f * w
         layers.append(nxt)
     back: dict[int, float] = {0: 1.0}           # layer T has the one node 0
     beta = np.zeros((T, k))
     beta0 = np.zeros(T)
     for i in range(T - 1, -1, -1):
-        keep = future[i + 1]
         here: dict[int, float] = {}
         for key, f in layers[i].items():
             total = 0.0
-            for j, w in options[i]:
-                if j >= 0:
-                    if key >> j & 1:
-                        continue
-                    child = (key | 1 << j) & keep
-                else:
-                    child = key & keep
+            for j, w, child in moves(i, key):
                 through = w * back[child]
                 total += through
                 if j >= 0:
@@ -183,13 +183,9 @@ class JPDA(DataAssociator):
     """Joint probabilistic data association, exact, by EHM on independent clusters (module docstring)."""
 
     def associate(self, hyp: Hypotheses) -> Association:
-        T, k = hyp.shape
-        active = hyp.detection > 0
-        W = np.zeros((T, k))
-        miss = np.ones(T)
-        gated = hyp.gated & active[:, None]
-        for t in np.flatnonzero(active & ~gated.any(axis=1)):
-            miss[t] = 1.0
+        out = Association.none(hyp)
+        W, miss = out.weights, out.miss
+        gated = hyp.gated & out.active[:, None]
         for tr, dets in gated_clusters(gated):
             logs = np.concatenate([hyp.log_weight[np.ix_(tr, dets)], hyp.log_miss[tr, None]], axis=1)
             logs = logs - logs.max(axis=1, keepdims=True)      # per-track scaling (marginals unchanged)
@@ -198,4 +194,4 @@ class JPDA(DataAssociator):
             b, b0 = ehm_marginals(g[:, :-1], g[:, -1])
             W[np.ix_(tr, dets)] = b
             miss[tr] = b0
-        return Association(W, miss, active)
+        return out
