@@ -136,7 +136,7 @@ class MofNInitiator(Initiator):
         if self.candidate_ids is None:
             self.candidate_ids = IdentityIssuer(issuer.origin + "~tentative")
         left = self._update_candidates(scan, Z)
-        left = self._pair_seeds(scan, Z, left)
+        left = self._pair_seeds(scan, Z, left, self.candidate_ids)
         self.seeds = [s for s in self.seeds if scan.time - s.time <= self.max_seed_age + 1e-9]
         self.seeds.extend(_Seed(scan.time, Z[j].copy()) for j in left)
         confirmed = []
@@ -166,13 +166,12 @@ class MofNInitiator(Initiator):
                 continue
             j = np.flatnonzero(assoc.weights[t] > 0.5)
             if j.size:
-                x_lin = hyp.means[t] if not scan.sensor.is_linear else np.zeros_like(hyp.means[t])
-                track.add_information(*measurement_information(scan.sensor, Z[j[0]], x_lin))
+                track.add_information(*measurement_information(scan.sensor, Z[j[0]], np.zeros_like(hyp.means[t])))
                 taken.add(int(j[0]))
             track.record(bool(j.size), self.n)
         return [j for j in range(len(Z)) if j not in taken]
 
-    def _pair_seeds(self, scan: Scan, Z: Array, left: list[int]) -> list[int]:
+    def _pair_seeds(self, scan: Scan, Z: Array, left: list[int], tentative_ids: IdentityIssuer) -> list[int]:
         """Pair seeds with detections into tentative tracks; returns the detections left."""
         n = self.motion.dim
         seeds = [s for s in self.seeds if scan.time - s.time >= self.min_dt - 1e-9]
@@ -191,7 +190,6 @@ class MofNInitiator(Initiator):
         r, c = linear_sum_assignment(np.where(finite, D, 2.0 * D[finite].max() * D.size + 1.0))
         used: set[int] = set()
         paired: set[int] = set()
-        assert self.candidate_ids is not None
         for a, b in zip(r, c):
             if not finite[a, b]:
                 continue
@@ -204,7 +202,7 @@ class MofNInitiator(Initiator):
             if self.velocity_std is not None:
                 axes = n // 2
                 filt.Omega = symmetrize(filt.Omega + np.diag([0.0] * axes + [self.velocity_std**-2] * axes))
-            track = Track(self.candidate_ids.next(), filt, scan.time, s.time, confirmed=False)
+            track = Track(tentative_ids.next(), filt, scan.time, s.time, confirmed=False)
             track.record(True, self.n)
             track.record(True, self.n)
             self.candidates.append(track)
