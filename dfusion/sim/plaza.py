@@ -50,6 +50,14 @@ class CameraView:
     def area(self) -> float:
         return (self.x1 - self.x0) * (self.y1 - self.y0)
 
+    def probability_inside(self, mean: Array, cov: Array) -> float:
+        """Probability that a position ``N(mean[:2], cov[:2, :2])`` is in view (the axes taken as independent)."""
+        p = 1.0
+        for a, (lo, hi) in enumerate(((self.x0, self.x1), (self.y0, self.y1))):
+            s = math.sqrt(max(float(cov[a, a]), 1e-18)) * math.sqrt(2.0)
+            p *= 0.5 * (math.erf((hi - mean[a]) / s) - math.erf((lo - mean[a]) / s))
+        return min(max(p, 0.0), 1.0)
+
     def contains(self, p: Array, margin: float = 0.0) -> bool:
         """Whether position (or state) ``p`` is in view, or within ``margin`` metres of it."""
         return bool(self.x0 - margin <= p[0] <= self.x1 + margin and self.y0 - margin <= p[1] <= self.y1 + margin)
@@ -146,17 +154,19 @@ class PlazaWorld:
     def sensor(self) -> PositionSensor:
         return PositionSensor(2, self.config.std)
 
-    def scans(self, k: int, margin: float = 1.0) -> list[Scan]:
+    def scans(self, k: int) -> list[Scan]:
         """Frame ``k`` as one :class:`~dfusion.tracking.track.Scan` per camera.
 
-        A track counts as in a camera's view (``P_D > 0``: it can be updated and missed)
-        when its estimated position is within ``margin`` metres of the view: an estimate
-        a little outside the view of a target just inside must still take its detections.
+        A track's detection probability in a camera's scan is ``P_D`` times the probability
+        that its estimated position is in the camera's view
+        (:meth:`CameraView.probability_inside`): an estimate a little outside the view of a
+        target just inside still takes its detections, and a target near the edge is not
+        counted as missed by a camera that probably does not see it.
         """
         c = self.config
         sensor = self.sensor
-        return [Scan(float(self.times[k]), f.z, sensor, c.clutter_density, c.detection,
-                     (lambda x, v=view: v.contains(x, margin)), view.name)
+        return [Scan(float(self.times[k]), f.z, sensor, c.clutter_density, c.detection, view.contains, view.name,
+                     view.probability_inside)
                 for view, f in zip(c.cameras, self.frames[k])]
 
     def truth_positions(self, k: int) -> tuple[list[int], Array]:

@@ -80,18 +80,19 @@ class StaleDeleter(Deleter):
 
 
 class RegionDeleter(Deleter):
-    """Delete when ``inside(mean)`` is false and the last ``after_misses`` scans in view were misses."""
+    """Delete when ``inside(mean)`` is false and the last hit is more than ``grace`` seconds old."""
 
-    def __init__(self, inside: Callable[[Array], bool], after_misses: int = 1) -> None:
+    def __init__(self, inside: Callable[[Array], bool], grace: float = 0.15) -> None:
         if not callable(inside):
             raise ValidationError("RegionDeleter needs a callable inside(x) -> bool")
-        if not (isinstance(after_misses, int) and after_misses >= 0):
-            raise ValidationError(f"after_misses must be an integer >= 0, got {after_misses!r}")
+        if not (math.isfinite(grace) and grace >= 0):
+            raise ValidationError(f"grace must be >= 0 and finite, got {grace!r}")
         self.inside = inside
-        self.after_misses = after_misses
+        self.grace = float(grace)
 
     def should_delete(self, track: Track) -> bool:
-        if track.consecutive_misses < self.after_misses:
+        last = track.born if track.last_hit is None else track.last_hit
+        if track.time - last <= self.grace + 1e-9:
             return False
         mean, _ = track.estimate()
         return not self.inside(mean)

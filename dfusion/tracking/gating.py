@@ -12,8 +12,9 @@ Systems Magazine 29(6), 2009, sec. "JPDAF"; Bar-Shalom & Li 1995, sec. 6.2)::
 A joint hypothesis (each track takes at most one detection, each detection at most one
 track, the others are clutter) has probability proportional to the product of its tracks'
 weights (the ``lambda`` of each clutter detection is common to all hypotheses of a scan
-after dividing by ``lambda^k``). ``P_D,t`` is the scan's detection probability for a track
-in its view and 0 out of it (such a track takes no part). These are the single-target
+after dividing by ``lambda^k``). ``P_D,t`` is the scan's detection probability times the
+probability that the track is in the scan's view (:meth:`~dfusion.tracking.track.Scan.visibility`;
+a track with ``P_D,t = 0`` takes no part). These are the single-target
 PDA's terms (:mod:`dfusion.estimation.pda`: ``b / e_i`` is ``g_t0 / g_tj``). ``lambda = 0``
 is floored at ``1e-300`` (then a gated detection is always taken).
 """
@@ -49,6 +50,7 @@ class Hypotheses:
     log_weight : (T, k) ``log g_tj`` where gated, ``-inf`` elsewhere.
     log_miss : (T,) ``log g_t0``.
     detection : (T,) ``P_D,t`` (0 for a track out of view).
+    visibility : (T,) probability that each track is in the scan's view.
     gamma : the gate.
     """
 
@@ -62,6 +64,7 @@ class Hypotheses:
     log_weight: Array
     log_miss: Array
     detection: Array
+    visibility: Array
     gamma: float
 
     @property
@@ -98,6 +101,7 @@ class GaussianHypothesiser(Hypothesiser):
         logw = np.full((T, k), -np.inf)
         log_miss = np.zeros(T)
         pd = np.zeros(T)
+        vis = np.zeros(T)
         for t, track in enumerate(tracks):
             x, P = track.estimate()
             H = np.asarray(sensor.H(x), dtype=float)
@@ -106,7 +110,8 @@ class GaussianHypothesiser(Hypothesiser):
             covs.append(P)
             Hs.append(H)
             Ss.append(S)
-            pd[t] = scan.detection_probability if scan.sees(x) else 0.0
+            vis[t] = scan.visibility(x, P)
+            pd[t] = scan.detection_probability * vis[t]
             miss = 1.0 - pd[t] * self.gate
             log_miss[t] = log_density + math.log(miss) if miss > 0 else -np.inf
             if k == 0:
@@ -121,4 +126,4 @@ class GaussianHypothesiser(Hypothesiser):
                 log_norm = math.log(pd[t]) - 0.5 * m * math.log(2.0 * math.pi) - float(np.sum(np.log(np.diag(C))))
                 logw[t] = np.where(d2[t] <= gamma, log_norm - 0.5 * d2[t], -np.inf)
         gated = np.isfinite(logw)
-        return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, gamma)
+        return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, vis, gamma)

@@ -157,7 +157,7 @@ class MofNInitiator(Initiator):
         for track in self.candidates:
             track.predict(scan.time)
         sub = Scan(scan.time, Z, scan.sensor, scan.clutter_density, scan.detection_probability, scan.in_view,
-                   scan.source)
+                   scan.source, scan.view_probability)
         hyp = self.hypothesiser.hypothesise(self.candidates, sub)
         assoc = self.associator.associate(hyp)
         taken = set()
@@ -165,6 +165,8 @@ class MofNInitiator(Initiator):
             if not assoc.active[t]:
                 continue
             j = np.flatnonzero(assoc.weights[t] > 0.5)
+            if not j.size and hyp.visibility[t] < 0.5:
+                continue
             if j.size:
                 track.add_information(*measurement_information(scan.sensor, Z[j[0]], np.zeros_like(hyp.means[t])))
                 taken.add(int(j[0]))

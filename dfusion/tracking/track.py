@@ -129,6 +129,11 @@ class Scan:
     in_view : ``in_view(x) -> bool`` for a state ``x`` (``None``: every target is in view).
               A track out of view has ``P_D = 0`` in this scan: it is neither updated nor missed.
     source : name of the sensor (for logs and per-camera bookkeeping).
+    view_probability : optional ``view_probability(mean, cov) -> float``, the probability that a
+              target with this estimate is in the view; when given it replaces ``in_view``: the
+              track's detection probability is ``P_D`` times it, and a scan without a detection
+              counts as a miss only when it is at least 1/2 (a target near the edge of a view
+              is not missed by a camera that probably does not see it).
     """
 
     time: float
@@ -138,6 +143,7 @@ class Scan:
     detection_probability: float
     in_view: Callable[[Array], bool] | None = None
     source: str = ""
+    view_probability: Callable[[Array, Array], float] | None = None
 
     def __post_init__(self) -> None:
         m = int(self.sensor.dim_z)
@@ -159,3 +165,12 @@ class Scan:
     def sees(self, x: ArrayLike) -> bool:
         """Whether a target at state ``x`` is in this scan's view."""
         return True if self.in_view is None else bool(self.in_view(np.asarray(x)))
+
+    def visibility(self, mean: Array, cov: Array) -> float:
+        """Probability that a target with estimate ``(mean, cov)`` is in view (0 or 1 from ``in_view``)."""
+        if self.view_probability is not None:
+            p = float(self.view_probability(mean, cov))
+            if not 0.0 <= p <= 1.0:
+                raise ValidationError(f"view probability must be in [0, 1], got {p!r}")
+            return p
+        return 1.0 if self.sees(mean) else 0.0

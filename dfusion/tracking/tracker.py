@@ -11,7 +11,8 @@ at a time, in time order (scans of several sensors at one time in any order):
 4. each track in view is updated by the PDA update with these weights, in information
    form: the factor ``(Lambda, y)`` of :func:`dfusion.estimation.pda_information` is added to
    its ``(Omega, eta)`` (for 0/1 weights, the Kalman update ``H^T R^-1 H``,
-   ``H^T R^-1 z``); it counts a hit when ``beta_t0 < 1/2``, a miss otherwise;
+   ``H^T R^-1 z``); it counts a hit when ``beta_t0 < 1/2``, a miss otherwise when it is in
+   the view with probability at least 1/2;
 5. detections inside the gate of no confirmed track in view go to the initiator, which
    returns the tracks it confirms, with new identities;
 6. the deleter removes tracks that have ended.
@@ -113,7 +114,9 @@ class MultiTargetTracker:
             factor = track_update_information(hyp, assoc, t)
             if factor is not None:
                 track.add_information(*factor)
-            track.record(assoc.hit(t), window=1)
+            hit = assoc.hit(t)
+            if hit or hyp.visibility[t] >= 0.5:      # not missed by a sensor that probably does not see it
+                track.record(hit, window=1)
         claimed = (hyp.gated & assoc.active[:, None]).any(axis=0) if self.tracks else np.zeros(len(scan.detections), bool)
         born = self.initiator.initiate(scan, scan.detections[~claimed], self.issuer)
         ended = [tr for tr in self.tracks if self.deleter.should_delete(tr)]

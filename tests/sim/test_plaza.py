@@ -58,9 +58,13 @@ def test_detections_have_the_configured_statistics(world):
 
 
 def test_scans_carry_each_cameras_view_and_settings(world):
-    scans = world.scans(0, margin=0.5)
+    scans = world.scans(0)
     assert [s.source for s in scans] == ["cam1", "cam2", "cam3"]
-    assert scans[0].sees([15.7, 3.0]) and not scans[0].sees([16.0, 3.0])           # cam1 ends at 15.33 m
+    assert scans[0].sees([15.3, 3.0]) and not scans[0].sees([15.4, 3.0])           # cam1 ends at 15.33 m
+    cov = np.diag([0.04, 0.04, 1.0, 1.0])
+    assert scans[0].visibility(np.array([15.33333333, 3.0, 0, 0]), cov) == pytest.approx(0.5)
+    assert scans[0].visibility(np.array([15.33333333 - 0.2, 3.0, 0, 0]), cov) == pytest.approx(0.8413, abs=1e-4)
+    assert scans[0].visibility(np.array([7.0, 15.0, 0, 0]), cov) == pytest.approx(1.0)
     assert scans[0].clutter_density == world.config.clutter_density
 
 

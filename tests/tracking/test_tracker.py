@@ -2,6 +2,8 @@
 equals filterpy's Kalman filter; identities are deterministic; deletion; many people on the plaza."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from filterpy.common import Q_continuous_white_noise
@@ -98,13 +100,31 @@ def test_deleters():
     trk = MultiTargetTracker(motion, GNN(), MofNInitiator(motion), CovarianceDeleter(max_trace=1.0))
     trk.add_track([0, 0, 0, 0], np.eye(4) * 0.1, 0.0)
     assert trk.step(Scan(3.0, np.zeros((0, 2)), **blind)) == []                     # P_pos grew past 1 m^2
-    trk = MultiTargetTracker(motion, GNN(), MofNInitiator(motion), RegionDeleter(lambda x: x[0] < 1.0))
+    trk = MultiTargetTracker(motion, GNN(), MofNInitiator(motion), RegionDeleter(lambda x: x[0] < 1.0, grace=0.15))
     trk.add_track([0.5, 0, 1.0, 0], np.eye(4) * 0.01, 0.0)
     assert len(trk.step(Scan(0.4, [[0.9, 0.0]], sensor, 1e-3, 0.9))) == 1
     assert len(trk.step(Scan(0.6, [[1.1, 0.0]], sensor, 1e-3, 0.9))) == 1          # outside, but detected
-    assert trk.step(Scan(0.7, np.zeros((0, 2)), sensor, 1e-3, 0.9)) == []           # outside and missed
+    assert len(trk.step(Scan(0.7, np.zeros((0, 2)), sensor, 1e-3, 0.9))) == 1       # outside, one miss: grace
+    assert trk.step(Scan(0.8, np.zeros((0, 2)), sensor, 1e-3, 0.9)) == []           # outside, 0.2 s without a hit
     with pytest.raises(ValidationError):
         MissDeleter(0)
+
+
+def test_a_track_near_the_edge_of_a_view_is_not_missed_by_that_camera():
+    """Visibility: P_D is scaled by the probability of being in view; a camera that probably does not see the
+    track neither updates it much nor counts a miss."""
+    motion = ConstantVelocity(2, 0.05)
+    trk = MultiTargetTracker(motion, JPDA(), MofNInitiator(motion), MissDeleter(2))
+    trk.add_track([10.5, 0, 0, 0], np.diag([0.04, 0.04, 0.01, 0.01]), 0.0)
+    edge = lambda mean, cov: 0.5 * (1 - math.erf((mean[0] - 10.0) / np.sqrt(2 * cov[0, 0])))   # view x <= 10
+    sensor = PositionSensor(2, 0.3)
+    for k in range(1, 6):
+        tracks = trk.step(Scan(0.1 * k, np.zeros((0, 2)), sensor, 1e-3, 0.9, view_probability=edge))
+        assert len(tracks) == 1 and tracks[0].misses == 0
+    hyp_vis = edge(*tracks[0].estimate())
+    assert 0 < hyp_vis < 0.5
+    tracks = trk.step(Scan(0.6, np.zeros((0, 2)), sensor, 1e-3, 0.9))                # a camera that sees it: a miss
+    assert tracks[0].misses == 1
 
 
 def test_bad_scans_are_refused_without_changing_the_tracker():
