@@ -11,7 +11,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.estimation.eif import ExtendedInformationFilter
     from dfusion.estimation.estimate import Estimate, Estimator
     from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
-    from dfusion.estimation.pda import ClutterModel, PDAInformation, PDAResult, gate_threshold, pda_information, pda_update, pda_weights
+    from dfusion.estimation.pda import ClutterModel, PDAInformation, PDAResult, gate_threshold, pda_information, pda_moments, pda_update, pda_weights
     from dfusion.estimation.particle_filter import ParticleFilter, ParticleDepletionError, effective_sample_size, normalize_log_weights, systematic_counts, systematic_resample, stratified_resample, multinomial_resample, roughening_std, weighted_mean_cov, RESAMPLERS, gaussian_summary
     from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
     from dfusion.estimation.innovation import (Assessment, DivergenceAlarm, InnovationMonitor, JumpEstimate, LockoutDetector,
@@ -55,6 +55,7 @@ __all__ = [
     "PDAInformation",
     "pda_weights",
     "pda_update",
+    "pda_moments",
     "pda_information",
     "gate_threshold",
     "DivergenceAlarm",
@@ -97,6 +98,7 @@ _WHERE = {
     "PDAInformation": ("dfusion.estimation.pda", 'PDAInformation'),
     "pda_weights": ("dfusion.estimation.pda", 'pda_weights'),
     "pda_update": ("dfusion.estimation.pda", 'pda_update'),
+    "pda_moments": ("dfusion.estimation.pda", 'pda_moments'),
     "pda_information": ("dfusion.estimation.pda", 'pda_information'),
     "gate_threshold": ("dfusion.estimation.pda", 'gate_threshold'),
     "DivergenceAlarm": ("dfusion.estimation.innovation", 'DivergenceAlarm'),

@@ -76,7 +76,7 @@ import numpy as np
 from dfusion.errors import ValidationError
 from dfusion.linalg import Array, chi2_isf, cholesky, symmetrize
 
-__all__ = ["ClutterModel", "PDAResult", "PDAInformation", "pda_weights", "pda_update", "pda_information",
+__all__ = ["ClutterModel", "PDAResult", "PDAInformation", "pda_weights", "pda_update", "pda_moments", "pda_information",
            "gate_threshold", "MU_TOL"]
 
 
@@ -224,12 +224,26 @@ def pda_update(
     nv = nus[valid]
     if beta.size == 0 or beta0 >= 1.0:
         return PDAResult(x.copy(), P.copy(), x, P, H, S, d2, valid, nv, 1.0, beta, pd, gamma)
+    mean, post = pda_moments(x, P, H, S, nv, float(beta0), beta)
+    return PDAResult(mean, post, x, P, H, S, d2, valid, nv, float(beta0), beta, pd, gamma)
+
+
+def pda_moments(x: Array, P: Array, H: Array, S: Array, innovations: Array, beta0: float,
+                beta: Array) -> tuple[Array, Array]:
+    """Mean and covariance of the mixture ``beta_0 N(x, P) + sum_i beta_i N(x + K nu_i, P - K S K^T)``.
+
+    The last lines of the module docstring's equations: ``nu = sum_i beta_i nu_i``,
+    ``K = P H^T S^-1``. Any weights summing to one may be given: the single-target PDA's
+    (:func:`pda_weights`) or a joint association's marginals (JPDA, Bar-Shalom, Daum &
+    Huang 2009, eq. 45-47, which have the same form with ``beta_i`` the marginal
+    probability that detection ``i`` is this target's).
+    """
+    nv = np.asarray(innovations, dtype=float).reshape(len(beta), S.shape[0])
     nu = beta @ nv
-    PHt = P @ H.T
-    K = np.linalg.solve(S, PHt.T).T           # P H^T S^-1 (S symmetric)
+    K = np.linalg.solve(S, (P @ H.T).T).T     # P H^T S^-1 (S symmetric)
     spread = (nv * beta[:, None]).T @ nv - np.outer(nu, nu)
     post = beta0 * P + (1.0 - beta0) * (P - K @ S @ K.T) + K @ spread @ K.T
-    return PDAResult(x + K @ nu, symmetrize(post), x, P, H, S, d2, valid, nv, float(beta0), beta, pd, gamma)
+    return x + K @ nu, symmetrize(post)
 
 
 @dataclass(frozen=True)
