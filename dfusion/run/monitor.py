@@ -413,6 +413,8 @@ def build_result(
             "guard_failures": total.get("guard_failures", 0),
             "quarantines": total.get("quarantines", 0),
             "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
+            # one-sided link lapses injected by a chaos driver (--chaos-dir; dfusion.run.chaos)
+            **({"chaos_lapses": total["chaos_lapses"]} if "chaos_lapses" in total else {}),
         }
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
                               events=measurement_events(world, times, lost),

@@ -1,0 +1,81 @@
+"""Injected one-sided liveliness lapses: the node side of ``benchmarks/chaos.py``.
+
+A chaos run (``docs/chaos.md``) needs a fault that no outside action produces on demand: one
+end of a link sees it go down and up within a step while the other end sees nothing (a lease
+lapse, a one-way glitch). A node process started with ``--chaos-dir DIR`` (``dfusion run
+--chaos-dir DIR`` passes it to every node; **off by default**: a normal run has no such
+control surface) looks at every step for a request file ``DIR/NAME.lapse`` written by the
+driver (:func:`request_lapse`). The file holds one integer ``pick``; the node takes the
+neighbour ``linked[pick % len(linked)]`` of its current links in name order and calls
+``link_down(j)`` then ``link_up(j)`` in the same step, which is exactly what its link rule
+(``NodeProcess.sync_links``: scenario AND liveliness) does when it misses one liveliness
+token for less than a step. The other end is told nothing. The node claims the file (renamed,
+then removed: the driver's acknowledgement) and counts the lapse in its counters (``chaos_lapses``,
+``run.nodes.NAME.chaos_lapses`` in the run's JSON). A request that comes while the node has no
+link waits for a step with one.
+
+Only the file's owner can write requests: the directory is the driver's, mode 0700.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+#: Suffix of a lapse request file: ``DIR/NAME.lapse``.
+LAPSE_SUFFIX = ".lapse"
+
+
+def lapse_path(chaos_dir: str | Path, node: str) -> Path:
+    """The request file of ``node`` in ``chaos_dir``."""
+    return Path(chaos_dir) / f"{node}{LAPSE_SUFFIX}"
+
+
+def request_lapse(chaos_dir: str | Path, node: str, pick: int) -> Path:
+    """Ask ``node`` for one one-sided lapse of its link ``linked[pick % len(linked)]`` (atomic write)."""
+    path = lapse_path(chaos_dir, node)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(f"{int(pick)}\n")
+    os.replace(tmp, path)
+    return path
+
+
+class LapseInbox:
+    """One node's lapse requests (see the module docstring)."""
+
+    def __init__(self, chaos_dir: str | Path, node: str) -> None:
+        self.path = lapse_path(chaos_dir, node)
+        self.node = node
+        #: lapses applied by this incarnation
+        self.applied = 0
+
+    def apply_due(self, fusion_node) -> str | None:
+        """Apply the waiting request, if any, to ``fusion_node`` (a :class:`FusionNode` with a tree
+        rule); returns the neighbour whose link lapsed, or ``None``.
+
+        The node claims a request by renaming it (``NAME.lapse.taken``): the driver withdraws one by
+        renaming it too, so exactly one of them has it."""
+        if not self.path.exists():   # the common case: one failed stat per step
+            return None
+        linked = sorted(fusion_node.neighbors)
+        if not linked:
+            return None   # wait for a step with a link
+        taken = self.path.with_name(self.path.name + ".taken")
+        try:
+            os.replace(self.path, taken)
+            text = taken.read_text()
+        except OSError:   # withdrawn meanwhile
+            return None
+        try:
+            pick = int(text.strip() or 0)
+        except ValueError:
+            pick = 0
+        j = linked[pick % len(linked)]
+        fusion_node.link_down(j)
+        fusion_node.link_up(j)
+        self.applied += 1
+        taken.unlink(missing_ok=True)
+        log.warning("%s: chaos: one-sided lapse of the link to %s (the other end saw nothing)", self.node, j)
+        return j
