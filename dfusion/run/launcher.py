@@ -3,13 +3,17 @@
 The launcher
 
 1. takes the run directory's lock (``RUN_DIR/launcher.lock``: its liveliness, see
-   :mod:`dfusion.run.supervision`), picks a free loopback port per node, a fresh
-   network name and a random run identifier, so that concurrent runs never see
-   each other, and a network key: the one given (``--network-key-file``, the
-   scenario's ``[security]`` table or the environment) or a fresh random one, in
-   ``RUN_DIR/network.key`` (mode 0600; never on a command line);
-2. opens the :class:`~dfusion.run.monitor.Monitor` (connected to every node;
-   over mutual TLS when TLS is on);
+   :mod:`dfusion.run.supervision`), picks a fresh network name and a random run
+   identifier, so that concurrent runs never see each other, and a network key: the
+   one given (``--network-key-file``, the scenario's ``[security]`` table or the
+   environment) or a fresh random one, in ``RUN_DIR/network.key`` (mode 0600; never
+   on a command line);
+2. opens the :class:`~dfusion.run.monitor.Monitor` on a loopback port the kernel
+   picks (over mutual TLS when TLS is on) and writes the endpoint it got to
+   ``RUN_DIR/run.json``; no port is chosen in advance for any node: each binds its
+   own, registers it in ``RUN_DIR/endpoints/`` and connects to the monitor and to its
+   peers registered before it (:mod:`dfusion.run.endpoints`), so a port seen on a
+   command line cannot be taken first, and a restarted node listens on a fresh port;
 3. starts one ``python -m dfusion.run.node_process --run-dir RUN_DIR ...`` per node
    with ``subprocess.Popen(start_new_session=True)``: each node is the leader of its
    own process group, so the launcher can signal the whole group. The command line
@@ -37,7 +41,8 @@ lock free.
 ``RUN_DIR`` (``--run-dir``, default a temporary directory removed after a
 successful run) holds ``logs/NAME.log`` (every incarnation's output),
 ``state/`` (the measurement logs), ``results/NAME.json``, ``commands/NAME.sh``,
-``locks/`` (one per node, held while it runs), ``launcher.lock``,
+``locks/`` (one per node, held while it runs), ``endpoints/`` (where each node listens),
+``launcher.lock``, ``endpoints.lock``,
 ``network.key``, ``run.json``, ``pids.json`` and ``start``.
 """
 from __future__ import annotations
@@ -70,6 +75,7 @@ from dfusion.run.common import (
     new_run_id,
     write_secret,
 )
+from dfusion.run.endpoints import EndpointRegistry, bound_endpoints
 from dfusion.run.links import describe as describe_links
 from dfusion.run.measurements import nodes_measurements, save_recording
 from dfusion.scenario.security import SecurityOptions, security_options
@@ -87,7 +93,7 @@ from dfusion.run.supervision import (
 )
 from dfusion.scenario.links import peers
 from dfusion.scenario.loader import load_scenario
-from dfusion.transport.zenoh import ZenohConfig, check_name, free_tcp_endpoints
+from dfusion.transport.zenoh import ZenohConfig, check_name
 
 log = logging.getLogger(__name__)
 
@@ -220,13 +226,14 @@ class Launcher:
         for name in self.sc.nodes:
             self.security.tls_files(name)                 # and every node's
         self.rounds = final_rounds(self.sc)
-        scheme = "tls" if self.tls is not None else "tcp"
-        #: host name -> its session's listen endpoint
-        self.host_endpoints = dict(zip(self.hosts, free_tcp_endpoints(len(self.hosts), scheme=scheme)))
-        #: node name -> the endpoint of its host's session
-        self.endpoints = {n: self.host_endpoints[h] for n, h in sorted(self.host_of.items())}
-        #: where the launcher's monitor listens (in run.json): a tool may connect to it directly
-        self.monitor_endpoint = free_tcp_endpoints(1, scheme=scheme)[0]
+        self.scheme = "tls" if self.tls is not None else "tcp"
+        #: Where the nodes register the endpoints their sessions got (dfusion.run.endpoints).
+        self.registry = EndpointRegistry(self.run_dir)
+        #: where the launcher's monitor listens (in run.json; bound before it is written): a tool may connect to it
+        self.monitor_endpoint: str | None = None
+        #: host name -> every endpoint its incarnations listened on, in order (run.endpoints in the JSON)
+        self.endpoint_history: dict[str, list[str]] = {h: [] for h in self.hosts}
+        self._endpoints_due = 0.0
         self.procs = {h: _Proc(h, self._command(h), list(nodes)) for h, nodes in self.hosts.items()}
         self.world = None
         self.monitor: Monitor | None = None
@@ -241,6 +248,30 @@ class Launcher:
         self._standby_due: float | None = None
         #: Every process this launcher started (nodes and standbys), for the record and the tests.
         self.spawned: list[int] = []
+
+    @property
+    def endpoints(self) -> dict[str, str]:
+        """``{node: endpoint}`` its host's session listens on now (registered nodes only)."""
+        return self.registry.endpoints(sorted(self.host_of))
+
+    @property
+    def host_endpoints(self) -> dict[str, str]:
+        """``{host: endpoint}`` of the registered hosts."""
+        return {h: ep for h, ep in ((h, self.registry.endpoint(nodes[0])) for h, nodes in self.hosts.items())
+                if ep is not None}
+
+    def _note_endpoints(self, force: bool = False) -> None:
+        """Add the hosts' newly registered endpoints to :attr:`endpoint_history` (every 0.5 s at most)."""
+        now = time.monotonic()
+        if not force and now < self._endpoints_due:
+            return
+        self._endpoints_due = now + 0.5
+        for h, ep in self.host_endpoints.items():
+            seen = self.endpoint_history[h]
+            if not seen or seen[-1] != ep:
+                seen.append(ep)
+                if len(seen) > 1:
+                    log.info("%s listens on a fresh endpoint %s (was %s)", _what(self.procs[h]), ep, seen[-2])
 
     # ------------------------------------------------------------------ security
     def _key_file(self) -> tuple[Path, str]:
@@ -266,21 +297,19 @@ class Launcher:
 
     # ------------------------------------------------------------------ commands and processes
     def _command(self, host: str) -> list[str]:
-        o, sc = self.opts, self.sc
+        o = self.opts
         nodes = self.hosts[host]
         cmd = [o.python, "-m", "dfusion.run.node_process", "--scenario", str(Path(o.scenario).resolve())]
         for name in nodes:
             cmd += ["--node", name]
         if len(nodes) > 1:
             cmd += ["--host", host]
+        # no --listen, no --connect: the node binds a port the kernel picks, connects to the monitor
+        # (run.json) and to its peers registered so far, and registers its own (dfusion.run.endpoints)
         cmd += ["--run-dir", str(self.run_dir), "--network", self.network, "--run-id", self.run_id,
-                "--listen", self.host_endpoints[host], "--speed", repr(o.speed), "--network-key-file",
+                "--speed", repr(o.speed), "--network-key-file",
                 str(self.key_file), "--round-timeout", repr(o.round_timeout),
                 "--measurements", str(self.run_dir / "measurements")]
-        # every host it may link to (links that change: every possible peer, dfusion.scenario.links.peers)
-        hosts = sorted({self.host_of[nb] for name in nodes for nb in peers(sc, name)} - {host})
-        for peer in hosts:
-            cmd += ["--connect", self.host_endpoints[peer]]
         if o.seed is not None:
             cmd += ["--seed", str(o.seed)]
         if o.fusion is not None:
@@ -559,12 +588,17 @@ class Launcher:
                                f"(pid {lock_holder(self.run_dir / LAUNCHER_LOCK)})")
         for stale in [self.run_dir / "start", *self.run_dir.joinpath("results").glob("*.json")]:
             stale.unlink(missing_ok=True)
+        for stale in self.registry.dir.glob("*.json") if self.registry.dir.exists() else ():
+            stale.unlink(missing_ok=True)
         self._write_key()
         self._write_measurements()
+
+    def _write_run_info(self) -> None:
+        """``run.json`` (with the monitor's bound endpoint: written once the monitor listens) and the commands."""
         (self.run_dir / "run.json").write_text(json.dumps({
             "run_id": self.run_id, "network": self.network, "scenario": str(Path(self.opts.scenario).resolve()),
-            "launcher_pid": os.getpid(), "speed": self.opts.speed, "endpoints": self.endpoints,
-            "monitor_endpoint": self.monitor_endpoint,
+            "launcher_pid": os.getpid(), "speed": self.opts.speed,
+            "endpoints_dir": str(self.registry.dir), "monitor_endpoint": self.monitor_endpoint,
             "hosts": self.hosts, "tls": self.tls is not None, "links_emulated": self.opts.emulate_links,
             "plugins": [_absolute_plugin(x) for x in self.opts.plugins],
         }, indent=1))
@@ -589,10 +623,14 @@ class Launcher:
         live = None
         try:
             self._prepare_run_dir()
+            # the monitor binds a port the kernel picks, then the nodes learn it (run.json) and connect to it
             self.monitor = Monitor(self.sc, self.network,
-                                   ZenohConfig(listen=(self.monitor_endpoint,),
-                                               connect=tuple(self.host_endpoints.values()), tls=self.tls),
+                                   ZenohConfig(listen=(f"{self.scheme}/127.0.0.1:0",), tls=self.tls,
+                                               report_endpoints=True),
                                    network_key=self.key, run=self.run_id)
+            self.monitor_endpoint = bound_endpoints(self.monitor.session)[0]
+            log.info("monitor listens on %s", self.monitor_endpoint)
+            self._write_run_info()
             if self.opts.foxglove is not None:
                 from dfusion.viz.foxglove import LiveView
 
@@ -637,6 +675,8 @@ class Launcher:
                 "supervision": self.supervision_report(),
                 "launcher_cpu_s": time.process_time() - t_cpu,
                 "hosts": len(self.procs),
+                # every endpoint each host's incarnations listened on (a restart gets a fresh one)
+                "endpoints": self._endpoint_report(),
                 "nodes_per_process": self.opts.nodes_per_process,
                 "host_nodes": {h: list(p.nodes) for h, p in self.procs.items()},
             }
@@ -654,6 +694,12 @@ class Launcher:
                 shutil.rmtree(self.run_dir, ignore_errors=True)
             elif failed:
                 log.warning("run directory (logs): %s", self.run_dir)
+
+    def _endpoint_report(self) -> dict[str, Any]:
+        """``run.endpoints``: the monitor's endpoint, and per host every endpoint its incarnations listened on."""
+        self._note_endpoints(force=True)
+        return {"monitor": self.monitor_endpoint, "hosts": {h: list(v) for h, v in self.endpoint_history.items()},
+                "fresh_endpoints": sum(max(0, len(v) - 1) for v in self.endpoint_history.values())}
 
     def supervision_report(self) -> dict[str, Any]:
         """``run.supervision``: the policy, and per node its restarts, their reasons and durations."""
@@ -719,6 +765,7 @@ class Launcher:
                         self._spawn(name)
                 self._supervise()
                 self._keep_standby()
+                self._note_endpoints()
                 if bar is not None:
                     shown = (max(0, self.monitor.progress()), len(self.monitor.alive()))
                     if shown != (bar.n, getattr(bar, "_alive", None)):

@@ -154,6 +154,11 @@ class Monitor:
             self._dropped += 1
         self._queue.append((str(sample.key_expr).rsplit("/", 1)[-1], sample.payload.to_bytes()))
 
+    @property
+    def session(self):
+        """The monitor's Zenoh session (e.g. to read the endpoint it listens on)."""
+        return self._session
+
     def _reject(self, reason: str, detail: str, count: int = 1) -> None:
         self.rejected += count
         self.rejections[reason] = self.rejections.get(reason, 0) + count

@@ -46,10 +46,11 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import zenoh
 
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError
 from dfusion.run.common import (
@@ -64,6 +65,7 @@ from dfusion.run.common import (
 from dfusion.fusion.node import FusionNode
 from dfusion.fusion.tree import initial_parents
 from dfusion.run.chaos import LapseInbox
+from dfusion.run.endpoints import EndpointRegistry, bound_endpoints
 from dfusion.run.links import EmulatedLinks, node_links
 from dfusion.run.measurements import (
     MeasurementLog,
@@ -651,8 +653,6 @@ class NodeProcess:
                     self._tree_status() if mean is not None else None)
         try:
             if phase == "final":
-                import zenoh
-
                 self.tr.session.put(self._monitor_key, st.encode(self.node.frame_key),
                                     congestion_control=zenoh.CongestionControl.BLOCK)
             else:
@@ -682,10 +682,17 @@ class Host:
         The nodes (one network; one start time and speed).
     network, zconfig : the session's network name and settings.
     parent_pid, watch : stop when the parent or the launcher is gone.
+    registry : EndpointRegistry, optional
+        A run directory's endpoint registry (``--run-dir`` without ``--listen``): the session
+        listens on a port the kernel picks, connects to the peers registered so far, and
+        registers the endpoint it got (:mod:`dfusion.run.endpoints`).
+    label : str
+        The host's name in the registry (default: its nodes' names joined by ``+``).
     """
 
     def __init__(self, procs: list[NodeProcess], *, network: str, zconfig: ZenohConfig | None = None,
-                 parent_pid: int | None = None, watch: LauncherWatch | None = None) -> None:
+                 parent_pid: int | None = None, watch: LauncherWatch | None = None,
+                 registry: EndpointRegistry | None = None, label: str | None = None) -> None:
         if not procs:
             raise DfusionError("a host needs at least one node")
         names = [p.name for p in procs]
@@ -698,6 +705,10 @@ class Host:
         self.watch = watch
         self.stop_reason: str | None = None
         self.tr: ZenohTransport | None = None
+        self.registry = registry
+        self.label = label or "+".join(names)
+        #: The endpoint this host's session listens on (known once the session is open).
+        self.endpoint: str | None = None
 
     def request_stop(self, reason: str) -> None:
         """Ask every node to stop (safe from a signal handler: only sets flags)."""
@@ -724,8 +735,7 @@ class Host:
     def run(self) -> int:
         """Run every node to its end (or until stopped); returns the exit status (0)."""
         try:
-            with ZenohTransport(self.network, {p.name: p.neighbors for p in self.procs}, self.zconfig,
-                                clock=self.now) as tr:
+            with self._open_transport() as tr:
                 self.tr = tr
                 for p in self.procs:
                     p.attach(tr)
@@ -738,6 +748,37 @@ class Host:
             for p in self.procs:
                 p.close()
         return 0
+
+    def _open_transport(self) -> ZenohTransport:
+        """The host's session: on its configured endpoints, or (a registry) on a port the kernel
+        picks, connected to the peers registered so far, and registered under the registry's lock."""
+        nodes = {p.name: p.neighbors for p in self.procs}
+        if self.registry is None:
+            return self._transport(nodes, self.zconfig)
+        with self.registry.lock():
+            mine = set(nodes)
+            peers_of = sorted({nb for nbs in nodes.values() for nb in nbs} - mine)
+            known = sorted(set(self.registry.endpoints(peers_of).values()))
+            cfg = replace(self.zconfig, connect=tuple(dict.fromkeys(self.zconfig.connect + tuple(known))),
+                          report_endpoints=True)
+            tr = self._transport(nodes, cfg)
+            try:
+                self.endpoint = bound_endpoints(tr.session)[0]
+                self.registry.register(self.label, list(nodes), self.endpoint)
+            except BaseException:
+                tr.close()
+                raise
+        log.info("host %s listens on %s (connected to %d registered peer endpoints)", self.label, self.endpoint,
+                 len(known))
+        return tr
+
+    def _transport(self, nodes: dict[str, tuple[str, ...]], cfg: ZenohConfig) -> ZenohTransport:
+        try:
+            return ZenohTransport(self.network, nodes, cfg, clock=self.now)
+        except zenoh.ZError as exc:   # e.g. an explicit --listen port someone else holds
+            first = str(exc).split(" at /", 1)[0]
+            raise DfusionError(f"cannot open the Zenoh session (listen {list(cfg.listen) or 'default'}): {first}") \
+                from None
 
     def _loop(self, tr: ZenohTransport) -> None:
         opened = time.time()
@@ -808,7 +849,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override the least seconds between two messages on one link (event sends)")
     p.add_argument("--network", default="dfusion", help="network name: the Zenoh key space dfusion/NETWORK/...")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0)")
+                   help="Zenoh endpoint to listen on (repeatable; default tcp/127.0.0.1:0). With --run-dir and no "
+                        "--listen the port the kernel gives is registered in RUN_DIR/endpoints/ and the peers "
+                        "registered there are connected to (dfusion.run.endpoints)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="endpoint of a neighbour or router to connect to (repeatable)")
     p.add_argument("--mode", choices=("peer", "client"), default="peer", help="Zenoh mode (client: via routers)")
@@ -962,7 +1005,9 @@ def main(argv: list[str] | None = None) -> int:
             emulate_links=args.emulate_links, round_timeout=args.round_timeout, ready_timeout=args.ready_timeout,
             chaos_dir=args.chaos_dir,
         ) for name in args.node]
-        host = Host(procs, network=args.network, zconfig=zc, parent_pid=args.parent_pid, watch=watch)
+        registry = EndpointRegistry(args.run_dir) if args.run_dir is not None and not args.listen else None
+        host = Host(procs, network=args.network, zconfig=zc, parent_pid=args.parent_pid, watch=watch,
+                    registry=registry, label=label)
         if early:
             return 0
         if several:
@@ -1035,6 +1080,13 @@ def _join_run(args: argparse.Namespace) -> tuple[LauncherWatch, list[FileLock]] 
         args.result = str(run_dir / "results" / f"{args.node[0]}.json" if len(args.node) == 1 else run_dir / "results")
     if args.network_key_file is None and (run_dir / "network.key").exists():
         args.network_key_file = str(run_dir / "network.key")
+    if not args.listen:   # the registry (dfusion.run.endpoints): connect to the launcher's monitor too
+        try:
+            monitor = json.loads((run_dir / "run.json").read_text()).get("monitor_endpoint")
+        except (OSError, ValueError):
+            monitor = None
+        if monitor and monitor not in args.connect:
+            args.connect.append(monitor)
     log.info("joined the run in %s (launcher pid %s, pid %d)", run_dir, launcher, os.getpid())
     return watch, locks
 

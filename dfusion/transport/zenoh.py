@@ -58,7 +58,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import zenoh
@@ -205,6 +205,12 @@ class ZenohConfig:
         Mutual TLS: every endpoint must then be a ``tls/`` one (the default
         listen endpoint becomes ``tls/127.0.0.1:0``), so nothing travels in clear
         and only holders of a certificate signed by the CA can connect.
+    report_endpoints : bool
+        Turn on the session's admin space (read only) so that the session can tell
+        which port the kernel gave a ``:0`` listen endpoint
+        (:func:`dfusion.run.endpoints.bound_endpoints`). Off by default: a connected
+        peer may then read the session's locators and configuration (no key: keys
+        live in files), not write them.
     """
 
     mode: str = "peer"
@@ -218,6 +224,7 @@ class ZenohConfig:
     retry_max_ms: int = 500
     extra: Mapping[str, Any] = field(default_factory=dict)
     tls: TlsFiles | None = None
+    report_endpoints: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -264,6 +271,9 @@ class ZenohConfig:
         }
         if self.tls is not None:
             values.update(self.tls.zenoh_values())
+        if self.report_endpoints:
+            values["adminspace/enabled"] = True
+            values["adminspace/permissions"] = {"read": True, "write": False}
         values.update(self.extra)
         cfg = zenoh.Config()
         for path, value in values.items():
@@ -272,9 +282,7 @@ class ZenohConfig:
 
     def with_endpoints(self, listen: Iterable[str] = (), connect: Iterable[str] = ()) -> ZenohConfig:
         """A copy with other endpoints."""
-        return ZenohConfig(self.mode, tuple(listen), tuple(connect), self.multicast_scouting, self.gossip_scouting,
-                           self.open_timeout_ms, self.lease_ms, self.retry_period_ms, self.retry_max_ms, dict(self.extra),
-                           self.tls)
+        return replace(self, listen=tuple(listen), connect=tuple(connect), extra=dict(self.extra))
 
 
 def open_session(config: ZenohConfig | None = None) -> zenoh.Session:

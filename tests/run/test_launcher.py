@@ -36,12 +36,13 @@ def test_mutual_tls_run_is_closed_to_strangers_and_keyed_per_run(tmp_path):
     opts = RunOptions(scenario=str(scenario), speed=3.0, run_dir=str(run_dir),
                       security=SecurityOptions(tls_dir=str(pki.dir)))
     launcher = Launcher(opts)
-    assert all(ep.startswith("tls/127.0.0.1:") for ep in launcher.endpoints.values())
     thread, box = start_in_thread(launcher)
     heard: dict[str, list[str]] = {}
     try:
         wait_until(lambda: launcher.start is not None and launcher.now() > 1.0, 90, "the start", thread)
         eps, net = list(launcher.endpoints.values()), launcher.network
+        assert len(eps) == 3 and all(ep.startswith("tls/127.0.0.1:") for ep in eps), eps
+        assert launcher.monitor_endpoint.startswith("tls/127.0.0.1:")
         forge = (f"dfusion/{net}/b/a", b"forged")
         knocks = {label: dict(forge=forge, **cfg) for label, cfg in strangers(pki).items()}
         knocks["plain TCP to the TLS ports"] = {"forge": forge}
