@@ -54,7 +54,12 @@ from dfusion.run.chaos import lapse_path, request_lapse  # noqa: E402
 #: Nodes of the generated scenario: (name, position std, measurement rate in Hz).
 NODES = [("a", 0.8, 2.0), ("b", 0.6, 2.0), ("c", 1.0, 2.0), ("d", 0.7, 2.0), ("e", 0.9, 2.0)]
 #: Links at the start: a - b - d - c - a is a cycle (the tree rule breaks it), d - e a leaf.
-LINKS = [("a", "b"), ("a", "c"), ("b", "d"), ("c", "d"), ("d", "e")]
+START_LINKS = [("a", "b"), ("a", "c"), ("b", "d"), ("c", "d"), ("d", "e")]
+#: A link that comes up at :data:`JOIN_T` (a second cycle b - d - e - b): the links change whatever
+#: the schedule, so the scenario is dynamic (every node runs the tree rule, the cycles are allowed).
+LATE_LINK, JOIN_T = ("b", "e"), 2.0
+#: The links a flap may take down (every link is up from :data:`JOIN_T` on).
+LINKS = START_LINKS + [LATE_LINK]
 #: Fault kinds and their weights in the schedule (the pre-start squat comes once, first).
 KINDS = {"lapse": 4, "kill": 2, "kill+squat": 2, "flap": 2, "flood": 2}
 FLOOD_SECONDS = 3.0
@@ -118,8 +123,9 @@ def scenario_toml(duration: float, faults: list[Fault]) -> str:
     for name, std, rate in NODES:
         lines += ["[[nodes]]", f'name = "{name}"', 'sensor = "position"', f"std = {std}", f"rate = {rate}",
                   "send_period = 0.5", ""]
-    for a, b in LINKS:
+    for a, b in START_LINKS:
         lines += ["[[links]]", f'between = ["{a}", "{b}"]', "latency = 0.05", "drop = 0.05", ""]
+    lines += ["[[events]]", f"t = {JOIN_T}", f'link_up = ["{LATE_LINK[0]}", "{LATE_LINK[1]}"]', ""]
     for f in faults:
         if f.kind == "flap":
             a, b = f.target.split("-")
@@ -223,8 +229,12 @@ def listen_port(cmd: list[str]) -> int | None:
 
 
 def squat(port: int) -> socket.socket | None:
-    """A plain socket bound to and listening on ``127.0.0.1:port``; None if the port is taken."""
+    """A plain socket bound to and listening on ``127.0.0.1:port``; None if the port is taken.
+
+    ``SO_REUSEADDR``, as any server sets it: the port of a process killed a moment ago can then be
+    taken although its closed connections linger (TIME_WAIT), as the node's own Zenoh could."""
     s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         s.bind(("127.0.0.1", port))
         s.listen(1)
@@ -267,6 +277,10 @@ class Driver:
         #: squatted ports that a process of the run listened on after the squat (sockets the squat
         #: holds are the driver's own, not the run's)
         self.ports_after_squat: set[int] = set()
+        #: the squat before start: node, port, whether the port could be taken
+        self.prestart: dict | None = None
+        #: node -> the ports squatted right after its kills
+        self.squatted_after_kill: dict[str, list[int]] = {}
 
     # -------------------------------------------------------------- the run
     def launch(self, scenario: Path, out_json: Path) -> None:
@@ -324,31 +338,38 @@ class Driver:
 
     # -------------------------------------------------------------- faults
     def squat_before_start(self) -> None:
-        """Bind one node's advertised endpoint port as soon as the run directory names it (or a node's
-        command line shows it), before the node starts."""
+        """Bind one node's endpoint port the moment anything shows it (its command line, or its entry
+        in the run directory's endpoint registry ``RUN_DIR/endpoints/NODE.json``), before the start."""
         target = random.Random(self.args.seed).choice([n for n, _, _ in NODES])
-        deadline = time.time() + 30
+        deadline = time.time() + 60
         while self.start is None and time.time() < deadline and self.launcher.poll() is None:
             self.watch()
             port = None
-            if self.info is not None:
-                port = int(self.info["endpoints"][target].rsplit(":", 1)[1]) or None
+            try:
+                entry = json.loads((self.run_dir / "endpoints" / f"{target}.json").read_text())
+                port = int(entry["endpoint"].rsplit(":", 1)[1]) or None
+            except (OSError, ValueError, KeyError):
+                pass
+            if port is None and self.info is not None and target in self.info.get("endpoints", {}):
+                port = int(self.info["endpoints"][target].rsplit(":", 1)[1]) or None   # ports chosen in advance
             pid = self.node_pid(target)
             port = port or (listen_port(_cmdline(pid)) if pid else None)
             if port is not None:
-                self._squat(port)
+                self.prestart = {"node": target, "port": port, "taken": self._squat(port)}
                 return
-            time.sleep(0.01)
+            time.sleep(0.005)
+        self.prestart = {"node": target, "port": None, "taken": False}
 
-    def _squat(self, port: int) -> None:
+    def _squat(self, port: int) -> bool:
         s = squat(port)
         if s is None:
             self.counts.squats_refused += 1
-            print(f"  squat of port {port} refused: already bound (its node holds it)", flush=True)
-        else:
-            self.socks.append(s)
-            self.counts.squat_ports.append(port)
-            self.counts.add("squat")
+            print(f"  squat before start of port {port} refused: already bound (its node holds it)", flush=True)
+            return False
+        self.socks.append(s)
+        self.counts.squat_ports.append(port)
+        self.counts.add("squat")
+        return True
 
     def inject(self, f: Fault) -> None:
         if f.kind == "flap":   # the scenario does it; the driver only counts it
@@ -401,6 +422,7 @@ class Driver:
                     self.socks.append(s)
                     self.counts.squat_ports.append(port)
                     self.counts.add("squat")
+                    self.squatted_after_kill.setdefault(f.target, []).append(port)
                     f.outcome += f", port {port} squatted"
                     break
                 time.sleep(0.005)
@@ -443,8 +465,8 @@ class Driver:
 
 
 def report(driver: Driver, faults: list[Fault], result: dict | None, leftover: list[int],
-           ports_bound: list[int], rc: int | None) -> tuple[str, bool]:
-    """The table, and whether every goal holds."""
+           ports_bound: list[int], rc: int | None) -> tuple[str, bool, list[dict]]:
+    """The table, whether every goal holds, and the rows of the fault table."""
     c = driver.counts
     run = (result or {}).get("run", {})
     nodes = run.get("nodes", {})
@@ -461,12 +483,21 @@ def report(driver: Driver, faults: list[Fault], result: dict | None, leftover: l
             if any(f"{a} - {b} down" in row.get("what", []) and f.t - 1e-9 <= row["t"] <= f.t + 2.0
                    for row in changes):
                 flaps_seen += 1
-    squat_hits = [p for p in c.squat_ports if p in driver.ports_after_squat]
+    # a squat is counted by the run when the node's endpoints (run.endpoints.hosts, in order) show the
+    # squatted port and a later, fresh one: the restarted node listened elsewhere
+    history = run.get("endpoints", {}).get("hosts", {})
+    moved = 0
+    for node, ports in driver.squatted_after_kill.items():
+        used = [int(e.rsplit(":", 1)[1]) for e in history.get(node, [])]
+        for p in ports:
+            if p in used and used.index(p) < len(used) - 1 and p not in driver.ports_after_squat:
+                moved += 1
+    pre = driver.prestart or {}
     rows = [
         ("one-sided lapse", c.injected.get("lapse", 0), lapses, "sum of run.nodes.*.chaos_lapses"),
         ("SIGKILL", c.injected.get("kill", 0), kills, "run.supervision.events 'killed by SIGKILL'"),
-        ("port squat", c.injected.get("squat", 0), len(c.squat_ports) - len(squat_hits),
-         "squatted ports no later node listened on"),
+        ("port squat after a kill", sum(map(len, driver.squatted_after_kill.values())), moved,
+         "run.endpoints.hosts: the node's next endpoint is a fresh port"),
         ("link flap", c.injected.get("flap", 0), flaps_seen, "metrics.links.changes 'X - Y down'"),
         ("monitor flood (1 MiB)", c.injected.get("flood", 0), flood, "run.monitor_rejections (all reasons)"),
     ]
@@ -476,6 +507,11 @@ def report(driver: Driver, faults: list[Fault], result: dict | None, leftover: l
     clean = not leftover and not ports_bound
     lines = ["", f"| fault | injected (driver) | counted (run) | where counted |", "|---|---:|---:|---|"]
     lines += [f"| {k} | {d} | {r} | {w} |" for k, d, r, w in rows]
+    if pre:
+        lines += ["", f"squat before start: node {pre['node']}, port {pre['port']}: "
+                  + ("TAKEN by the driver before the node bound it" if pre["taken"] else
+                     "could not be taken (the node had bound it before anything showed it)"
+                     if pre["port"] is not None else "no port shown before the start")]
     lines += ["", f"not injected: {c.lapses_withdrawn} lapse requests withdrawn (node down or without a link), "
               f"{c.kills_skipped} kills skipped (node not running), {c.squats_refused} squats refused (port bound)",
               f"other exits in run.supervision: {other_exits or 'none'}",
@@ -489,7 +525,8 @@ def report(driver: Driver, faults: list[Fault], result: dict | None, leftover: l
               f"{leftover or 'none'}; ports of the run still bound: {ports_bound or 'none'}",
               f"goals: exact {'PASS' if exact else 'FAIL'}, every fault counted {'PASS' if counted else 'FAIL'}, "
               f"nothing left behind {'PASS' if clean else 'FAIL'}"]
-    return "\n".join(lines), exact and counted and clean and rc == 0
+    table = [{"fault": k, "injected": d, "counted": r, "where": w} for k, d, r, w in rows]
+    return "\n".join(lines), exact and counted and clean and rc == 0, table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -579,11 +616,11 @@ def main(argv: list[str] | None = None) -> int:
                                                      driver.info.get("monitor_endpoint", "x:0")]} - {0}
     ports_bound = sorted(ports & set(listening_sockets().values()))
     result = json.loads(out_json.read_text()) if out_json.exists() else None
-    table, ok = report(driver, faults, result, leftover, ports_bound, rc)
+    table, ok, rows = report(driver, faults, result, leftover, ports_bound, rc)
     print(table, flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({
-            "seed": args.seed, "duration": duration, "speed": args.speed, "ok": ok, "table": table,
+            "seed": args.seed, "duration": duration, "speed": args.speed, "ok": ok, "table": table, "rows": rows,
             "counts": asdict(driver.counts), "faults": [asdict(f) for f in faults],
             "leftover": leftover, "ports_bound": ports_bound, "launcher_rc": rc,
             "final_gaps": {n: v.get("final_gap") for n, v in (result or {}).get("nodes", {}).items()},

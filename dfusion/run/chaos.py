@@ -6,7 +6,9 @@ lapse, a one-way glitch). A node process started with ``--chaos-dir DIR`` (``dfu
 --chaos-dir DIR`` passes it to every node; **off by default**: a normal run has no such
 control surface) looks at every step for a request file ``DIR/NAME.lapse`` written by the
 driver (:func:`request_lapse`). The file holds one integer ``pick``; the node takes the
-neighbour ``linked[pick % len(linked)]`` of its current links in name order and calls
+neighbour ``linked[pick % len(linked)]`` of, in name order, its children in the tree (the
+hard case: the parent makes a fresh channel, the child notices nothing), else its parent (it
+then starts a new tree epoch), else any link, and calls
 ``link_down(j)`` then ``link_up(j)`` in the same step, which is exactly what its link rule
 (``NodeProcess.sync_links``: scenario AND liveliness) does when it misses one liveliness
 token for less than a step. The other end is told nothing. The node claims the file (renamed,
@@ -59,7 +61,11 @@ class LapseInbox:
         renaming it too, so exactly one of them has it."""
         if not self.path.exists():   # the common case: one failed stat per step
             return None
-        linked = sorted(fusion_node.neighbors)
+        # a child's link if there is one (the parent makes a fresh channel, the child notices nothing:
+        # the hard case), else the parent's (the node starts a new tree epoch), else any link
+        tree = sorted(fusion_node.tree_links)
+        parent = fusion_node.tree.parent if fusion_node.tree is not None else None
+        linked = [j for j in tree if j != parent] or tree or sorted(fusion_node.neighbors)
         if not linked:
             return None   # wait for a step with a link
         taken = self.path.with_name(self.path.name + ".taken")
