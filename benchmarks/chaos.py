@@ -440,15 +440,20 @@ class Driver:
 
         if self._zsession is None:
             self._zsession = open_session(ZenohConfig(connect=(self.info["monitor_endpoint"],)))
-        key = monitor_key(self.info["network"], f.target)
+        pub = self._zsession.declare_publisher(monitor_key(self.info["network"], f.target),
+                                               congestion_control=zenoh.CongestionControl.BLOCK)
+        t0 = time.time()
+        while not pub.matching_status.matching and time.time() < t0 + 5.0:   # a put before the monitor's
+            self.pause(0.02)                                                # subscription is known goes nowhere
         payload = random.Random(f.pick).randbytes(FLOOD_BYTES)
         sent, end = 0, time.time() + FLOOD_SECONDS
-        while time.time() < end and self.launcher.poll() is None:
+        while time.time() < end and self.launcher.poll() is None and pub.matching_status.matching:
             t0 = time.time()
-            self._zsession.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            pub.put(payload)
             sent += 1
             self.watch()
             time.sleep(max(0.0, 1 / FLOOD_RATE - (time.time() - t0)))
+        pub.undeclare()
         self.counts.add("flood", sent)
         self.counts.flood_bytes += sent * FLOOD_BYTES
         f.outcome = f"{sent} publications"
