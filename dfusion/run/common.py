@@ -41,6 +41,9 @@ ENV_KEY = "DFUSION_NETWORK_KEY"
 MONITOR_VERSION = 2
 #: Longest monitor publication accepted (bytes): a step's estimate and counters take a few hundred.
 MAX_STATUS_BYTES = 1 << 20
+#: What a publication holds besides its estimates, tree and lost times (bytes): the envelope and
+#: MAC (about 60), names, phase, times (about 100), the counters (about 40 of them: about 1.5 kB).
+STATUS_BASE_BYTES = 16 * 1024
 #: Domain of a monitor publication's MAC (fusion frames start with b"DF": the two never collide).
 _STATUS_DOMAIN = b"dfusion-monitor/2\0"
 PHASES = ("ready", "run", "final", "stopped")
@@ -99,6 +102,23 @@ def new_run_id() -> str:
 
 
 
+
+
+def status_limit(sc: Scenario) -> int:
+    """The longest monitor publication a node of ``sc`` can make (bytes), at most :data:`MAX_STATUS_BYTES`.
+
+    ``STATUS_BASE_BYTES + 2 (9 (n + n^2) + 16) + 2 sum(len(name) + 3) + 36 max(rate * duration + 1)``:
+    two estimates (the node's and its policy's output, ``n`` the state dimension; msgpack
+    writes 8 bytes a float plus a header), a tree status listing every node at most twice,
+    and the final publication's lost measurement times (9 bytes each, one per measurement
+    time of the node, four times over for a margin). A longer publication cannot be a node's:
+    the monitor drops it as it arrives, before copying it (``docs/processes.md``).
+    """
+    n = sc.target.motion.dim
+    estimate = 9 * (n + n * n) + 16
+    names = sum(len(name) + 3 for name in sc.nodes)
+    lost = 36 * max((spec.rate * sc.duration + 1 for spec in sc.nodes.values()), default=1)
+    return int(min(MAX_STATUS_BYTES, STATUS_BASE_BYTES + 2 * estimate + 2 * names + lost))
 
 
 def _status_mac(key: FrameKey, body: bytes) -> bytes:
@@ -227,22 +247,7 @@ class Status:
                                  f"monitor message of {len(data) if isinstance(data, (bytes, bytearray)) else '?'} "
                                  f"bytes exceeds {MAX_STATUS_BYTES}")
         try:
-            env = msgpack.unpackb(data, raw=False)
-            if not isinstance(env, dict):
-                raise _status_reject("malformed", "monitor message is not a map")
-            if env.get("v") != MONITOR_VERSION:
-                raise _status_reject("version", f"unknown monitor message version {env.get('v')!r}")
-            body = env["body"]
-            if not isinstance(body, bytes):
-                raise _status_reject("malformed", "monitor message body is not bytes")
-            mac = env.get("mac")
-            if key is not None:
-                if not (isinstance(mac, bytes) and hmac.compare_digest(mac, _status_mac(key, body))):
-                    raise _status_reject("unauthenticated",
-                                         "monitor message not authenticated (no MAC, or a wrong key, network or run)")
-            elif mac is not None:
-                raise _status_reject("unauthenticated", "monitor message is authenticated but the monitor has no key")
-            d = msgpack.unpackb(body, raw=False)
+            d = msgpack.unpackb(cls.authenticate(data, key), raw=False)
             mean = None if d["mean"] is None else np.frombuffer(d["mean"], "<f8").copy()
             cov = None
             if d["cov"] is not None:
@@ -261,6 +266,32 @@ class Status:
             raise _status_reject("malformed", f"malformed monitor message: {type(exc).__name__}: {exc}") from None
         st._validate(d, dim)
         return st
+
+    @staticmethod
+    def authenticate(data: bytes, key: FrameKey | None = None) -> bytes:
+        """The body of publication ``data`` once its envelope (version, MAC with ``key``) is checked:
+        the cheap part of :meth:`decode` (an HMAC over the body), which the monitor runs as a
+        publication arrives so that forged ones never take queue space. Raises :class:`MessageError`
+        with a ``reason`` (``malformed``, ``version``, ``unauthenticated``)."""
+        try:
+            env = msgpack.unpackb(data, raw=False)
+        except Exception as exc:
+            raise _status_reject("malformed", f"malformed monitor message: {type(exc).__name__}: {exc}") from None
+        if not isinstance(env, dict):
+            raise _status_reject("malformed", "monitor message is not a map")
+        if env.get("v") != MONITOR_VERSION:
+            raise _status_reject("version", f"unknown monitor message version {env.get('v')!r}")
+        body = env.get("body")
+        if not isinstance(body, bytes):
+            raise _status_reject("malformed", "monitor message body is not bytes")
+        mac = env.get("mac")
+        if key is not None:
+            if not (isinstance(mac, bytes) and hmac.compare_digest(mac, _status_mac(key, body))):
+                raise _status_reject("unauthenticated",
+                                     "monitor message not authenticated (no MAC, or a wrong key, network or run)")
+        elif mac is not None:
+            raise _status_reject("unauthenticated", "monitor message is authenticated but the monitor has no key")
+        return body
 
     def _validate(self, d: dict, dim: int | None) -> None:
         """The ranges and shapes of a decoded publication (see :meth:`decode`)."""

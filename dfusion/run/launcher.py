@@ -664,6 +664,8 @@ class Launcher:
                 "restarts": [f"{r.node}@{r.at}+{r.down}" for r in self.opts.restarts],
                 "monitor_rejected": self.monitor.rejected,
                 "monitor_rejections": dict(self.monitor.rejections),
+                # the monitor's pending queue: its bounds, its peak and what it shed (docs/processes.md)
+                "monitor_queue": dict(self.monitor.queue),
                 "failures": list(self.failures),
                 "links_emulated": self.opts.emulate_links,
                 # links that change: the [radio] table describes the links not in [[links]]

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -41,15 +42,15 @@ from dfusion.errors import MessageError
 from dfusion.fusion.channel import time_key
 from dfusion.fusion.node import RejectionLog
 from dfusion.fusion.tree import NodeTreeState, TreeEpoch, forest_settled
-from dfusion.run.common import (MAX_STATUS_BYTES, Status, TreeStatus, add_tls_arguments, load_network_key,
-                                security_from_args)
+from dfusion.run.common import (Status, TreeStatus, add_tls_arguments, load_network_key, security_from_args,
+                                status_limit)
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.links import LinkChange
 from dfusion.scenario.build import build_front_ends
 from dfusion.sim.runner import NodeOutput, References, SimulationResult, compute_metrics, frames
 from dfusion.sim.world import simulate_world
-from dfusion.transport.base import TransportStats
+from dfusion.transport.base import LineBudget, TransportStats
 from dfusion.wire import FrameKey
 from dfusion.transport.zenoh import (
     ZenohConfig,
@@ -63,6 +64,10 @@ log = logging.getLogger(__name__)
 
 #: Publications waiting for :meth:`Monitor.poll` before the oldest are dropped (counted).
 MAX_PENDING = 10_000
+#: Bytes of publications waiting for :meth:`Monitor.poll` before the oldest are dropped (counted):
+#: a hundred polls' worth of a 128-node run's publications (a few hundred bytes each, 10 per
+#: second per node), so a flood costs the launcher at most this much memory.
+MAX_PENDING_BYTES = 16 * 1024 * 1024
 
 
 @dataclass
@@ -108,9 +113,16 @@ class Monitor:
     dimension) and must come from the node it names (its key expression
     ``dfusion/NET/monitor/NAME``); a bad one is counted by reason in :attr:`rejections`
     (total :attr:`rejected`) and logged at most once per :data:`dfusion.fusion.node.LOG_INTERVAL`
-    seconds, never fatal. At most :data:`MAX_PENDING` publications wait between two polls
-    (the oldest are dropped, counted in ``rejections["queue-full"]``), and a publication longer
-    than :data:`~dfusion.run.common.MAX_STATUS_BYTES` is dropped as it arrives.
+    seconds, never fatal. At most :data:`MAX_PENDING` publications and :data:`MAX_PENDING_BYTES`
+    bytes wait between two polls (the oldest are dropped, counted in ``rejections["queue-full"]``
+    and :attr:`queue`), and a publication longer than any node of the scenario can make
+    (:func:`~dfusion.run.common.status_limit`) is dropped as it arrives, before its payload is
+    copied (``rejections["oversized"]``): a flood of large publications costs a length check each;
+    the envelope and MAC are checked as a publication arrives too (:meth:`Status.authenticate`),
+    so forged publications never take queue space nor push genuine ones out.
+    The subscriber is a callback that only counts and appends (Zenoh's FIFO channel would block
+    Zenoh's receiving thread when full, stalling the session; its ring channel bounds the count,
+    not the bytes).
     """
 
     def __init__(self, sc: Scenario, network: str, config: ZenohConfig | None = None, *,
@@ -130,29 +142,68 @@ class Monitor:
         #: Called as ``f(node, t, mean, cov)`` for every estimate a node publishes (a live
         #: view: :meth:`dfusion.viz.foxglove.LiveView.node_estimate`).
         self.listeners: list = []
+        #: The longest publication accepted (bytes).
+        self.max_status_bytes = status_limit(sc)
         self._queue: deque = deque()
+        self._queue_lock = threading.Lock()
+        self._queued_bytes = 0
         self._dropped = 0
+        self._oversized = 0
+        self._oversized_detail = ""
+        self._arrival_rejects: dict[str, int] = {}   # by reason, since the last poll
+        self._arrival_detail = ""
+        #: The pending queue's bounds and what it shed (``run.monitor_queue`` in the run's JSON).
+        self.queue = {"max_count": MAX_PENDING, "max_bytes": MAX_PENDING_BYTES, "max_publication_bytes":
+                      self.max_status_bytes, "peak_bytes": 0, "shed": 0, "shed_bytes": 0,
+                      "oversized": 0, "oversized_bytes": 0}
         self._alive_events: deque = deque()
+        #: at most one line per node's loss, and one per return, a second (``log_budget.held_back``: the rest)
+        self.log_budget = LineBudget()
         self._session = open_session(config or ZenohConfig())
         try:
             self._session.declare_subscriber(monitor_key(network), self._on_sample)
-            self._session.liveliness().declare_subscriber(
-                alive_key(network), lambda s: self._alive_events.append((str(s.key_expr).rsplit("/", 1)[-1], s.kind)),
-                history=True)
+            self._session.liveliness().declare_subscriber(alive_key(network), self._on_alive, history=True)
         except BaseException:
             self.close()
             raise
 
     def _on_sample(self, sample) -> None:
-        """Zenoh's callback (its thread): queue the publication, bounded, never blocking."""
+        """Zenoh's callback (its thread): queue the publication, bounded in count and bytes, never blocking."""
         size = len(sample.payload)
-        if size > MAX_STATUS_BYTES:
-            self._queue.append((None, f"oversized: {size} bytes"))
+        q = self.queue
+        if size > self.max_status_bytes:   # before copying the payload
+            with self._queue_lock:
+                self._oversized += 1
+                q["oversized"] += 1
+                q["oversized_bytes"] += size
+                self._oversized_detail = f"{size} bytes, more than any node's {self.max_status_bytes}"
             return
-        if len(self._queue) >= MAX_PENDING:
-            self._queue.popleft()
-            self._dropped += 1
-        self._queue.append((str(sample.key_expr).rsplit("/", 1)[-1], sample.payload.to_bytes()))
+        item = (str(sample.key_expr).rsplit("/", 1)[-1], sample.payload.to_bytes())
+        try:   # forged (or garbled) publications never take queue space
+            Status.authenticate(item[1], self.key)
+        except MessageError as exc:
+            with self._queue_lock:
+                reason = getattr(exc, "reason", "malformed")
+                self._arrival_rejects[reason] = self._arrival_rejects.get(reason, 0) + 1
+                self._arrival_detail = str(exc)
+            return
+        with self._queue_lock:
+            while self._queue and (len(self._queue) >= MAX_PENDING or self._queued_bytes + size > MAX_PENDING_BYTES):
+                _, old = self._queue.popleft()
+                self._queued_bytes -= len(old)
+                self._dropped += 1
+                q["shed"] += 1
+                q["shed_bytes"] += len(old)
+            self._queue.append(item)
+            self._queued_bytes += size
+            q["peak_bytes"] = max(q["peak_bytes"], self._queued_bytes)
+
+    def _on_alive(self, sample) -> None:
+        """Zenoh's liveliness callback: only the scenario's nodes are followed (a flood of tokens of
+        other names takes no memory)."""
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if name in self.records:
+            self._alive_events.append((name, sample.kind))
 
     @property
     def session(self):
@@ -176,21 +227,31 @@ class Monitor:
             up = kind == zenoh.SampleKind.PUT
             if rec.alive and not up and rec.final is None:
                 rec.losses += 1
-                log.warning("monitor: node %s lost", name)
+                write, held = self.log_budget.allow(f"{name}:lost")
+                if write:
+                    log.warning("monitor: node %s lost%s", name, LineBudget.suffix(held))
             elif up and not rec.alive and rec.losses:
-                log.info("monitor: node %s is back", name)
+                write, held = self.log_budget.allow(f"{name}:back")
+                if write:
+                    log.info("monitor: node %s is back%s", name, LineBudget.suffix(held))
             rec.alive = up
         count = 0
         self._rejection_log.tick()
-        if self._dropped:
+        with self._queue_lock:
             dropped, self._dropped = self._dropped, 0
-            self._reject("queue-full", f"{dropped} publications dropped: more than {MAX_PENDING} waiting", dropped)
+            oversized, self._oversized = self._oversized, 0
+            batch, self._queue, self._queued_bytes = self._queue, deque(), 0
+            arrivals, self._arrival_rejects = self._arrival_rejects, {}
+        for reason, n in arrivals.items():
+            self._reject(reason, self._arrival_detail, n)
+        if dropped:
+            self._reject("queue-full", f"{dropped} publications dropped: more than {MAX_PENDING} or "
+                                       f"{MAX_PENDING_BYTES} bytes waiting", dropped)
+        if oversized:
+            self._reject("oversized", self._oversized_detail, oversized)
         dim = self.sc.target.motion.dim
-        while self._queue:
-            chunk, data = self._queue.popleft()
-            if chunk is None:
-                self._reject("oversized", data)
-                continue
+        while batch:
+            chunk, data = batch.popleft()
             try:
                 st = Status.decode(data, self.key, dim)
             except MessageError as exc:
@@ -418,6 +479,13 @@ def build_result(
             "guard_failures": total.get("guard_failures", 0),
             "quarantines": total.get("quarantines", 0),
             "host_cpu_s": total.get("host_cpu_ms", 0) / 1000,
+            # the receive queue (bounded in copies and bytes, dfusion.transport.zenoh): shed summed over
+            # incarnations, the largest peak of any
+            "receive_queue_shed": total.get("receive_queue_shed", 0),
+            "receive_queue_shed_bytes": total.get("receive_queue_shed_bytes", 0),
+            "receive_queue_peak_bytes": max((s.get("receive_queue_peak_bytes", 0) for s in per_epoch), default=0),
+            # liveliness log lines held back (at most one per neighbour's loss, one per return, a second)
+            "log_lines_held_back": total.get("log_lines_held_back", 0),
             # one-sided link lapses injected by a chaos driver (--chaos-dir; dfusion.run.chaos)
             **({"chaos_lapses": total["chaos_lapses"]} if "chaos_lapses" in total else {}),
         }

@@ -604,6 +604,10 @@ class NodeProcess:
             "blocks_outside_window": s.blocks_outside_window,
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
+        if self.tr is not None:   # the receive queue's bound in bytes: its peak and what it shed
+            q = self.tr.queue_report(self.name)
+            out.update(receive_queue_peak_bytes=q["peak_bytes"], receive_queue_shed=q["shed"],
+                       receive_queue_shed_bytes=q["shed_bytes"], log_lines_held_back=self.tr.log_budget.held_back)
         out.update(self.counters)
         if self.schedule is not None:
             out.update(tree_changes=s.tree_changes, new_epochs=s.new_epochs, not_fused=s.not_fused,

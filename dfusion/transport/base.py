@@ -19,11 +19,47 @@ Semantics every implementation follows (the simulated network in
 """
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field, replace
 
 #: A directed link ``(src, dst)``.
 LinkKey = tuple[str, str]
+#: Seconds between two log lines about one name's liveliness (:class:`LineBudget`).
+LIVELINESS_LOG_INTERVAL = 1.0
+
+
+class LineBudget:
+    """At most one log line per key every ``interval`` seconds (a neighbour whose liveliness flaps,
+    or a stranger flapping a token of its name, cannot flood the log).
+
+    :meth:`allow` says whether a line may be written now and how many lines of that key were
+    held back since the last one (say it in the line); :attr:`held_back` counts them all. Keys
+    are the caller's bounded set (followed node names).
+    """
+
+    def __init__(self, interval: float = LIVELINESS_LOG_INTERVAL, clock=None) -> None:
+        self.interval = float(interval)
+        self.clock = clock or time.monotonic
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self.held_back = 0
+
+    def allow(self, key: str) -> tuple[bool, int]:
+        """``(write it now, lines of this key held back since the last written one)``."""
+        now = self.clock()
+        last = self._last.get(key)
+        if last is not None and now - last < self.interval:
+            self._held[key] = self._held.get(key, 0) + 1
+            self.held_back += 1
+            return False, 0
+        self._last[key] = now
+        return True, self._held.pop(key, 0)
+
+    @staticmethod
+    def suffix(held: int) -> str:
+        """`` (N earlier changes not logged)`` or nothing."""
+        return f" ({held} earlier change{'s' if held != 1 else ''} not logged)" if held else ""
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,10 @@ Pitfalls handled here (measured in this project; ``docs/background.md#7-zenoh-wh
   size, header, checksum and MAC, a few microseconds). The callback runs it on every copy
   that arrives and drops a failing one at once, counted by reason
   (:meth:`ZenohTransport.take_rejections`): garbage and forged traffic never take queue
-  space, never push genuine messages out of a full queue (:data:`MAX_QUEUE`, oldest dropped
-  first) and are never counted as delivered. The size is checked before the payload is copied.
+  space, never push genuine messages out of a full queue (:data:`MAX_QUEUE` copies and
+  :data:`MAX_QUEUE_BYTES` bytes per local node, oldest dropped first, counted:
+  :meth:`ZenohTransport.queue_report`) and are never counted as delivered. The size is checked
+  before the payload is copied.
 * The session is always closed: :meth:`ZenohTransport.close` (idempotent), the context
   manager, and every user of this class closes it in ``finally`` (an open
   session with callback subscribers keeps the process from exiting).
@@ -40,10 +42,12 @@ Pitfalls handled here (measured in this project; ``docs/background.md#7-zenoh-wh
   protocol tolerates that (the next message carries the same window).
 
 Liveliness: each local node declares ``dfusion/NET/alive/<name>``; one
-liveliness subscriber (``history=True``) follows every node's token. Loss of a
+liveliness subscriber (``history=True``) follows the local nodes' and their neighbours'
+tokens (other names are ignored as they arrive). Loss of a
 neighbour is logged with ``logging.warning`` (``info`` once
 :attr:`ZenohTransport.quiet_loss` is set, e.g. at a normal end of run), its
-return with ``info``, and both are exposed through :meth:`ZenohTransport.alive`
+return with ``info``, at most one line of each per neighbour a second
+(:class:`~dfusion.transport.base.LineBudget`), and both are exposed through :meth:`ZenohTransport.alive`
 and callbacks registered with :meth:`ZenohTransport.on_liveliness` (called in
 the thread that calls :meth:`ZenohTransport.receive` or :meth:`ZenohTransport.poll`, never in Zenoh's).
 """
@@ -66,6 +70,7 @@ import zenoh
 from dfusion.errors import MessageError, ValidationError
 from dfusion.transport.base import (
     Delivery,
+    LineBudget,
     LinkKey,
     StatsReport,
     Transport,
@@ -80,6 +85,10 @@ RESERVED_NAMES = frozenset({"alive", "monitor", "control"})
 _BAD_CHARS = frozenset("/*$?#@ \t\n\r")
 #: Copies waiting per local node before the oldest are discarded (counted as dropped).
 MAX_QUEUE = 10_000
+#: Bytes of copies waiting per local node before the oldest are discarded (counted as dropped and
+#: in :meth:`ZenohTransport.queue_report`): 16 full windows of a 400-time window of a 4-state model
+#: are about 3 MB; a flood of genuine-looking copies costs at most this much memory per node.
+MAX_QUEUE_BYTES = 64 * 1024 * 1024
 _T_SENT = struct.Struct("<d")
 
 
@@ -375,6 +384,8 @@ class ZenohTransport(Transport):
         self._lock = threading.Lock()
         self._event = threading.Event()
         self._queues: dict[str, deque[Delivery]] = {n: deque() for n in self.neighbors}
+        #: per local node: [bytes queued now, peak bytes, copies shed, bytes shed]
+        self._queue_bytes: dict[str, list[int]] = {n: [0, 0, 0, 0] for n in self.neighbors}
         self._stats: dict[LinkKey, TransportStats] = {}
         for name, nbrs in self.neighbors.items():
             for nb in nbrs:
@@ -385,7 +396,11 @@ class ZenohTransport(Transport):
         self._rejected: dict[str, dict[str, int]] = {n: {} for n in self.neighbors}
         self._rejected_detail: dict[str, str] = {}
         self._alive: dict[str, bool] = {}
+        #: the names whose liveliness is followed: the local nodes and their neighbours
+        self._followed = frozenset(self.neighbors) | {nb for nbs in self.neighbors.values() for nb in nbs}
         self._alive_events: deque[tuple[str, bool]] = deque()
+        #: at most one log line per neighbour's loss, one per return (and its first appearance) a second (``log_budget.held_back``: the rest)
+        self.log_budget = LineBudget()
         self._callbacks: list[Callable[[str, bool], None]] = []
         self._publishers: dict[LinkKey, Any] = {}
         self._declared: list[Any] = []
@@ -416,9 +431,10 @@ class ZenohTransport(Transport):
     # ------------------------------------------------------------------ zenoh callbacks (never block)
     def _make_callback(self, src: str, dst: str) -> Callable[[zenoh.Sample], None]:
         queue = self._queues[dst]
+        qbytes = self._queue_bytes[dst]
         stats = self._stats[(src, dst)]
-        clock, event = self.clock, self._event
-        checks, max_bytes, reject = self._checks, self._max_bytes, self._reject
+        clock, event, lock = self.clock, self._event, self._lock
+        checks, max_bytes, reject, all_stats = self._checks, self._max_bytes, self._reject, self._stats
 
         def on_sample(sample: zenoh.Sample) -> None:
             check = checks.get(dst)
@@ -444,10 +460,16 @@ class ZenohTransport(Transport):
                 raw = att.to_bytes()
                 if len(raw) == _T_SENT.size:
                     t_sent = _T_SENT.unpack(raw)[0]
-            if len(queue) >= MAX_QUEUE:
-                queue.popleft()
-                stats.dropped += 1
-            queue.append(Delivery(clock(), src, dst, data, t_sent))
+            with lock:
+                while queue and (len(queue) >= MAX_QUEUE or qbytes[0] + len(data) > MAX_QUEUE_BYTES):
+                    old = queue.popleft()
+                    qbytes[0] -= len(old.data)
+                    qbytes[2] += 1
+                    qbytes[3] += len(old.data)
+                    all_stats[(old.src, old.dst)].dropped += 1
+                queue.append(Delivery(clock(), src, dst, data, t_sent))
+                qbytes[0] += len(data)
+                qbytes[1] = max(qbytes[1], qbytes[0])
             event.set()
 
         return on_sample
@@ -491,6 +513,8 @@ class ZenohTransport(Transport):
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if name not in self._followed:   # tokens of other names take no memory (a flood of them is ignored)
+            return
         self._alive_events.append((name, sample.kind == zenoh.SampleKind.PUT))
         self._event.set()
 
@@ -521,8 +545,11 @@ class ZenohTransport(Transport):
             raise ValidationError(f"{node!r} is not a node of this transport")
         self.poll()
         out: list[Delivery] = []
+        qbytes = self._queue_bytes[node]
         while queue and queue[0].t_arrival <= until:
-            d = queue.popleft()
+            with self._lock:
+                d = queue.popleft()
+                qbytes[0] -= len(d.data)
             st = self._stats[(d.src, d.dst)]
             st.delivered += 1
             st.bytes_delivered += len(d.data)
@@ -556,6 +583,12 @@ class ZenohTransport(Transport):
         """
         return StatsReport.from_links(self._stats)
 
+    def queue_report(self, node: str) -> dict[str, int]:
+        """Local ``node``'s receive queue: ``queued_bytes`` now, ``peak_bytes``, and the copies (and
+        bytes) shed because more than :data:`MAX_QUEUE` copies or :data:`MAX_QUEUE_BYTES` bytes waited."""
+        now, peak, shed, shed_bytes = self._queue_bytes[node]
+        return {"queued_bytes": now, "peak_bytes": peak, "shed": shed, "shed_bytes": shed_bytes}
+
     def node_totals(self, node: str) -> TransportStats:
         """One local node's side: ``sent``/``bytes_sent`` summed over its outgoing links,
         ``delivered``/``bytes_delivered`` over its incoming ones (no copy of every link)."""
@@ -581,12 +614,15 @@ class ZenohTransport(Transport):
                 continue
             changes.append((name, up))
             mine = [n for n, nb in self.neighbors.items() if name in nb]
-            if mine:
+            what = ("back" if was is False else "up") if up else "lost"
+            write, held = self.log_budget.allow(f"{name}:{what}") if mine else (False, 0)
+            if write:
                 if up:
-                    log.info("%s: neighbour %s is %s", ",".join(mine), name, "back" if was is False else "up")
+                    log.info("%s: neighbour %s is %s%s", ",".join(mine), name, what, LineBudget.suffix(held))
                 else:
                     level = logging.INFO if self.quiet_loss else logging.WARNING
-                    log.log(level, "%s: neighbour %s lost (liveliness token gone)", ",".join(mine), name)
+                    log.log(level, "%s: neighbour %s lost (liveliness token gone)%s", ",".join(mine), name,
+                            LineBudget.suffix(held))
             for cb in list(self._callbacks):
                 try:
                     cb(name, up)
@@ -600,7 +636,7 @@ class ZenohTransport(Transport):
         return self._alive.get(name, False)
 
     def alive_nodes(self) -> set[str]:
-        """Every node (local ones included) whose token is currently seen."""
+        """Every followed node (the local ones and their neighbours) whose token is currently seen."""
         self.poll()
         return {n for n, up in self._alive.items() if up}
 

@@ -156,3 +156,73 @@ def test_a_node_process_reports_its_consistency_test_and_quarantines(tmp_path):
             "liveliness_losses": 0, "finished": True, "guard_tests": 12, "guard_failures": 4, "quarantines": 1}
     text = run_table(SimpleNamespace(metrics={"run": {"nodes": {"b": node}}}))
     assert "b: 1 quarantines of a neighbour by the consistency test (4 of 12 tests failed)" in text
+
+
+def test_status_limit_holds_the_longest_genuine_publication_and_nothing_of_a_mebibyte(tmp_path):
+    """The largest publication a node of the chain can make (final phase: both estimates, every
+    counter, a tree listing every node, every measurement time of the node lost) fits under
+    status_limit; a 1 MiB one does not."""
+    import numpy as np
+
+    from dfusion.run.common import MAX_STATUS_BYTES, Status, TreeStatus, status_limit
+    from dfusion.scenario import load_scenario
+    from dfusion.wire import FrameKey
+    from tests.run.test_processes import chain3
+
+    sc = load_scenario(chain3(tmp_path, duration=30.0))
+    n, names = sc.target.motion.dim, sorted(sc.nodes)
+    lost = [float(t) for t in np.arange(0, sc.duration, 1 / max(s.rate for s in sc.nodes.values()))]
+    stats = {f"counter_number_{i:02d}_of_a_long_name": 2**62 for i in range(60)}
+    st = Status("a" * 20, 2**62, "final", sc.steps, sc.duration, np.random.default_rng(0).normal(size=n), np.eye(n),
+                1e9, stats, lost, ("fused-output", np.ones(n), np.eye(n)),
+                TreeStatus(2**40, names[0], names[1], tuple(names), tuple(names)))
+    size = len(st.encode(FrameKey(b"k" * 32, "net", "run")))
+    assert size < status_limit(sc) < 1 << 20 <= MAX_STATUS_BYTES, (size, status_limit(sc))
+
+
+class _Sample:
+    """What Zenoh hands a subscriber callback (key expression, payload, kind)."""
+
+    def __init__(self, key: str, data: bytes) -> None:
+        self.key_expr, self.payload = key, _Payload(data)
+
+
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+def test_monitor_queue_is_bounded_in_bytes_and_forged_publications_take_no_space(tmp_path, monkeypatch):
+    """Genuine publications beyond the byte bound push the oldest out (counted); forged and
+    oversized ones are counted on arrival and never queued; the next poll reports them all."""
+    import numpy as np
+
+    from dfusion.run import monitor as mon_mod
+    from dfusion.run.common import Status
+    from dfusion.run.monitor import Monitor
+    from dfusion.scenario import load_scenario
+    from dfusion.wire import FrameKey
+    from tests.run.test_processes import chain3
+
+    sc = load_scenario(chain3(tmp_path))
+    key, net = b"k" * 32, "net"
+    data = Status("a", 7, "run", 3, 0.3, np.arange(4.0), np.eye(4), stats={"x": 1}).encode(FrameKey(key, net, "r"))
+    monkeypatch.setattr(mon_mod, "MAX_PENDING_BYTES", 10 * len(data))
+    with Monitor(sc, net, network_key=key, run="r") as mon:
+        for _ in range(25):
+            mon._on_sample(_Sample(f"dfusion/{net}/monitor/a", data))
+            mon._on_sample(_Sample(f"dfusion/{net}/monitor/a", data[:-1] + bytes([data[-1] ^ 1])))   # forged
+        mon._on_sample(_Sample(f"dfusion/{net}/monitor/a", bytes(1 << 20)))
+        assert len(mon._queue) == 10 and mon._queued_bytes == 10 * len(data)
+        q = mon.queue
+        assert (q["shed"], q["shed_bytes"], q["peak_bytes"]) == (15, 15 * len(data), 10 * len(data))
+        assert (q["oversized"], q["oversized_bytes"]) == (1, 1 << 20)
+        assert mon.poll() == 10
+        assert mon.rejections == {"queue-full": 15, "unauthenticated": 25, "oversized": 1}
+        assert mon._queued_bytes == 0 and mon.records["a"].have[3]

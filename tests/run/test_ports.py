@@ -156,3 +156,28 @@ def test_a_taken_listen_port_is_a_one_line_error(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
     assert f"127.0.0.1:{port}" in proc.stderr and "Address already in use" in proc.stderr, proc.stderr
+
+
+def test_registry_entries_and_a_lock_held_too_long(tmp_path, caplog):
+    """Entries are read back as written (a missing or torn one is None); a registry lock held by
+    a frozen process does not stop a node: after the timeout it registers without it, with a warning."""
+    from dfusion.run.supervision import FileLock
+
+    reg = EndpointRegistry(tmp_path)
+    assert reg.endpoint("a") is None
+    reg.register("host0", ["a", "b"], "tcp/127.0.0.1:4242")
+    assert reg.endpoints(["a", "b", "c"]) == {"a": "tcp/127.0.0.1:4242", "b": "tcp/127.0.0.1:4242"}
+    assert reg.entry("a")["host"] == "host0" and reg.entry("a")["pid"] == os.getpid()
+    (reg.dir / "c.json").write_text('{"endpoint": ')   # torn
+    assert reg.endpoint("c") is None
+    frozen = FileLock(reg.lock_path)
+    assert frozen.acquire()
+    try:
+        t0 = time.monotonic()
+        with caplog.at_level("WARNING", logger="dfusion.run.endpoints"), reg.lock(timeout=0.3) as lock:
+            assert not lock.held and time.monotonic() - t0 >= 0.3
+        assert "registering without the lock" in caplog.text
+    finally:
+        frozen.release()
+    with reg.lock(timeout=0.3) as lock:
+        assert lock.held

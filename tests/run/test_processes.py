@@ -93,11 +93,11 @@ def pid_alive(pid: int) -> bool:
         return False
 
 
-def start_cli_run(scenario: Path, run_dir: Path, timeout: float = 90.0) -> subprocess.Popen:
-    """``dfusion run SCENARIO --run-dir RUN_DIR`` as a process, returned once the run has started (every
-    node up, the start time written). The caller kills it in a ``finally``."""
+def start_cli_run(scenario: Path, run_dir: Path, timeout: float = 90.0, args: tuple[str, ...] = ()) -> subprocess.Popen:
+    """``dfusion run SCENARIO --run-dir RUN_DIR [ARGS]`` as a process, returned once the run has started
+    (every node up, the start time written). The caller kills it in a ``finally``."""
     launcher = subprocess.Popen([sys.executable, "-m", "dfusion.cli", "run", str(scenario), "--run-dir", str(run_dir),
-                                 "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                 "--quiet", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                 env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:
         deadline = time.monotonic() + timeout

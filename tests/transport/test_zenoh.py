@@ -332,3 +332,40 @@ def test_mutual_tls_refuses_strangers(pki):
         assert f"alive dfusion/{net}/alive/a" in member and f"data {link_key(net, 'a', 'b')}" in member
         got = a.receive("a")
         assert [d.data for d in got if d.data == b"forged"] == [], "a stranger's message reached a member"
+
+
+def test_receive_queue_is_bounded_in_bytes(monkeypatch):
+    """Copies nobody receives pile up to MAX_QUEUE_BYTES, then the oldest go (counted in the link's
+    dropped and the node's queue report); what is left is the newest, in order."""
+    from dfusion.transport import zenoh as zmod
+
+    net = network()
+    ea, eb = free_tcp_endpoints(2)
+    size, bound = 10_000, 50_000
+    monkeypatch.setattr(zmod, "MAX_QUEUE_BYTES", bound)
+    with ZenohTransport(net, {"a": ["b"]}, ZenohConfig(listen=[ea])) as a, \
+            ZenohTransport(net, {"b": ["a"]}, ZenohConfig(listen=[eb], connect=[ea])) as b:
+        assert wait_for(lambda: a.alive("b") and b.alive("a"))
+        for i in range(20):
+            a.send("a", "b", i.to_bytes(4, "little") + bytes(size - 4), float(i))
+            time.sleep(0.005)
+        assert wait_for(lambda: b.queue_report("b")["shed"] == 15)
+        rep = b.queue_report("b")
+        assert rep == {"queued_bytes": 5 * size, "peak_bytes": 5 * size, "shed": 15, "shed_bytes": 15 * size}
+        got = b.receive("b")
+        assert [int.from_bytes(d.data[:4], "little") for d in got] == list(range(15, 20))
+        assert b.stats.links[("a", "b")].dropped == 15 and b.queue_report("b")["queued_bytes"] == 0
+
+
+def test_line_budget_holds_back_a_flapping_name_and_says_so():
+    from dfusion.transport.base import LineBudget
+
+    now = [0.0]
+    budget = LineBudget(1.0, clock=lambda: now[0])
+    assert budget.allow("b:lost") == (True, 0) and budget.allow("b:back") == (True, 0)   # a loss and a return
+    for _ in range(50):   # a flapping token: 50 more losses within the second
+        now[0] += 0.01
+        assert budget.allow("b:lost") == (False, 0)
+    now[0] = 1.5
+    assert budget.allow("b:lost") == (True, 50) and budget.held_back == 50
+    assert LineBudget.suffix(50) == " (50 earlier changes not logged)" and LineBudget.suffix(0) == ""
