@@ -63,7 +63,7 @@ LINKS = START_LINKS + [LATE_LINK]
 #: Fault kinds and their weights in the schedule (the pre-start squat comes once, first).
 KINDS = {"lapse": 4, "kill": 2, "kill+squat": 2, "flap": 2, "flood": 2}
 FLOOD_SECONDS = 3.0
-FLOOD_RATE = 20.0            # publications per second at most
+FLOOD_RATE = 100.0           # publications per second at most
 FLOOD_BYTES = (1 << 20) - 1024   # just under the monitor's 1 MiB limit: queued, then checked
 #: The short run's faults, in this order.
 SHORT_KINDS = ["lapse", "kill+squat", "flap", "flood", "lapse", "kill"]
