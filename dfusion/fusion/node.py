@@ -83,6 +83,7 @@ from dfusion.fusion.channel import (
     time_key,
     time_keys,
 )
+from dfusion.fusion.incarnation import Incarnations
 from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
@@ -110,8 +111,9 @@ class NodeStats:
 
     ``rejections`` counts rejected messages by reason: ``malformed``, ``corrupt``,
     ``unauthenticated``, ``version``, ``oversized`` (the frame), ``misaddressed``,
-    ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``sequence-jump``,
-    ``numerical`` (the filter would not stay proper), ``internal``. ``duplicates`` counts
+    ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``implausible-incarnation`` (an
+    incarnation number far ahead of this node's clock, :mod:`dfusion.fusion.incarnation`),
+    ``sequence-jump``, ``numerical`` (the filter would not stay proper), ``internal``. ``duplicates`` counts
     copies of messages the node had applied already (network duplicates, replays inside the
     run, or messages older than the replay window, :meth:`ChannelFilter.was_applied`):
     discarded without an error, they change nothing.
@@ -141,6 +143,13 @@ class NodeStats:
     #: of ``messages_rejected``: copies rejected by the cheap checks as they arrived, before they
     #: were queued (:meth:`FusionNode.check_frame` run by the transport), so never delivered
     rejected_on_arrival: int = 0
+    #: messages that showed a neighbour started a fresh channel for the link in the same
+    #: incarnation (a new ``seq_start``): this node forgot its acknowledgements and sent it a full
+    #: message (:mod:`dfusion.fusion.channel`, resynchronization)
+    resyncs: int = 0
+    #: messages that switched a link back to a neighbour's incarnation that a newer one had
+    #: replaced, because it went on sending (without a key, :mod:`dfusion.fusion.incarnation`)
+    incarnations_reverted: int = 0
 
 
 class RejectionLog:
@@ -542,8 +551,15 @@ class FusionNode:
         #: The tree rule's state (``None``: a fixed tree).
         self.tree = tree
         self.peers = None if peers is None else frozenset(peers)
-        #: The newest incarnation heard from each node (links that change).
+        #: The newest incarnation heard from each node (links that change), and the newest sequence
+        #: number heard from it (beacons included).
         self.incarnations: dict[str, int] = {}
+        self._heard_seq: dict[str, int] = {}
+        #: The judgement of neighbours' incarnation numbers (:mod:`dfusion.fusion.incarnation`).
+        self._incarnation_judge = Incarnations(keyed=self.frame_key is not None)
+        #: Per neighbour, the next sequence number of a channel made for the link or of a beacon
+        #: over it: a fresh channel goes on from where the previous one stopped (links that change).
+        self._link_seq: dict[str, int] = {}
         fusing = nbrs if tree is None else sorted(tree.tree_links())
         self._ack_lag = ACK_LAG
         self.channels: dict[str, ChannelFilter] = {j: self._channel(j) for j in fusing}
@@ -1006,6 +1022,7 @@ class FusionNode:
             cleared=cleared,
             full=full and self.fusion != "naive",
             naive=self.fusion == "naive",
+            seq_start=ch.seq_start,
             **self._tree_fields(),
         )
         data = encode(msg, self.frame_key)
@@ -1080,13 +1097,30 @@ class FusionNode:
             raise self._reject("malformed", f"{msg.src!r} uses another fusion mode")
         if bool(msg.tree_root) != (self.tree is not None):
             raise self._reject("malformed", f"{msg.src!r} uses another tree mode (a fixed tree or the tree rule)")
-        if ch.epoch is not None and msg.epoch < ch.epoch:
-            raise self._reject("previous-incarnation",
-                               f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
-        last = ch.last_seq if msg.epoch == ch.epoch else -1
+        if msg.epoch == ch.epoch:
+            last = ch.last_seq
+        elif self.tree is None:
+            last = self._judge_incarnation(msg, ch.epoch, ch.last_seq)[1]
+        else:   # (judged by the tree rule's part, _tree_heard)
+            last = -1
         if msg.seq > last + MAX_SEQ_JUMP and self.frame_key is None:
             raise self._reject("sequence-jump", f"sequence number {msg.seq} from {msg.src!r} jumps past {last}")
         return ch
+
+    def _judge_incarnation(self, msg: InfoMessage, current: int | None, newest: int) -> tuple[str, int]:
+        """:meth:`Incarnations.judge` of ``msg``: the verdict and the reference of the sequence-jump
+        bound; a rejection is counted and raised."""
+        verdict, last = self._incarnation_judge.judge(msg.src, msg.epoch, msg.seq, msg.sent_at, current, newest)
+        if verdict == "previous-incarnation":
+            raise self._reject(verdict, f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {current})")
+        if verdict == "implausible-incarnation":
+            raise self._reject(verdict, f"incarnation {msg.epoch} of {msg.src!r} is more than 24 h ahead of this "
+                                        "node's clock")
+        if verdict == "revert":
+            self.stats.incarnations_reverted += 1
+            log.warning("%s: %s's incarnation %d goes on after %d replaced it: the link switches back to it", self.name,
+                        msg.src, msg.epoch, current)
+        return verdict, last
 
     def receive(self, data: bytes) -> int:
         """Fuse a neighbour's message; returns the number of state blocks that changed.
@@ -1151,7 +1185,7 @@ class FusionNode:
         the newest state, a fixed tree (the tree rule's holds stay on the general path) and a link
         that is not quarantined (its messages are probation tests)."""
         if (not self.critical_path_first or self.tree is not None or self._tree_held or msg.seq <= ch.last_seq
-                or (self._guard is not None and self._guard.is_quarantined(msg.src))):
+                or msg.seq_start != ch.remote_start or (self._guard is not None and self._guard.is_quarantined(msg.src))):
             return False
         latest = self.filter.latest_time + self.filter.time_tol
         return all(d[0] <= latest for d in deltas)
@@ -1301,14 +1335,17 @@ class FusionNode:
         now = [d for d in deltas if d[0] <= latest]
         mark = self._mark_stores(msg.src)
         guard = self._guard
-        restarted = ch.epoch is not None and msg.epoch > ch.epoch
+        # the sender restarted (or, without a key, its replaced incarnation went on: a switch back), or
+        # it started a fresh channel for the link in this incarnation (resynchronization)
+        restarted = ch.epoch is not None and msg.epoch != ch.epoch
+        reverted = restarted and msg.epoch < ch.epoch
+        resync = not restarted and ch.remote_resynchronizes(msg)
         duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
         event = None
         try:
             if guard is not None and guard.is_quarantined(msg.src):
                 ch.commit(msg, plan, complete=not too_far)
-                if restarted:
-                    ch.remote_restarted()
+                ch.follow_remote(restarted or resync, reverted)
                 event = self._probation(msg.src, ch)
             else:
                 verdict = None
@@ -1322,8 +1359,7 @@ class FusionNode:
                     except DfusionError as exc:
                         raise _Numerical(str(exc)) from None
                 ch.commit(msg, plan, complete=not too_far)
-                if restarted:
-                    ch.remote_restarted()
+                ch.follow_remote(restarted or resync, reverted)
                 if deltas:
                     self._total.add_many(deltas)
                 self._mark_dirty(changed.tolist(), skip=msg.src)
@@ -1346,6 +1382,7 @@ class FusionNode:
         if not too_far and not duplicate:
             self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.duplicates += int(duplicate)
+        self.stats.resyncs += int(resync)
         self.stats.blocks_outside_window += outside
         self.stats.blocks_too_far_ahead += len(too_far)
         if outside:
@@ -1486,7 +1523,9 @@ class FusionNode:
     def _beacon(self, neighbor: str, sent_at: float | None) -> bytes:
         """A beacon for ``neighbor``: the tree fields, no blocks."""
         f = self.filter
-        msg = InfoMessage(src=self.name, dst=neighbor, epoch=self.epoch, seq=0, start=f.oldest_time,
+        seq = self._link_seq.get(neighbor, 0)
+        self._link_seq[neighbor] = seq + 1
+        msg = InfoMessage(src=self.name, dst=neighbor, epoch=self.epoch, seq=seq, seq_start=seq, start=f.oldest_time,
                           sent_at=f.latest_time if sent_at is None else float(sent_at), times=np.zeros(0),
                           info=np.zeros((0, f.n, f.n)), vec=np.zeros((0, f.n)),
                           dst_epoch=self.incarnations.get(neighbor, 0), full=False, beacon=True,
@@ -1538,9 +1577,13 @@ class FusionNode:
             if change.new_epoch:
                 self.stats.new_epochs += 1
                 self._tree_withdraw(list(self.channels.values()), everything=True)
+                for ch in self.channels.values():
+                    self._link_seq[ch.remote] = ch.seq_out
                 self.channels = {j: self._channel(j) for j in sorted(self.tree.tree_links())}
             else:
                 lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
+                for ch in lost:
+                    self._link_seq[ch.remote] = ch.seq_out
                 if lost:
                     self._tree_withdraw(lost)
                 for j in sorted(change.gained):
@@ -1683,21 +1726,25 @@ class FusionNode:
         if msg.n != self.filter.n:
             raise self._reject("dimension", f"state dimension {msg.n} from {src!r}, expected {self.filter.n}")
         known = self.incarnations.get(src)
-        if known is not None and msg.epoch < known:
-            raise self._reject("previous-incarnation",
-                               f"message of an earlier incarnation of {src!r} ({msg.epoch} < {known})")
+        newest = self._heard_seq.get(src, -1)
+        verdict, last = ("same", newest) if msg.epoch == known else self._judge_incarnation(msg, known, newest)
+        if msg.beacon and msg.seq > last + MAX_SEQ_JUMP and self.frame_key is None:
+            # (a fusion message's jump is checked against its channel, :meth:`_check`)
+            raise self._reject("sequence-jump", f"sequence number {msg.seq} from {src!r} jumps past {last}")
         if src not in self.tree.links:
             self.stats.not_linked += 1
             return False
         undo = None if msg.beacon else self._tree_checkpoint()
         self._tree_undo = undo     # a failure from here on undoes the rule's changes (_reject)
-        if known is not None and msg.epoch > known:   # src restarted: what it said before no longer holds
+        if verdict in ("new", "revert"):   # src restarted (or went back): what it said before no longer holds
             self._follow(self.tree.forget(src))
         self.incarnations[src] = msg.epoch
+        self._heard_seq[src] = last   # (a channel the rule makes now starts its jump bound there)
         parent = msg.parent or None
         if parent == self.name and msg.dst_epoch not in (0, self.epoch):
             parent = None     # it names an earlier incarnation of this node
         self._follow(self.tree.heard_from(src, TreeEpoch(msg.tree_term, msg.tree_root), parent))
+        self._heard_seq[src] = max(msg.seq, last)
         if msg.beacon or src not in self.channels or TreeEpoch(msg.tree_term, msg.tree_root) != self.tree.epoch:
             self.stats.not_fused += 1
             self._tree_undo = None
@@ -1708,10 +1755,11 @@ class FusionNode:
         return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
                 {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
                 self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._tree_held),
-                None if self._guard is None else dict(self._guard.links))
+                None if self._guard is None else dict(self._guard.links), dict(self._heard_seq), dict(self._link_seq))
 
     def _tree_restore(self, cp: tuple) -> None:
-        tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links = cp
+        tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links, heard_seq, link_seq = cp
+        self._heard_seq, self._link_seq = heard_seq, link_seq
         self._tree_held = held
         if guard_links is not None:
             self._guard.links = guard_links
@@ -1736,7 +1784,15 @@ class FusionNode:
         return keys, self._own.info - held[0], self._own.vec - held[1]
 
     def _channel(self, j: str) -> ChannelFilter:
-        ch = ChannelFilter(self.name, j, self.filter.n)
+        """A fresh channel for the link to ``j``: its sequence numbers go on from the link's earlier
+        channels and beacons, and the sequence-jump bound starts from the newest number heard from
+        ``j``'s current incarnation (:mod:`dfusion.fusion.channel`, resynchronization)."""
+        if self.tree is None:
+            ch = ChannelFilter(self.name, j, self.filter.n)
+        else:
+            epoch = self.incarnations.get(j)
+            ch = ChannelFilter(self.name, j, self.filter.n, self._link_seq.get(j, 0), epoch,
+                               self._heard_seq.get(j, -1) if epoch is not None else -1)
         ch.ack_lag = self._ack_lag
         return ch
 
