@@ -171,6 +171,9 @@ class NodeProcess:
         Stop when this process is no longer the parent.
     watch : LauncherWatch, optional
         Stop when the launcher of the run directory is gone.
+    chaos_dir : path, optional
+        Testing only (``--chaos-dir``, ``benchmarks/chaos.py``): apply the one-sided link lapses
+        requested there (:mod:`dfusion.run.chaos`); None (the default): no such requests are read.
     """
 
     def __init__(
