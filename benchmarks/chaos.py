@@ -7,6 +7,8 @@ subprocess, and injects, on one seeded schedule (one fault at a time, a few seco
 
 * **lapse**: a one-sided liveliness lapse: one end of a link sees it go down and up within a
   step, the other end sees nothing (``dfusion run --chaos-dir``: :mod:`dfusion.run.chaos`);
+  and last, a **lapse round**: every node with a child in the tree lapses a child's link at
+  once (no new tree epoch follows to repair what such a lapse breaks);
 * **kill**: SIGKILL of a node's process group (the launcher's supervision restarts it);
 * **kill+squat**: a kill, then at once a plain socket binds and listens on the port the node
   listened on (held until the run ends);
@@ -87,7 +89,8 @@ class Fault:
 
 def schedule(seed: int, duration: float, quiet: float, gap: tuple[float, float], max_faults: int) -> list[Fault]:
     """The faults of a run: one at a time, ``gap`` scenario seconds apart (uniform), from
-    :data:`FIRST_FAULT` to ``duration - quiet``; a function of the arguments only."""
+    :data:`FIRST_FAULT` to ``duration - quiet``, then a lapse round (at ``duration - quiet / 2``
+    at the latest); a function of the arguments only."""
     rng = random.Random(seed)
     names = [n for n, _, _ in NODES]
     kinds, weights = zip(*KINDS.items())
@@ -110,6 +113,8 @@ def schedule(seed: int, duration: float, quiet: float, gap: tuple[float, float],
         t += rng.uniform(*gap)
         if out[-1].kind == "flap":
             t = max(t, out[-1].t + out[-1].up_after + 1.0)
+    if len(out) < max_faults:   # the last: a lapse of a child's link at every node that has a child
+        out.append(Fault(round(min(t, duration - quiet / 2), 1), "lapse-round", "*", pick=rng.randrange(1000)))
     return out
 
 
@@ -377,6 +382,8 @@ class Driver:
             f.outcome = "scripted"
         elif f.kind == "lapse":
             self.lapse(f)
+        elif f.kind == "lapse-round":
+            self.lapse_round(f)
         elif f.kind.startswith("kill"):
             self.kill(f, squat_after=f.kind == "kill+squat")
         elif f.kind == "flood":
@@ -398,6 +405,24 @@ class Driver:
                 pass
         self.counts.add("lapse")
         f.outcome = "applied"
+
+    def lapse_round(self, f: Fault) -> None:
+        """A lapse of a child's link requested of every node at once; withdrawn after 4 s where the
+        node has no child."""
+        paths = {n: request_lapse(self.chaos_dir, n, f.pick + i, child_only=True)
+                 for i, (n, _, _) in enumerate(NODES)}
+        end = time.time() + 4.0
+        while any(p.exists() for p in paths.values()) and time.time() < end:
+            self.pause(0.05)
+        applied = []
+        for n, path in paths.items():
+            try:
+                os.replace(path, path.with_suffix(".withdrawn"))
+                self.counts.lapses_withdrawn += 1
+            except FileNotFoundError:
+                applied.append(n)
+        self.counts.add("lapse", len(applied))
+        f.outcome = f"applied at {','.join(applied) or 'none'} (the others have no child)"
 
     def kill(self, f: Fault, squat_after: bool) -> None:
         pid = self.node_pid(f.target)
@@ -555,7 +580,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet = 12.0 if args.short else 30.0
     gap = (2.5, 3.5) if args.short else (6.0, 12.0)
     faults = schedule(args.seed, duration, quiet, gap, args.max_faults)
-    if args.short:   # every kind at least once, in a fixed order
+    if args.short:   # every kind at least once, in a fixed order (no lapse round: the lapses come last)
         rng = random.Random(args.seed)
         for f, k in zip(faults, SHORT_KINDS):
             f.kind, f.target, f.pick, f.up_after = k, rng.choice([n for n, _, _ in NODES]), rng.randrange(1000), 0.0
@@ -567,7 +592,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = kinds - {*KINDS, "squat"}
     if unknown:
         ap.error(f"--kinds: unknown {sorted(unknown)}")
-    faults = [f for f in faults if f.kind in kinds or (f.kind == "kill+squat" and "kill" in kinds)]
+    faults = [f for f in faults if f.kind in kinds or (f.kind == "kill+squat" and "kill" in kinds)
+              or (f.kind == "lapse-round" and "lapse" in kinds)]
     for f in faults:
         if f.kind == "kill+squat" and "kill+squat" not in kinds:
             f.kind = "kill"
@@ -578,7 +604,8 @@ def main(argv: list[str] | None = None) -> int:
     out_json = base / "run.json"
     run_dir = base / "run"
     print(f"chaos run: seed {args.seed}, {duration:g} scenario s at x{args.speed:g}, {len(faults)} faults "
-          f"({', '.join(f'{k} {sum(f.kind == k for f in faults)}' for k in KINDS)}), in {base}", flush=True)
+          f"({', '.join(f'{k} {sum(f.kind == k for f in faults)}' for k in [*KINDS, 'lapse-round'])}), in {base}",
+          flush=True)
     driver = Driver(args, run_dir, faults)
     driver.launch(scenario, out_json)
     hard_end = time.time() + duration / args.speed + 240

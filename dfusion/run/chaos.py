@@ -8,7 +8,8 @@ control surface) looks at every step for a request file ``DIR/NAME.lapse`` writt
 driver (:func:`request_lapse`). The file holds one integer ``pick``; the node takes the
 neighbour ``linked[pick % len(linked)]`` of, in name order, its children in the tree (the
 hard case: the parent makes a fresh channel, the child notices nothing), else its parent (it
-then starts a new tree epoch), else any link, and calls
+then starts a new tree epoch), else any link (a request ``"PICK child"``: children only, and
+it waits while the node has none), and calls
 ``link_down(j)`` then ``link_up(j)`` in the same step, which is exactly what its link rule
 (``NodeProcess.sync_links``: scenario AND liveliness) does when it misses one liveliness
 token for less than a step. The other end is told nothing. The node claims the file (renamed,
@@ -35,11 +36,12 @@ def lapse_path(chaos_dir: str | Path, node: str) -> Path:
     return Path(chaos_dir) / f"{node}{LAPSE_SUFFIX}"
 
 
-def request_lapse(chaos_dir: str | Path, node: str, pick: int) -> Path:
-    """Ask ``node`` for one one-sided lapse of its link ``linked[pick % len(linked)]`` (atomic write)."""
+def request_lapse(chaos_dir: str | Path, node: str, pick: int, *, child_only: bool = False) -> Path:
+    """Ask ``node`` for one one-sided lapse of its link ``linked[pick % len(linked)]`` (atomic write);
+    ``child_only``: of a child's link only (the request waits while the node has no child)."""
     path = lapse_path(chaos_dir, node)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(f"{int(pick)}\n")
+    tmp.write_text(f"{int(pick)}{' child' if child_only else ''}\n")
     os.replace(tmp, path)
     return path
 
@@ -59,25 +61,28 @@ class LapseInbox:
 
         The node claims a request by renaming it (``NAME.lapse.taken``): the driver withdraws one by
         renaming it too, so exactly one of them has it."""
-        if not self.path.exists():   # the common case: one failed stat per step
+        try:
+            words = self.path.read_text().split()
+        except OSError:   # no request (the common case: one failed open per step)
             return None
+        try:
+            pick = int(words[0]) if words else 0
+        except ValueError:
+            pick = 0
+        child_only = "child" in words[1:]
         # a child's link if there is one (the parent makes a fresh channel, the child notices nothing:
         # the hard case), else the parent's (the node starts a new tree epoch), else any link
         tree = sorted(fusion_node.tree_links)
         parent = fusion_node.tree.parent if fusion_node.tree is not None else None
-        linked = [j for j in tree if j != parent] or tree or sorted(fusion_node.neighbors)
+        children = [j for j in tree if j != parent]
+        linked = children if child_only else children or tree or sorted(fusion_node.neighbors)
         if not linked:
-            return None   # wait for a step with a link
+            return None   # wait for a step with such a link
         taken = self.path.with_name(self.path.name + ".taken")
         try:
             os.replace(self.path, taken)
-            text = taken.read_text()
         except OSError:   # withdrawn meanwhile
             return None
-        try:
-            pick = int(text.strip() or 0)
-        except ValueError:
-            pick = 0
         j = linked[pick % len(linked)]
         fusion_node.link_down(j)
         fusion_node.link_up(j)

@@ -65,8 +65,9 @@ def test_schedule_is_a_function_of_its_seed():
     b = chaos.schedule(4, 600.0, 30.0, (6.0, 12.0), 200)
     c = chaos.schedule(5, 600.0, 30.0, (6.0, 12.0), 200)
     assert a == b and a != c
-    assert all(chaos.FIRST_FAULT <= f.t <= 570.0 for f in a)
-    assert all(y.t - x.t >= 6.0 - 1e-9 for x, y in zip(a, a[1:]))
+    assert all(chaos.FIRST_FAULT <= f.t <= 570.0 for f in a[:-1]) and a[-1].kind == "lapse-round"
+    assert a[-2].t < a[-1].t <= 585.0
+    assert all(y.t - x.t >= 6.0 - 1e-9 for x, y in zip(a[:-1], a[1:-1]))
     assert len(chaos.schedule(4, 600.0, 30.0, (6.0, 12.0), 7)) == 7   # bounded in count
     kills = {}
     for f in a:
@@ -94,6 +95,8 @@ def test_a_lapse_request_waits_for_a_link_and_can_be_withdrawn(tmp_path):
     os.replace(path, path.with_suffix(".withdrawn"))            # the driver withdraws it
     assert inbox.apply_due(_Node(["p"], ["p"], parent="p")) is None and inbox.applied == 0
     parent_only = _Node(["p", "q"], ["p"], parent="p")
+    path = request_lapse(tmp_path, "n", 5, child_only=True)
+    assert inbox.apply_due(parent_only) is None and path.exists()   # children only: it waits
     request_lapse(tmp_path, "n", 5)
     assert inbox.apply_due(parent_only) == "p"                   # no child: the parent's link
 
