@@ -134,6 +134,7 @@ def _run(args: argparse.Namespace) -> int:
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
             nodes_per_process=args.nodes_per_process, sends=args.sends, min_send_interval=args.min_send_interval,
+            chaos_dir=args.chaos_dir,
         )
         launcher = Launcher(opts)
         if stop:
@@ -233,6 +234,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; every node process loads it too)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--chaos-dir", default=None, metavar="DIR",
+                   help="testing only (benchmarks/chaos.py): the nodes apply the one-sided link lapses requested in "
+                        "DIR (docs/chaos.md); off by default")
     from dfusion.run.common import add_tls_arguments
 
     add_tls_arguments(r)

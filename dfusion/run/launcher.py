@@ -168,6 +168,9 @@ class RunOptions:
     foxglove: int | None = None
     #: Nodes per OS process (a host: one Zenoh session, one loop driving its nodes); 1: a process per node.
     nodes_per_process: int = 1
+    #: Testing only: the nodes apply the one-sided link lapses a chaos driver requests in this
+    #: directory (``dfusion.run.chaos``, ``docs/chaos.md``); None (the default): no such surface.
+    chaos_dir: str | None = None
 
 
 @dataclass
@@ -325,6 +328,8 @@ class Launcher:
                     "--tls-key", str(Path(tls.key).resolve())]
         for plugin in o.plugins:
             cmd += ["--plugin", _absolute_plugin(plugin)]
+        if o.chaos_dir is not None:
+            cmd += ["--chaos-dir", str(Path(o.chaos_dir).resolve())]
         return cmd + list(o.node_args)
 
     def _env(self) -> dict[str, str]:

@@ -486,6 +486,8 @@ def build_result(
             "receive_queue_peak_bytes": max((s.get("receive_queue_peak_bytes", 0) for s in per_epoch), default=0),
             # liveliness log lines held back (at most one per neighbour's loss, one per return, a second)
             "log_lines_held_back": total.get("log_lines_held_back", 0),
+            # one-sided link lapses injected by a chaos driver (--chaos-dir; dfusion.run.chaos)
+            **({"chaos_lapses": total["chaos_lapses"]} if "chaos_lapses" in total else {}),
         }
     result = SimulationResult(sc, world, times, truth, c_mean, c_cov, node_mean, node_cov, outputs=outputs,
                               events=measurement_events(world, times, lost),

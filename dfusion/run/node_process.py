@@ -64,6 +64,7 @@ from dfusion.run.common import (
 )
 from dfusion.fusion.node import FusionNode
 from dfusion.fusion.tree import initial_parents
+from dfusion.run.chaos import LapseInbox
 from dfusion.run.endpoints import EndpointRegistry, bound_endpoints
 from dfusion.run.links import EmulatedLinks, node_links
 from dfusion.run.measurements import (
@@ -170,6 +171,9 @@ class NodeProcess:
         Stop when this process is no longer the parent.
     watch : LauncherWatch, optional
         Stop when the launcher of the run directory is gone.
+    chaos_dir : path, optional
+        Testing only (``--chaos-dir``, ``benchmarks/chaos.py``): apply the one-sided link lapses
+        requested there (:mod:`dfusion.run.chaos`); None (the default): no such requests are read.
     """
 
     def __init__(
@@ -193,6 +197,7 @@ class NodeProcess:
         parent_pid: int | None = None,
         ready_timeout: float = 5.0,
         watch: LauncherWatch | None = None,
+        chaos_dir: str | Path | None = None,
     ) -> None:
         if name not in sc.nodes:
             raise DfusionError(f"{name!r} is not a node of {sc.path} (nodes: {sorted(sc.nodes)})")
@@ -253,6 +258,8 @@ class NodeProcess:
         #: When the node sends (:class:`~dfusion.fusion.sending.SendSchedule`); set when the run starts.
         self.sched = SendSchedule(self.send_period, sc.min_send_interval, sc.sends)
         self._sending = False
+        #: Injected one-sided link lapses (``--chaos-dir``, chaos runs only; ``dfusion.run.chaos``).
+        self.chaos = LapseInbox(chaos_dir, name) if chaos_dir is not None and self.schedule is not None else None
 
     def _starts_late(self) -> bool:
         """Whether the common start time is known already and more than half a step past (a
@@ -366,6 +373,8 @@ class NodeProcess:
             self.collect(t)
             self._fuse_until(t)
             self.sync_links(t)
+            if self.chaos is not None and self.chaos.apply_due(self.node) is not None:
+                self._stats_due = 0.0   # this step's publication carries the count
             self.receive()
             self._send_due(t)
             self._publish("run", k)
@@ -632,6 +641,8 @@ class NodeProcess:
             g = guard.summary()
             out.update(guard_tests=g["tests"], guard_failures=g["failures"], quarantines=g["quarantines"],
                        quarantined_now=len(g["quarantined"]))
+        if self.chaos is not None:
+            out["chaos_lapses"] = self.chaos.applied
         out["cpu_ms"] = int(self.cpu * 1000)
         if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
             out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)
@@ -903,6 +914,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="report ready after this many seconds even if a neighbour is not up")
     p.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable)")
+    p.add_argument("--chaos-dir", default=None, metavar="DIR",
+                   help="testing only (benchmarks/chaos.py): apply the one-sided link lapses requested in DIR "
+                        "(docs/chaos.md); off by default")
     add_tls_arguments(p, directory=False)
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
@@ -1017,6 +1031,7 @@ def main(argv: list[str] | None = None) -> int:
             fsync=args.fsync, network_key=key,
             result=(Path(args.result) / f"{name}.json" if several else args.result) if args.result else None,
             emulate_links=args.emulate_links, round_timeout=args.round_timeout, ready_timeout=args.ready_timeout,
+            chaos_dir=args.chaos_dir,
         ) for name in args.node]
         registry = EndpointRegistry(args.run_dir) if args.run_dir is not None and not args.listen else None
         host = Host(procs, network=args.network, zconfig=zc, parent_pid=args.parent_pid, watch=watch,
