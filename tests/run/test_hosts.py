@@ -310,3 +310,65 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
     print(f"hosts: timeline {timeline}; cut seen after {lost_after} s, healed {back_after} s after the link came "
           f"back; gaps {({n: f'{g:.1e}' for n, g in gaps.items()})}; measurements {used} of {total}")
     assert max(gaps.values()) <= 1e-9, gaps
+
+
+def test_router_forwards_between_clients_with_mutual_tls_and_stops_cleanly(tmp_path):
+    """``python -m dfusion.run.router`` on loopback (no root needed): two client sessions with
+    certificates of the CA exchange a message through it (the first opened before the router
+    answers: a client waits for its router); a session with another CA's certificate cannot
+    connect; SIGTERM ends it with status 0; an endpoint it cannot bind is one line, status 2."""
+    import socket
+    import threading
+
+    import zenoh
+
+    from dfusion.transport.zenoh import TlsFiles, ZenohConfig, close_session, open_session
+    from tests.helpers.pki import make_pki
+
+    pki = make_pki(tmp_path, names=("router", "a", "b"))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ep = f"tls/127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    router = subprocess.Popen([sys.executable, "-m", "dfusion.run.router", "--listen", ep, "--tls-dir", str(pki.dir),
+                               "--parent-pid", str(os.getpid())], env=env, stderr=subprocess.PIPE, text=True)
+    sessions = []
+    try:
+        got, arrived = [], threading.Event()
+        a = open_session(ZenohConfig(mode="client", connect=(ep,), tls=pki.member("a")))
+        sessions.append(a)
+        a.declare_subscriber("dfusion/t/x", lambda sample: (got.append(sample.payload.to_bytes()), arrived.set()))
+        b = open_session(ZenohConfig(mode="client", connect=(ep,), tls=pki.member("b")))
+        sessions.append(b)
+        deadline = time.monotonic() + 20
+        while not arrived.wait(0.2):   # the clients connect in the background: publish until it arrives
+            assert router.poll() is None, router.communicate()
+            assert time.monotonic() < deadline, "nothing came through the router"
+            b.put("dfusion/t/x", b"through the router")
+        assert got[0] == b"through the router"
+        # a certificate of another CA: the router refuses the connection, the client cannot open
+        foreign = ZenohConfig(mode="client", connect=(ep,), client_wait_ms=1000,
+                              tls=TlsFiles(str(pki.dir / "ca.pem"), str(pki.foreign / "x.pem"),
+                                           str(pki.foreign / "x.key")))
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            sessions.append(open_session(foreign))
+    finally:
+        for s in sessions:
+            close_session(s)
+        router.send_signal(signal.SIGTERM)
+        try:
+            rc = router.wait(10)
+        finally:
+            if router.poll() is None:
+                router.kill()
+                router.wait()
+    assert rc == 0, router.stderr.read()
+    with socket.socket() as taken:   # a port someone holds
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        bad = subprocess.run([sys.executable, "-m", "dfusion.run.router", "--listen",
+                              f"tcp/127.0.0.1:{taken.getsockname()[1]}"], env=env, capture_output=True, text=True,
+                             timeout=30)
+    errors = [line for line in bad.stderr.splitlines() if "ERROR" in line]
+    assert bad.returncode == 2 and len(errors) == 1 and "cannot open the router" in errors[0], bad.stderr
