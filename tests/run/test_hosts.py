@@ -2,10 +2,12 @@
 
 Issue 25, item 3. Each host is a network namespace with one veth link (10.213.0.X/24) to a
 bridge in a fourth namespace (the switch). Each host runs its site's router
-(``python -m dfusion.run.router``, mutual TLS, connected to the other sites' routers) and one
-host process of two nodes (``python -m dfusion.run.node_process --node A --node B --host SITE
---mode client --connect tls/ROUTER:7447``): the deployment of ``docs/processes.md``,
-"Deployment on several hosts", on one machine. During the run host ``c`` is cut off for 20 s
+(``python -m dfusion.run.router``, mutual TLS, connected to the routers of the sites before it)
+and a host process of its nodes (``python -m dfusion.run.node_process --node A --node B --host
+SITE --mode client --connect tls/ROUTER:7447``); host ``c`` also runs a relay node live, the
+program of ``nodes/`` with a node file (``python nodes/relay.py cr.node.toml``), a client of the
+same router: the deployment of ``docs/processes.md``, "Deployment on several hosts", on one
+machine. During the run host ``c`` is cut off for 20 s
 (``ip link set ... down`` on its veth) and brought back, and host ``b``'s process is SIGKILLed
 and started again. Every node must end at the centralized estimate of the linear scenario,
 computed here by filterpy's Kalman filter over every measurement the network took (those that
@@ -40,14 +42,17 @@ KalmanFilter = pytest.importorskip("filterpy.kalman").KalmanFilter
 ROOT = Path(__file__).resolve().parents[2]
 SUBNET = "10.213.0"
 PORT = 7447
-SITES = {"a": ("a1", "a2"), "b": ("b1", "b2"), "c": ("c1", "c2")}
+SITES = {"a": ("a1", "a2"), "b": ("b1", "b2"), "c": ("c1",)}   # host processes; host c also runs the live relay
+RELAY = "cr"
+START_AHEAD = 8.0                    # seconds from launching every process to the common start
 CUT_AT, CUT_FOR = 2.0, 20.0          # host c off the network from scenario time 2 s to 22 s
 KILL_AT, RESTART_AFTER = 6.0, 1.0    # host b SIGKILLed at 6 s, started again 1 s later
 DURATION = 26.0
 
 # A linear scenario (constant velocity, position sensors): the tree a1 - a2 - b1 - b2 and
-# a2 - c1 - c2 spans the three sites; the window (150 states of 0.2 s = 30 s) spans the run,
-# so the 20 s cut is recovered exactly once the link is back.
+# a2 - cr - c1 spans the three sites (cr: a relay without a sensor, run live by nodes/relay.py);
+# the window (150 states of 0.2 s = 30 s) spans the run, so the 20 s cut is recovered exactly
+# once the link is back.
 SCENARIO = f"""
 duration = {DURATION}
 dt = 0.2
@@ -66,11 +71,16 @@ sensor = "position"
 std = {std}
 rate = 2.5
 send_period = 0.4
-""" for name, std in (("a1", 0.5), ("a2", 0.9), ("b1", 0.7), ("b2", 0.6), ("c1", 0.8), ("c2", 0.4))) + "".join(f"""
+""" for name, std in (("a1", 0.5), ("a2", 0.9), ("b1", 0.7), ("b2", 0.6), ("c1", 0.8))) + f"""
+[[nodes]]
+name = "{RELAY}"
+sensor = "none"
+send_period = 0.4
+""" + "".join(f"""
 [[links]]
 between = ["{x}", "{y}"]
 latency = 0.01
-""" for x, y in (("a1", "a2"), ("a2", "b1"), ("b1", "b2"), ("a2", "c1"), ("c1", "c2")))
+""" for x, y in (("a1", "a2"), ("a2", "b1"), ("b1", "b2"), ("a2", RELAY), (RELAY, "c1")))
 
 
 def _ip(*args: str) -> None:
@@ -145,8 +155,8 @@ def hosts(sites) -> Iterator[Hosts]:
 
 def _liveliness_events(logs: Path):
     """``(node, "lost" | "is back", neighbour, UNIX time)`` of every liveliness line of the hosts' logs."""
-    pattern = re.compile(r"^(\S+ \S+) \w+ \[site-\w\] dfusion.transport.zenoh: (\w+): neighbour (\w+) (lost|is back)")
-    for path in sorted(logs.glob("host-*.log")):
+    pattern = re.compile(r"^(\S+ \S+) \w+ (?:\[site-\w\] )?dfusion.transport.zenoh: (\w+): neighbour (\w+) (lost|is back)")
+    for path in sorted([*logs.glob("host-*.log"), *logs.glob("relay-*.log")]):
         for line in path.read_text().splitlines():
             m = pattern.match(line)
             if m:
@@ -203,7 +213,6 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
     key = tmp_path / "network.key"
     key.write_bytes(os.urandom(32))
     certs = tmp_path / "certs"
-    start_file = tmp_path / "start"
     procs: dict[str, subprocess.Popen] = {}
     every: list[subprocess.Popen] = []
     timeline: dict[str, float] = {}
@@ -214,7 +223,8 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
 
         def spawn(what: str, site: str, args: list[str]) -> subprocess.Popen:
             log = open(tmp_path / f"{what}.log", "ab")
-            p = subprocess.Popen(["ip", "netns", "exec", h.ns[site], sys.executable, "-m", *args],
+            run = args if args[0].endswith(".py") else ["-m", *args]
+            p = subprocess.Popen(["ip", "netns", "exec", h.ns[site], sys.executable, *run],
                                  stdout=log, stderr=log, stdin=subprocess.DEVNULL,
                                  env={**os.environ, "PYTHONPATH": str(ROOT)})
             log.close()
@@ -224,14 +234,43 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
         tls = lambda site: ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{site}.pem"),  # noqa: E731
                             "--tls-key", str(certs / f"{site}.key")]
         router = {s: f"tls/{h.addr[s]}:{PORT}" for s in SITES}
+        start = time.time() + START_AHEAD   # scenario time 0 on every host (one clock here; NTP across machines)
+
+        def relay_file(h: Hosts) -> Path:
+            """The live relay's node file (docs/ros.md, "Live use"): client of host c's router, mutual TLS."""
+            path = tmp_path / f"{RELAY}.node.toml"
+            path.write_text(f"""
+name = "{RELAY}"
+kind = "relay"
+scenario = "{scenario}"
+network = "hosts"
+duration = {DURATION}
+run_id = "hosts-test"
+[zenoh]
+mode = "client"
+connect = ["{router['c']}"]
+[security]
+network_key_file = "{key}"
+tls_ca = "{certs / 'ca.pem'}"
+tls_cert = "{certs / 'c.pem'}"
+tls_key = "{certs / 'c.key'}"
+[ros]
+latency = 0.0
+[outputs]
+""")
+            return path
+
+        def results_of(site: str) -> Path:   # a directory of NAME.json for several nodes, else the file
+            nodes = SITES[site]
+            return tmp_path / "results" if len(nodes) > 1 else tmp_path / "results" / f"{nodes[0]}.json"
 
         def host_process(site: str) -> subprocess.Popen:
             nodes = [x for n in SITES[site] for x in ("--node", n)]
             return spawn(f"host-{site}", site, [
                 "dfusion.run.node_process", "--scenario", str(scenario), *nodes, "--host", f"site-{site}",
                 "--network", "hosts", "--mode", "client", "--connect", router[site], *tls(site),
-                "--network-key-file", str(key), "--run-id", "hosts-test", "--start-file", str(start_file),
-                "--state-dir", str(tmp_path / f"state-{site}"), "--result", str(tmp_path / "results"),
+                "--network-key-file", str(key), "--run-id", "hosts-test", "--start-time", f"{start:.6f}",
+                "--state-dir", str(tmp_path / f"state-{site}"), "--result", str(results_of(site)),
                 "--parent-pid", str(os.getpid()), "--round-timeout", "5"])
 
         try:
@@ -242,15 +281,9 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
                     "--parent-pid", str(os.getpid())])
             for site in SITES:
                 procs[f"host-{site}"] = host_process(site)
-            # the common start once every host process is up (its session opens within milliseconds)
-            deadline = time.monotonic() + 60
-            while not all(f"host site-{s}: nodes" in (tmp_path / f"host-{s}.log").read_text() for s in SITES):
-                for name, p in procs.items():
-                    assert p.poll() is None, f"{name} exited: {(tmp_path / f'{name}.log').read_text()[-2000:]}"
-                assert time.monotonic() < deadline, "the host processes never came up"
-                time.sleep(0.1)
-            start = time.time() + 1.0
-            start_file.write_text(f"{start:.6f}")
+            procs["relay-c"] = spawn("relay-c", "c", [str(ROOT / "nodes" / "relay.py"), str(relay_file(h)),
+                                                     "--start-time", f"{start:.6f}",
+                                                     "--result", str(tmp_path / "results" / f"{RELAY}.json")])
 
             def at(t: float) -> None:
                 time.sleep(max(0.0, start + t - time.time()))
@@ -268,9 +301,9 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
             at(CUT_AT + CUT_FOR)
             _ip("-n", h.switch, "link", "set", h.port["c"], "up")
             timeline["back"] = time.time() - start
-            for site in SITES:
-                rc = procs[f"host-{site}"].wait(DURATION + 60 - (time.time() - start))
-                assert rc == 0, f"host {site} exited with {rc}: {(tmp_path / f'host-{site}.log').read_text()[-3000:]}"
+            for name in [f"host-{site}" for site in SITES] + ["relay-c"]:
+                rc = procs[name].wait(DURATION + 60 - (time.time() - start))
+                assert rc == 0, f"{name} exited with {rc}: {(tmp_path / f'{name}.log').read_text()[-3000:]}"
             timeline["finished"] = time.time() - start
             for site in SITES:
                 procs[f"router-{site}"].send_signal(signal.SIGTERM)
@@ -286,14 +319,14 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
         for name in (h.switch, *h.ns.values()):
             assert subprocess.run(["ip", "netns", "pids", name], capture_output=True, text=True).stdout.split() == []
 
-    results = {n: json.loads((tmp_path / "results" / f"{n}.json").read_text()) for ns in SITES.values() for n in ns}
+    results = {n: json.loads((tmp_path / "results" / f"{n}.json").read_text()) for n in sc.nodes}
     lost = {(n, round(t, 6)) for n, r in results.items() for t in r["lost"]}
     mean, P, used, total = central_estimate(sc, lost)
     # the faults happened: b's nodes came back late and replayed their log, c's link was down for 20 s
     for n in SITES["b"]:
         assert results[n]["started"] >= KILL_AT and results[n]["stats"]["measurements_replayed"] > 0, results[n]
     assert timeline["back"] - timeline["cut"] >= CUT_FOR - 0.5, timeline
-    assert results["a2"]["stats"]["skipped_not_alive"] > 0 and results["c1"]["stats"]["skipped_not_alive"] > 0
+    assert results["a2"]["stats"]["skipped_not_alive"] > 0 and results[RELAY]["stats"]["skipped_not_alive"] > 0
     assert 0 < total - used < total / 10, (used, total)   # what arrived while b was down, nothing else
     gaps = {}
     for n, r in results.items():
@@ -304,8 +337,8 @@ def test_three_hosts_with_routers_and_mutual_tls_survive_a_cut_and_a_kill(tmp_pa
         assert np.linalg.eigvalsh(C - P).min() >= -1e-9, n
     # the cut was seen on both sides within the lease (3 s; 3 leases allowed), and healed once the link was back
     seen = {(n, what, other): t - start for n, what, other, t in _liveliness_events(tmp_path)}
-    lost_after = [seen[(x, "lost", y)] - timeline["cut"] for x, y in (("a2", "c1"), ("c1", "a2"))]
-    back_after = [seen[(x, "is back", y)] - timeline["back"] for x, y in (("a2", "c1"), ("c1", "a2"))]
+    lost_after = [seen[(x, "lost", y)] - timeline["cut"] for x, y in (("a2", RELAY), (RELAY, "a2"))]
+    back_after = [seen[(x, "is back", y)] - timeline["back"] for x, y in (("a2", RELAY), (RELAY, "a2"))]
     assert max(lost_after) < 9.0 and max(back_after) < 9.0, (lost_after, back_after)
     print(f"hosts: timeline {timeline}; cut seen after {lost_after} s, healed {back_after} s after the link came "
           f"back; gaps {({n: f'{g:.1e}' for n, g in gaps.items()})}; measurements {used} of {total}")
