@@ -996,7 +996,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         several = len(args.node) > 1
         zc = ZenohConfig(mode=args.mode, listen=tuple(args.listen), connect=tuple(args.connect),
-                         extra=parse_zenoh_options(args.zenoh_option), tls=security_from_args(args).tls_files(args.node[0]))
+                         extra=parse_zenoh_options(args.zenoh_option),
+                         tls=security_from_args(args).tls_files(args.node[0]))
         key = load_network_key(args.network_key_file)
         meas = _measurements(sc, args.node, args.measurements)
         procs = [NodeProcess(
