@@ -130,7 +130,7 @@ def _run(args: argparse.Namespace) -> int:
             scenario=args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, speed=args.speed,
             run_dir=args.run_dir, network=args.network, network_key_file=args.network_key_file,
             restarts=[Restart.parse(r) for r in args.restart], emulate_links=args.emulate_links,
-            round_timeout=args.round_timeout, progress=sys.stderr.isatty() and not args.quiet,
+            round_timeout=args.round_timeout, progress=not args.quiet,
             startup_timeout=args.startup_timeout, keep_run_dir=args.run_dir is not None, plugins=list(args.plugin),
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
             nodes_per_process=args.nodes_per_process, sends=args.sends, min_send_interval=args.min_send_interval,

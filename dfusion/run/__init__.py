@@ -8,6 +8,7 @@
 * :mod:`dfusion.run.links`: the scenario's links emulated at the senders;
 * :mod:`dfusion.run.measurements`: measurement recordings and the restart log;
 * :mod:`dfusion.run.certs`: a test CA and certificates for mutual TLS (openssl);
+* :mod:`dfusion.run.router`: a site's Zenoh router, for nodes on several hosts;
 * :mod:`dfusion.run.common`: network key, security options, monitor messages,
   final-phase schedule.
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import hmac
+import json
 import logging
 import math
 import os
@@ -143,6 +144,21 @@ def add_tls_arguments(parser: argparse.ArgumentParser, *, directory: bool = True
     g.add_argument("--tls-ca", default=None, metavar="PEM", help="the CA certificate every peer must be signed by")
     g.add_argument("--tls-cert", default=None, metavar="PEM", help="this process's certificate")
     g.add_argument("--tls-key", default=None, metavar="PEM", help="this process's private key")
+
+
+def parse_zenoh_options(items: list[str]) -> dict:
+    """``PATH=JSON`` strings (``--zenoh-option``) as a ``{path: value}`` mapping (a value that
+    is not JSON is taken as a string)."""
+    out = {}
+    for item in items:
+        path, sep, value = item.partition("=")
+        if not sep:
+            raise ValidationError(f"--zenoh-option needs PATH=JSON, got {item!r}")
+        try:
+            out[path] = json.loads(value)
+        except ValueError:
+            out[path] = value
+    return out
 
 
 def security_from_args(args: argparse.Namespace) -> SecurityOptions:

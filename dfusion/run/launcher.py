@@ -22,7 +22,7 @@ The launcher
 4. waits until every node reported ``ready`` (its neighbours are up), then
    writes the common start time to ``RUN_DIR/start`` (scenario time 0 is that
    UNIX time, on every node);
-5. follows the run (progress bar on stderr when it is a terminal): restarts a
+5. follows the run (progress on stderr: a bar on a terminal, else a line every 10 s and one at the end): restarts a
    node process that exits before its final estimate, after a backoff, at most
    ``max_restarts`` times per node (:class:`~dfusion.run.supervision.RestartPolicy`;
    ``--no-supervise`` turns it off); follows a node restarted by hand instead;
@@ -746,9 +746,9 @@ class Launcher:
         deadline = end_wall + 20.0 + 0.2 * sc.duration / o.speed + self.rounds * o.round_timeout
         bar = None
         if o.progress:
-            from tqdm import tqdm
+            from dfusion.sim.runner import Progress
 
-            bar = tqdm(total=K - 1, unit="step", file=sys.stderr, leave=False, desc="dfusion run")
+            bar = Progress(K - 1, desc="dfusion run")
         try:
             while True:
                 if self.stop_reason is not None:
@@ -769,11 +769,8 @@ class Launcher:
                 self._keep_standby()
                 self._note_endpoints()
                 if bar is not None:
-                    shown = (max(0, self.monitor.progress()), len(self.monitor.alive()))
-                    if shown != (bar.n, getattr(bar, "_alive", None)):
-                        bar.n, bar._alive = shown
-                        bar.set_postfix_str(f"alive {shown[1]}/{len(self.host_of)}", refresh=False)
-                        bar.refresh()
+                    alive = len(self.monitor.alive())
+                    bar.update(max(0, self.monitor.progress()), f"alive {alive}/{len(self.host_of)}")
                 running = self._running()
                 if not running and not self._relaunch and not self._pending:
                     return True

@@ -275,7 +275,7 @@ def main(argv: list[str] | None = None, kind: str | None = None) -> int:
         zc = ZenohConfig(mode=nf.mode, listen=nf.listen, connect=nf.connect, extra=nf.zenoh_options,
                          tls=sec.tls_files(nf.name))
         start = args.start_time if args.start_time is not None else nf.start
-        proc = LiveNodeProcess(sc, nf.name, nf, network=nf.network, zconfig=zc, start=start,
+        proc = LiveNodeProcess(sc, nf.name, nf, network=nf.network, zconfig=zc, start=start, run_id=nf.run_id,
                                network_key=load_network_key(nf.network_key_file), result=args.result)
         host = Host([proc], network=nf.network, zconfig=zc, label=nf.name)
         if early:

@@ -60,6 +60,7 @@ from dfusion.run.common import (
     add_tls_arguments,
     final_rounds,
     load_network_key,
+    parse_zenoh_options,
     security_from_args,
 )
 from dfusion.fusion.node import FusionNode
@@ -922,19 +923,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _extra_options(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        path, sep, value = item.partition("=")
-        if not sep:
-            raise DfusionError(f"--zenoh-option needs PATH=JSON, got {item!r}")
-        try:
-            out[path] = json.loads(value)
-        except ValueError:
-            out[path] = value
-    return out
-
-
 def standby(run_dir: str | Path) -> int:
     """``python -m dfusion.run.node_process --standby RUN_DIR``: a warm spare for fast restarts.
 
@@ -1022,7 +1010,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         several = len(args.node) > 1
         zc = ZenohConfig(mode=args.mode, listen=tuple(args.listen), connect=tuple(args.connect),
-                         extra=_extra_options(args.zenoh_option), tls=security_from_args(args).tls_files(args.node[0]))
+                         extra=parse_zenoh_options(args.zenoh_option),
+                         tls=security_from_args(args).tls_files(args.node[0]))
         key = load_network_key(args.network_key_file)
         meas = _measurements(sc, args.node, args.measurements)
         procs = [NodeProcess(

@@ -9,6 +9,8 @@ A TOML file (``docs/ros.md``, "Live use", has a full example)::
     start = 1795000000.0                 # optional: UNIX time of scenario time 0, the same in every node
                                          # file of one network (default: when this node starts: alone)
     duration = 3600.0                    # optional: seconds to run (default 86400); then the final phase
+    run_id = "plant-2026-11"             # optional: the run identifier the other nodes were given (their
+                                         # --run-id): fusion messages are authenticated for it (default "")
     plugins = []                         # optional: modules or .py files with sensor kinds / policies
 
     [zenoh]
@@ -74,7 +76,8 @@ DEFAULT_DURATION = 86400.0
 OUTPUT_TYPES = {"odometry": "nav_msgs/msg/Odometry", "pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
                 "diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
 
-_TOP = {"name": str, "kind": str, "scenario": str, "network": str, "start": float, "duration": float, "plugins": list,
+_TOP = {"name": str, "kind": str, "scenario": str, "network": str, "start": float, "duration": float, "run_id": str,
+        "plugins": list,
         "zenoh": dict, "security": dict, "ros": dict, "inputs": list, "outputs": dict}
 _ZENOH = {"mode": str, "listen": list, "connect": list, "options": dict}
 _SECURITY = {"network_key_file": str, "tls_ca": str, "tls_cert": str, "tls_key": str}
@@ -142,6 +145,7 @@ class NodeFile:
     tls_cert: str | None
     tls_key: str | None
     ros: Ros2Settings
+    run_id: str | None = None
 
 
 def _check(table: dict, schema: dict[str, type], where: str, src: Path) -> None:
@@ -260,7 +264,8 @@ def load_node_file(path: str | Path) -> NodeFile:
                           for p in _strings(data.get("plugins", []), "plugins", src)),
                     mode, _strings(z.get("listen", []), "zenoh.listen", src),
                     _strings(z.get("connect", []), "zenoh.connect", src), dict(z.get("options", {})),
-                    _path(base, sec.get("network_key_file")), *(_path(base, v) for v in tls), settings)
+                    _path(base, sec.get("network_key_file")), *(_path(base, v) for v in tls), settings,
+                    data.get("run_id"))
 
 
 def _topic(value: str, where: str, src: Path) -> str:

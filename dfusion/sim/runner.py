@@ -314,39 +314,68 @@ def warning_lines(m: dict[str, Any]) -> list[str]:
 PROGRESS_INTERVAL = 10.0
 
 
+class Progress:
+    """Progress of ``total`` steps on stderr: a tqdm bar on a terminal; elsewhere (piped,
+    redirected) one line every :data:`PROGRESS_INTERVAL` seconds and one at the end
+    (``progress: 301/600 steps (50 %), 20 s``), so a long run piped into a file or a CI log shows
+    it is alive. :meth:`update` takes the number of steps done (and a note for the bar);
+    :meth:`close` ends it. ``simulate`` and ``replay`` (:func:`run_scenario`) and ``dfusion run``'s
+    launcher use it."""
+
+    def __init__(self, total: int, *, desc: str | None = None, stream=None) -> None:
+        import sys
+        import time
+
+        self.total, self.stream = total, stream if stream is not None else sys.stderr
+        self.n, self._written, self._note, self._clock = 0, None, "", time.monotonic
+        self.start = self._last = self._clock()
+        self.bar = None
+        if self.stream.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="step", leave=False, file=self.stream, desc=desc)
+
+    def update(self, n: int, note: str = "") -> None:
+        """``n`` steps done of ``total``; ``note`` is shown after the count (e.g. ``alive 3/3``)."""
+        if self.bar is not None:
+            if note != self._note:
+                self.bar.set_postfix_str(note, refresh=n == self.bar.n)
+            if n != self.bar.n:
+                self.bar.update(n - self.bar.n)   # redrawn at most every tqdm's mininterval
+        self.n, self._note = n, note
+        if self.bar is None:
+            now = self._clock()
+            if now - self._last >= PROGRESS_INTERVAL or (n == self.total and self._written != n):
+                self._last = now
+                self._line(now)
+
+    def _line(self, now: float) -> None:
+        self._written = self.n
+        note = f", {self._note}" if self._note else ""
+        self.stream.write(f"progress: {self.n}/{self.total} steps ({100.0 * self.n / max(self.total, 1):.0f} %), "
+                          f"{now - self.start:.0f} s{note}\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        """The bar goes; off a terminal, the last count is written unless it was just written."""
+        if self.bar is not None:
+            self.bar.close()
+        elif self._written != self.n:
+            self._line(self._clock())
+
+
 def _progress(iterable, enabled: bool, total: int):
-    """Progress on stderr: a tqdm bar on a terminal; elsewhere (piped, redirected) one line
-    every :data:`PROGRESS_INTERVAL` seconds and one at the end, so a long run piped into a
-    file or a CI log shows it is alive."""
+    """``iterable`` with :class:`Progress` of ``total`` steps on stderr (when ``enabled``)."""
     if not enabled:
-        return iterable
-    import sys
-
-    if sys.stderr.isatty():
-        from tqdm import tqdm
-
-        return tqdm(iterable, total=total, unit="step", leave=False, file=sys.stderr)
-    return _progress_lines(iterable, total, sys.stderr)
-
-
-def _progress_lines(iterable, total: int, stream):
-    import time
-
-    start = last = time.monotonic()
-    k = 0
-    for k, item in enumerate(iterable, 1):
-        yield item
-        now = time.monotonic()
-        if now - last >= PROGRESS_INTERVAL or k == total:
-            last = now
-            stream.write(f"progress: {k}/{total} steps ({100.0 * k / max(total, 1):.0f} %), {now - start:.0f} s\n")
-            stream.flush()
-
-
-
-
-
-
+        yield from iterable
+        return
+    p = Progress(total)
+    try:
+        for k, item in enumerate(iterable, 1):
+            yield item
+            p.update(k)
+    finally:
+        p.close()
 
 
 def run_scenario(sc: Scenario, *, progress: bool = False, world: World | None = None,

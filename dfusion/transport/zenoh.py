@@ -214,6 +214,10 @@ class ZenohConfig:
         Mutual TLS: every endpoint must then be a ``tls/`` one (the default
         listen endpoint becomes ``tls/127.0.0.1:0``), so nothing travels in clear
         and only holders of a certificate signed by the CA can connect.
+    client_wait_ms : int
+        Client mode: how long opening the session waits for a router in ``connect`` to answer
+        (``connect/timeout_ms``; Zenoh's default for clients, 0, fails at once when the router
+        is not up yet, e.g. started a moment later or restarting).
     report_endpoints : bool
         Turn on the session's admin space (read only) so that the session can tell
         which port the kernel gave a ``:0`` listen endpoint
@@ -234,6 +238,7 @@ class ZenohConfig:
     extra: Mapping[str, Any] = field(default_factory=dict)
     tls: TlsFiles | None = None
     report_endpoints: bool = False
+    client_wait_ms: int = 10000
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -278,6 +283,8 @@ class ZenohConfig:
             # 1-20% of 7 kB messages at 900 msg/s on loopback; 16 lost none
             "transport/link/tx/queue/size/data": 16,
         }
+        if self.mode == "client":
+            values["connect/timeout_ms"] = self.client_wait_ms
         if self.tls is not None:
             values.update(self.tls.zenoh_values())
         if self.report_endpoints:

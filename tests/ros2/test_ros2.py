@@ -235,6 +235,7 @@ type = "nav_msgs/msg/Odometry"
     (("nav_msgs/msg/Odometry", "sensor_msgs/msg/Image"), "inputs[0].type 'sensor_msgs/msg/Image' is not supported"),
     (('topic = "/odom"', 'topic = "odom"'), "inputs[0].topic: a ROS 2 topic is a fully qualified name"),
     (('scenario = "s.toml"', 'scenario = "s.toml"\nduration = -1'), "duration must be positive"),
+    (('scenario = "s.toml"', 'scenario = "s.toml"\nrun_id = 42'), "run_id must be str, got int 42"),
     (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "nowhere.py:f"'),
      "inputs[0].convert: "),
     (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "f"'),
@@ -249,6 +250,37 @@ def test_the_node_file_loader_is_strict(tmp_path, change, error):
     with pytest.raises(ValidationError) as e:
         load_node_file(f)
     assert error in str(e.value) and "\n" not in str(e.value)
+
+
+def test_the_node_files_run_id_authenticates_the_nodes_messages_for_that_run(tmp_path):
+    """run_id (default none: "") reaches the live node: its fusion messages carry a MAC for the
+    network key and that run, so a neighbour of that run fuses them and one of another run refuses
+    them (issue 25, hosts: a live node beside host processes started with --run-id)."""
+    from dfusion.errors import MessageError
+    from dfusion.run.live import LiveNodeProcess
+    from dfusion.scenario.build import build_node
+    from dfusion.scenario.loader import load_scenario
+
+    (tmp_path / "s.toml").write_text(TWO_NODES.format(duration=5.0))
+    f = tmp_path / "n.toml"
+    f.write_text(NODE)
+    assert load_node_file(f).run_id is None
+    f.write_text(NODE.replace('scenario = "s.toml"', 'scenario = "s.toml"\nrun_id = "plant-7"'))
+    nf = load_node_file(f)
+    assert nf.run_id == "plant-7"
+    sc = load_scenario(nf.scenario)
+    key = b"k" * 32
+    robot = LiveNodeProcess(sc, "robot", nf, network="n", network_key=key, run_id=nf.run_id).node
+    robot.predict(0.1)
+    message = robot.message_to("base")
+    for run, fused in (("plant-7", 1), ("", 0)):
+        base = build_node(sc, "base", network_key=key, network="n", run=run, epoch=2)
+        base.predict(0.1)
+        try:
+            base.receive(message)
+        except MessageError:   # refused (unauthenticated): counted below
+            pass
+        assert (base.stats.messages_received, base.stats.messages_rejected) == (fused, 1 - fused), run
 
 
 def test_an_input_that_does_not_fit_the_node_is_refused_at_start(tmp_path, capsys):

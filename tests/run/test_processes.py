@@ -126,15 +126,20 @@ def kill_pids(pids) -> None:
 
 
 def test_run_ends_where_simulate_ends(tmp_path, capsys):
-    """3-node chain without drops: every process's final estimate is the centralized one (and simulate's)."""
+    """3-node chain without drops: every process's final estimate is the centralized one (and simulate's).
+    Its stderr is not a terminal: the progress comes as lines (one at the end at least), as simulate's."""
     scenario = chain3(tmp_path)
     out_json, out_png = tmp_path / "run.json", tmp_path / "run.png"
     t0 = time.monotonic()
     rc = main(["run", str(scenario), "--speed", "4", "--json", str(out_json), "--plot", str(out_png),
-               "--run-dir", str(tmp_path / "run"), "--quiet"])
+               "--run-dir", str(tmp_path / "run")])
     wall = time.monotonic() - t0
-    printed = capsys.readouterr().out
+    cap = capsys.readouterr()
+    printed = cap.out
     assert rc == 0, printed
+    steps = load_scenario(scenario).steps
+    assert f"progress: {steps}/{steps} steps (100 %)" in cap.err and ", alive " in cap.err, cap.err
+    assert cap.err.count(f"progress: {steps}/{steps} steps") == 1
     got = json.loads(out_json.read_text())
     ref = run_scenario(load_scenario(scenario)).metrics
     # run has no front-end counters (measurements_detail); --json adds the per-step series

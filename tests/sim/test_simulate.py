@@ -323,3 +323,36 @@ def test_no_protection_on_the_command_line(tmp_path, capsys):
     assert data["protection"] == "off"
     assert all(v["tests"] is None and v["health"] == "ok" for v in data["nodes"].values())
     assert "protection: off" in capsys.readouterr().out
+
+
+def test_progress_off_a_terminal_is_a_line_every_interval_and_one_at_the_end():
+    """dfusion.sim.runner.Progress (simulate, replay and dfusion run's launcher) on a stream that is
+    not a terminal: a line when PROGRESS_INTERVAL has passed since the last one, the last count once
+    at the end (by update or close), nothing on a bar."""
+    import io
+
+    from dfusion.sim.runner import PROGRESS_INTERVAL, Progress
+
+    assert PROGRESS_INTERVAL == 10.0
+
+    stream = io.StringIO()
+    clock = iter([0.0, 3.0, 11.0, 12.0, 25.0, 26.0, 27.0, 28.0])   # PROGRESS_INTERVAL = 10 s
+    p = Progress(10, stream=stream)
+    p._clock = lambda: next(clock)
+    p.start = p._last = p._clock()
+    p.update(2, "alive 3/3")   # 3 s: nothing yet
+    p.update(4, "alive 3/3")   # 11 s: a line
+    p.update(5)                # 12 s: nothing
+    p.update(6, "alive 2/3")   # 25 s: a line (14 s since the last one)
+    p.update(7, "alive 2/3")   # 26 s: nothing
+    p.close()                  # 27 s: the last count
+    p.close()                  # nothing more
+    assert stream.getvalue().splitlines() == [
+        "progress: 4/10 steps (40 %), 11 s, alive 3/3", "progress: 6/10 steps (60 %), 25 s, alive 2/3",
+        "progress: 7/10 steps (70 %), 27 s, alive 2/3"]
+    stream = io.StringIO()
+    p = Progress(3, stream=stream)
+    for k in (1, 2, 3, 3, 3):   # the end reached and repeated (the launcher polls): one line
+        p.update(k)
+    p.close()
+    assert stream.getvalue().count("progress: 3/3 steps (100 %)") == 1 and stream.getvalue().count("\n") == 1
