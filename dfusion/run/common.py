@@ -52,6 +52,39 @@ PHASES = ("ready", "run", "final", "stopped")
 ROUND_TIMEOUT = 10.0
 
 
+#: A node process writes at most this many bytes of log lines per incarnation (``logs/NAME.log``
+#: collects every incarnation's output); past it, lines below ERROR are dropped and counted
+#: (``log_lines_dropped`` in the run's JSON). Errors are always written.
+MAX_LOG_BYTES = 8 << 20
+
+
+class LogByteCap(logging.Filter):
+    """A filter on a handler that lets through at most ``max_bytes`` of formatted log lines.
+
+    Past the cap it writes one line saying so, then drops every record below ``ERROR`` and
+    counts it in :attr:`dropped`: a flood of rejections or liveliness changes cannot fill the
+    disk, and nothing is dropped silently. The size counted is that of the formatted line.
+    """
+
+    def __init__(self, handler: logging.Handler, max_bytes: int = MAX_LOG_BYTES) -> None:
+        super().__init__()
+        self.handler, self.max_bytes = handler, int(max_bytes)
+        self.written = 0
+        self.dropped = 0
+        self._announced = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.written >= self.max_bytes and record.levelno < logging.ERROR:
+            self.dropped += 1
+            if not self._announced:
+                self._announced = True
+                self.handler.stream.write(f"log output reached its cap of {self.max_bytes} bytes: lines below "
+                                          "ERROR are dropped from here on and counted (log_lines_dropped)\n")
+            return False
+        self.written += len(self.handler.format(record)) + 1
+        return True
+
+
 def load_network_key(path: str | Path | None = None) -> bytes | None:
     """The network key: from ``path``, else ``$DFUSION_NETWORK_KEY_FILE``, else ``$DFUSION_NETWORK_KEY``.
 

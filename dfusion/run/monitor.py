@@ -486,6 +486,10 @@ def build_result(
             "receive_queue_peak_bytes": max((s.get("receive_queue_peak_bytes", 0) for s in per_epoch), default=0),
             # liveliness log lines held back (at most one per neighbour's loss, one per return, a second)
             "log_lines_held_back": total.get("log_lines_held_back", 0),
+            # log lines dropped past the process's byte cap (dfusion.run.common.MAX_LOG_BYTES), and blocks
+            # ahead of the held-information bound (max_held / max_ahead): not stored, sent again
+            "log_lines_dropped": total.get("log_lines_dropped", 0),
+            "blocks_too_far_ahead": total.get("blocks_too_far_ahead", 0),
             # one-sided link lapses injected by a chaos driver (--chaos-dir; dfusion.run.chaos)
             **({"chaos_lapses": total["chaos_lapses"]} if "chaos_lapses" in total else {}),
         }

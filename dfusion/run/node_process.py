@@ -55,6 +55,7 @@ import zenoh
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError
 from dfusion.run.common import (
     ROUND_TIMEOUT,
+    LogByteCap,
     Status,
     TreeStatus,
     add_tls_arguments,
@@ -176,6 +177,10 @@ class NodeProcess:
         Testing only (``--chaos-dir``, ``benchmarks/chaos.py``): apply the one-sided link lapses
         requested there (:mod:`dfusion.run.chaos`); None (the default): no such requests are read.
     """
+
+    #: The byte cap on this process's log output (:class:`dfusion.run.common.LogByteCap`); the
+    #: first node of a process reports its drops (``log_lines_dropped``), so they are counted once.
+    log_cap: LogByteCap | None = None
 
     def __init__(
         self,
@@ -625,7 +630,7 @@ class NodeProcess:
             "messages_rejected": s.messages_rejected, "duplicates": s.duplicates,
             "rejected_on_arrival": s.rejected_on_arrival,
             **{f"rejected_{reason}": count for reason, count in s.rejections.items()},
-            "blocks_outside_window": s.blocks_outside_window,
+            "blocks_outside_window": s.blocks_outside_window, "blocks_too_far_ahead": s.blocks_too_far_ahead,
             "delivered": tot.delivered if tot else 0, "published": tot.sent if tot else 0,
         }
         if self.tr is not None:   # the receive queue's bound in bytes: its peak and what it shed
@@ -644,6 +649,8 @@ class NodeProcess:
                        quarantined_now=len(g["quarantined"]))
         if self.chaos is not None:
             out["chaos_lapses"] = self.chaos.applied
+        if self.log_cap is not None:
+            out["log_lines_dropped"] = self.log_cap.dropped
         out["cpu_ms"] = int(self.cpu * 1000)
         if self._cpu_at_start is not None:   # the process's CPU clock sums every thread's: costly, not every step
             out["host_cpu_ms"] = int((time.process_time() - self._cpu_at_start) * self.host_share * 1000)
@@ -994,6 +1001,9 @@ def main(argv: list[str] | None = None) -> int:
     label = args.host or "+".join(args.node)
     logging.basicConfig(level=level, stream=sys.stderr, force=True,
                         format=f"%(asctime)s %(levelname)s [{label}] %(name)s: %(message)s")
+    handler = logging.getLogger().handlers[0]
+    log_cap = LogByteCap(handler)
+    handler.addFilter(log_cap)
     watch: LauncherWatch | None = None
     locks: list[FileLock] = []
     try:
@@ -1025,6 +1035,7 @@ def main(argv: list[str] | None = None) -> int:
         registry = EndpointRegistry(args.run_dir) if args.run_dir is not None and not args.listen else None
         host = Host(procs, network=args.network, zconfig=zc, parent_pid=args.parent_pid, watch=watch,
                     registry=registry, label=label)
+        procs[0].log_cap = log_cap
         if early:
             return 0
         if several:

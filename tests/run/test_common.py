@@ -226,3 +226,36 @@ def test_monitor_queue_is_bounded_in_bytes_and_forged_publications_take_no_space
         assert mon.poll() == 10
         assert mon.rejections == {"queue-full": 15, "unauthenticated": 25, "oversized": 1}
         assert mon._queued_bytes == 0 and mon.records["a"].have[3]
+
+
+def test_log_byte_cap_drops_and_counts_past_its_cap_but_keeps_errors():
+    """A node process's log output is capped in bytes (``LogByteCap``): past the cap one line says
+    so, lines below ERROR are dropped and counted, errors still written; the bytes are counted
+    from the stream itself here, not from the filter's own counter."""
+    import io
+    import logging
+
+    from dfusion.run.common import LogByteCap
+
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+    cap = LogByteCap(handler, max_bytes=1000)
+    handler.addFilter(cap)
+    logger = logging.getLogger("dfusion.test.logcap")
+    logger.propagate = False
+    logger.setLevel(logging.INFO)
+    logger.addHandler(handler)
+    try:
+        for k in range(200):
+            logger.info("rejected a message from b: %04d", k)   # 37 bytes a line with its newline
+        logger.error("the node stopped")
+    finally:
+        logger.removeHandler(handler)
+    lines = stream.getvalue().splitlines()
+    infos = [line for line in lines if line.startswith("INFO ")]
+    assert len(infos) == 28                        # ceil(1000 / 37) lines: the cap is checked before a line
+    assert sum(len(line) + 1 for line in infos) == 28 * 37
+    assert cap.dropped == 200 - 28
+    assert sum("reached its cap of 1000 bytes" in line for line in lines) == 1
+    assert lines[-1] == "ERROR the node stopped"

@@ -159,6 +159,8 @@ def test_run_ends_where_simulate_ends(tmp_path, capsys):
     assert got["centralized"] == ref["centralized"]   # the same world, the same EKF
     assert got["measurements"] == ref["measurements"]
     assert got["run"]["measurements_lost"] == 0
+    for name, v in got["run"]["nodes"].items():   # the byte bounds' counters, none hit on a calm run
+        assert v["log_lines_dropped"] == 0 and v["blocks_too_far_ahead"] == 0 and v["receive_queue_shed"] == 0, v
     assert "node" in printed and "centralized" in printed and out_png.stat().st_size > 1000
     print(f"run ends where simulate ends: {wall:.1f} s wall; RMSE run/simulate: "
           + ", ".join(f"{n} {v['rmse']:.3f}/{ref['nodes'][n]['rmse']:.3f}" for n, v in got["nodes"].items()))
