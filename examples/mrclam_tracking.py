@@ -21,7 +21,7 @@ Each observer robot ``k``:
    ``--bearing-std``, the residual levels stated in the dataset README). Its landmark
    updates are robust (:data:`POSE_MONITOR`, :mod:`dfusion.estimation.innovation`):
    chi-square gate 13.8 (0.999), Huber weights beyond 5.99 (0.95), and lock-out
-   recovery after 10 consecutive rejected landmarks that agree on one pose jump. It
+   recovery after 10 looks (scans) of rejected landmarks that agree on one pose jump. It
    starts from its ground-truth pose at time 0 with 5 cm / 0.05 rad uncertainty, as is
    usual with this dataset.
 2. **tracks robot 1** in a :class:`~dfusion.fusion.FusionNode`. Target models
@@ -47,7 +47,7 @@ Each observer robot ``k``:
    The fixes go through a
    :class:`~dfusion.frontends.TargetTrackingFrontEnd`
    (:data:`TARGET_MONITOR`): gated (13.8) against the node's *fused* estimate,
-   Huber-weighted, and when 5 consecutive fixes are rejected, agree on where robot 1 is
+   Huber-weighted, and when the fixes of 5 looks (filter steps) are rejected, agree on where robot 1 is
    and no neighbour's information backed the node's belief meanwhile, the node's
    belief of robot 1's position is re-initialized from them (process noise added at
    the node only: nothing is double counted, ``docs/robots.md``). ``--no-robust``: the
@@ -304,12 +304,12 @@ class JointEKF:
 
 
 #: Robust settings of the robot-1 trackers (nodes and joint EKF): gate 0.999, Huber 0.95,
-#: lock-out after k = 5 consecutive rejected fixes (false alarm 1e-3 with up to 25 %
+#: lock-out after k = 5 looks of rejected fixes (false alarm 1e-3 with up to 25 %
 #: independent outliers), NIS window of 10 tracked, drift test off (docs/robots.md:
 #: measured, it hurts here).
 TARGET_MONITOR = MonitorSettings(drift_test=False)
 #: The same for the landmark updates of the pose EKFs (and the joint EKF's pose blocks),
-#: except k = 10 (up to 50 % outliers): MRCLAM's landmark range failures come in bursts
+#: except k = 10 looks (up to 50 % outliers): MRCLAM's landmark range failures come in bursts
 #: on neighbouring landmarks, which k = 5 mistakes for lock-outs (docs/robots.md).
 POSE_MONITOR = MonitorSettings(drift_test=False, max_outlier_rate=0.5)
 

@@ -97,8 +97,8 @@ class TargetTrackingFrontEnd(FrontEnd):
         return a
 
     def status(self) -> str:
-        """``"lost"`` while the current run of rejected fixes is as long as the lock-out test's."""
-        return "lost" if self.monitor.run >= self.monitor.run_length else "ok"
+        """``"lost"`` while the current run of rejected fixes spans as many looks as the lock-out test's."""
+        return "lost" if self.monitor.looks >= self.monitor.run_length else "ok"
 
     def health(self) -> dict[str, float]:
         """The counters, with the monitor's: mean NIS, largest windowed mean NIS, fixes

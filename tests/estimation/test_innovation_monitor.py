@@ -110,10 +110,10 @@ def test_jump_along_an_undetermined_direction_gets_no_noise():
 
 
 # --------------------------------------------------------------------------- lock-out test
-def _run(mon, innovations, S, sources=None):
+def _run(mon, innovations, S, sources=None, t0=0.0):
     out = []
     for i, nu in enumerate(innovations):
-        out.append(mon.test(float(i), nu, S, source=None if sources is None else sources[i]))
+        out.append(mon.test(t0 + i, nu, S, source=None if sources is None else sources[i]))
     return out
 
 
@@ -124,7 +124,7 @@ def test_lockout_needs_a_run_of_consistent_rejections():
     # four consistent rejections: not yet
     _run(mon, [np.array([1.0, 0.5])] * 4, S)
     assert mon.run == 4 and mon.divergence(P_b) is None
-    _run(mon, [np.array([1.02, 0.49])], S)
+    _run(mon, [np.array([1.02, 0.49])], S, t0=4.0)
     kind, jump = mon.divergence(P_b)
     assert kind == "lockout"
     np.testing.assert_allclose(jump.delta, [1.004, 0.498], atol=1e-9)
@@ -136,6 +136,34 @@ def test_lockout_needs_a_run_of_consistent_rejections():
     mon3 = InnovationMonitor("broken", 2, MonitorSettings(drift_test=False))
     _run(mon3, [np.array([1.0, 0.5])] * 4 + [np.zeros(2)] + [np.array([1.0, 0.5])] * 4, S)
     assert mon3.run == 4 and mon3.divergence(P_b) is None
+
+
+def test_a_burst_of_rejections_in_few_looks_is_no_lockout_until_it_lasts_k_looks():
+    """MRCLAM's pattern (dataset 6, robot 5 at 110.6-111.1 s): 10 landmarks rejected in 3
+    scans during a fast turn, all consistent with one pose jump, which a plain EKF got
+    over by itself. The measurements of one scan share the belief error and none of them
+    is fused: one look, not 4 independent rejections. Only k = 10 looks make a lock-out."""
+    S = np.eye(2) * 0.01
+    P_b = np.eye(3) * 0.001
+    H = {"A": np.array([[1.0, 0.0, 0.3], [0.0, 1.0, -0.2]]), "B": np.array([[0.2, 1.0, 1.0], [1.0, 0.0, -1.0]]),
+         "C": np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), "D": np.array([[0.0, 1.0, 0.5], [1.0, 0.3, 0.0]])}
+    d = np.array([0.6, 0.5, 0.4])
+    mon = InnovationMonitor("burst", 2, MonitorSettings(drift_test=False, max_outlier_rate=0.5))
+    assert mon.run_length == 10
+    scans = [(110.6, "ABCD"), (110.8, "ABC"), (111.1, "ABC")]   # 10 measurements, 3 looks
+    for t, srcs in scans:
+        for src in srcs:
+            assert not mon.test(t, H[src] @ d, S, H[src], source=src).accept
+    assert mon.run == 10 and mon.looks == 3
+    assert mon.divergence(P_b) is None
+    # the belief stays wrong for 10 looks: a lock-out, the jump from all their measurements
+    for i in range(7):
+        for src in "AB" if i % 2 else "CD":
+            mon.test(111.3 + 0.2 * i, H[src] @ d, S, H[src], source=src)
+    assert mon.looks == 10
+    kind, jump = mon.divergence(P_b)
+    assert kind == "lockout"
+    np.testing.assert_allclose(jump.delta, d, atol=1e-9)
 
 
 def test_lockout_judges_only_measurements_up_to_the_horizon():
@@ -175,7 +203,7 @@ def test_lockout_is_not_declared_on_a_single_source_or_when_supported():
     assert three.divergence(P_b, supported=lambda t0, t1: True) is None
     spans = []
     three.divergence(P_b, supported=lambda t0, t1: spans.append((t0, t1)) or False)
-    assert spans == [(1.0, 5.0)]   # the last k = 5 rejected measurements
+    assert spans == [(1.0, 5.0)]   # the measurements of the last k = 5 looks
 
 
 def test_drift_test_flags_a_persistent_bias_but_not_zero_mean_heavy_tails():
