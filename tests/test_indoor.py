@@ -48,6 +48,13 @@ def test_reader_matches_the_raw_lines():
     stale = sum(int(r[0]) - int(r[6]) > 2000 for r in wifi)
     assert fresh.n_stale_wifi == stale
     assert len(tr.beacons) == sum(r[1] == "TYPE_BEACON" for r in raw)
+    # a scan's measurement time is the median last-seen time of the entries kept (statistics.median)
+    import statistics
+    for sc in fresh.wifi[:5]:
+        ms = int(round(sc.t * 1000)) + fresh.t0_ms
+        kept = [int(r[6]) for r in wifi if int(r[0]) == ms and ms - int(r[6]) <= 2000]
+        assert sc.t_seen == pytest.approx((statistics.median(kept) - fresh.t0_ms) / 1000, abs=1e-9)
+        assert sc.measured_at == sc.t_seen < sc.t
 
 
 def test_floor_outline_is_in_metres_and_spans_the_floor():
@@ -245,6 +252,48 @@ def test_reweight_information_is_the_gaussian_product():
     mean, cov = loc.estimate()
     assert mean == pytest.approx(m1, abs=0.03)
     assert cov == pytest.approx(P1, abs=0.05)
+
+
+def test_radio_fit_is_the_gaussian_integral():
+    """For particles from N(m, P), sum_i w_i exp(-d_i^T Omega d_i / 2) tends to the closed form
+    sqrt(det C / det(C + P)) exp(-(m - z)^T (C + P)^-1 (m - z) / 2), C = Omega^-1."""
+    mp, _ = synthetic_map()
+    loc = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=200000), seed=4)
+    m, P = np.array([20.0, 20.0]), np.array([[4.0, 1.0], [1.0, 2.0]])
+    loc.initialize(0.0, m, P)
+    C = np.array([[9.0, -2.0], [-2.0, 16.0]])
+    z = np.array([24.0, 15.0])
+    d = m - z
+    ref = np.sqrt(np.linalg.det(C) / np.linalg.det(C + P)) * np.exp(-0.5 * d @ np.linalg.solve(C + P, d))
+    assert loc.radio_fit(z, np.linalg.inv(C)) == pytest.approx(ref, rel=0.01)
+
+
+def test_augmented_mcl_redraws_a_lost_set_around_the_fix():
+    """recovery_fraction follows Thrun's recurrences (a plain loop here); a set that stops agreeing with
+    the fixes gets particles redrawn around them, a set that keeps agreeing gets none."""
+    mp, _ = synthetic_map()
+    cfg = MagneticPFSettings(n_particles=2000, recover_slow=0.1, recover_fast=0.5)
+    fits = [0.4, 0.5, 0.45, 0.05, 0.02, 0.3]
+    loc = MagneticLocalizer(mp, 0.5, 0.0, cfg, seed=5)
+    loc.initialize(0.0, [20.0, 20.0], np.eye(2))
+    ws = wf = None
+    for f in fits:
+        ws, wf = (f, f) if ws is None else (ws + 0.1 * (f - ws), wf + 0.5 * (f - wf))
+        assert loc.recovery_fraction(f) == pytest.approx(max(0.0, 1.0 - wf / ws))
+    C = 4.0 * np.eye(2)
+    for truth, lost in (([20.0, 20.0], False), ([32.0, 20.0], True)):
+        loc = MagneticLocalizer(mp, 0.5, 0.0, cfg, seed=6)
+        loc.initialize(0.0, [20.0, 20.0], 0.25 * np.eye(2))
+        for k in range(8):  # the set stands at (20, 20); the fixes are at the truth
+            z = np.asarray(truth) if k >= 3 else np.array([20.0, 20.0])
+            loc.reweight_information(np.linalg.solve(C, z), np.linalg.inv(C))
+        assert (loc.injected > 0) == lost
+        if lost:
+            assert np.hypot(*(loc.estimate()[0] - truth)) < 3.0
+    # off: no redraws whatever the fit
+    off = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=500), seed=7)
+    off.initialize(0.0, [20.0, 20.0], np.eye(2))
+    assert off.recovery_fraction(0.01) == 0.0 and off.recovery_fraction(0.9) == 0.0
 
 
 def test_bias_free_map_on_the_slice_tracks_the_other_walk():

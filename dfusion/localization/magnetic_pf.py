@@ -60,7 +60,9 @@ class MagneticPFSettings:
     magnetic likelihood: ``sensor_var`` [uT^2], ``bias_var`` [uT^2] (prior of the per-walk bias),
     ``temper`` (divides the log-likelihood), ``off_map`` (likelihood factor off the map's support; 1:
     none), ``features`` (columns of the field features used: 0 = B_z, 1 = B_h, 2 = |B|);
-    ``roughening`` (Gordon's K, position only)."""
+    ``roughening`` (Gordon's K, position only); ``recover_slow``, ``recover_fast`` (augmented MCL's
+    ``alpha_slow < alpha_fast``; 0: off): the smoothing rates of the radio fit's averages that set how many
+    particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix."""
 
     n_particles: int = 2000
     sigma_delta: float = np.radians(0.5)
@@ -76,6 +78,8 @@ class MagneticPFSettings:
     off_map: float = 1.0
     features: tuple[int, ...] = (0, 1, 2)
     roughening: float = 0.05
+    recover_slow: float = 0.0
+    recover_fast: float = 0.0
 
 
 class MagneticLocalizer:
@@ -104,6 +108,9 @@ class MagneticLocalizer:
         self.time: float | None = None
         self._ref: tuple[Array, Array] | None = None
         self._fj = np.asarray(self.cfg.features, dtype=np.int64)
+        self.w_slow: float | None = None
+        self.w_fast: float | None = None
+        self.injected = 0
 
     # ---------------------------------------------------------------- set-up
     def initialize(self, t: float, mean: ArrayLike | None = None, cov: ArrayLike | None = None) -> None:
@@ -116,6 +123,8 @@ class MagneticLocalizer:
         self.pf.roughening_dims = (0, 1)
         self.time = float(t)
         self._ref = self._fit()
+        self.w_slow = self.w_fast = None
+        self.injected = 0
 
     def _draw(self, n: int, mean: ArrayLike | None, cov: ArrayLike | None, rng: np.random.Generator) -> Array:
         """``n`` particles: positions from ``N(mean, cov)`` (uniform over the support without a mean),
@@ -188,35 +197,68 @@ class MagneticLocalizer:
             return
         pf.resample_if_needed()
 
+    def radio_fit(self, mean: ArrayLike, omega: ArrayLike) -> float:
+        """The particle set's agreement with a radio fix ``N(mean, Omega^-1)``: the average likelihood of
+        augmented MCL scaled by the Gaussian's peak, ``w_avg = sum_i w_i exp(-d_i^T Omega d_i / 2)``,
+        ``d_i = p_i - mean``, in ``[0, 1]`` (fixes of different widths compare)."""
+        pf = self._require()
+        d = pf.particles[:, :2] - np.asarray(mean, dtype=float)
+        return float(pf.weights @ np.exp(-0.5 * np.einsum("ij,jk,ik->i", d, np.asarray(omega, dtype=float), d)))
+
+    def recovery_fraction(self, fit: float) -> float:
+        """Augmented MCL (Thrun, Burgard and Fox, *Probabilistic Robotics*, 2005, sec. 8.3.5, Table 8.3):
+        ``w_slow += alpha_slow (w_avg - w_slow)``, ``w_fast += alpha_fast (w_avg - w_fast)`` (both start at
+        the first ``w_avg``); the fraction of particles to redraw is ``max(0, 1 - w_fast / w_slow)``: the
+        set's recent fit to the radio fixes against its long-run fit. 0 when the rates are 0 (off)."""
+        c = self.cfg
+        if c.recover_slow <= 0 or c.recover_fast <= 0:
+            return 0.0
+        if self.w_slow is None or self.w_fast is None:
+            self.w_slow = self.w_fast = float(fit)
+        else:
+            self.w_slow += c.recover_slow * (fit - self.w_slow)
+            self.w_fast += c.recover_fast * (fit - self.w_fast)
+        return max(0.0, 1.0 - self.w_fast / self.w_slow) if self.w_slow > 0 else 0.0
+
     def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0,
                              floor: float = 0.0) -> None:
         """Multiply the weights by ``exp(eta^T p - p^T Omega p / 2)`` (information from the network on
         ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
         prediction, this resets the reference of :meth:`information_contribution`.
 
-        ``inject`` in ``[0, 1)``: first the fraction ``inject`` of the particles with the lowest weights
-        is replaced by draws from the Gaussian ``N(Omega^-1 eta, Omega^-1)`` (heading offset, scale and
-        bias from their initial laws) at the mean weight of the set: the mixture proposal of Monte
-        Carlo localization with sensor resetting (Lenser and Veloso, "Sensor resetting localization for
-        poorly modelled mobile robots", ICRA 2000; Thrun, Burgard and Fox, *Probabilistic Robotics*,
-        2005, sec. 8.3.5), so that a set locked onto the wrong corridor can recover."""
+        Particles are first redrawn around the fix (when ``Omega`` is positive definite): the fraction
+        ``max(inject, recovery_fraction)`` (:meth:`recovery_fraction`, augmented MCL) of the particles
+        with the lowest weights is replaced by draws from ``N(Omega^-1 eta, Omega^-1)`` (heading offset,
+        scale and bias from their initial laws) at the mean weight of the set: the mixture proposal of
+        Monte Carlo localization with sensor resetting (Lenser and Veloso, "Sensor resetting
+        localization for poorly modelled mobile robots", ICRA 2000; Thrun, Burgard and Fox,
+        *Probabilistic Robotics*, 2005, sec. 8.3.5), so that a set locked onto the wrong corridor can
+        recover.
+
+        ``floor > 0`` makes the radio likelihood robust: ``max``-normalized Gaussian plus a uniform
+        outlier floor, ``log(exp(-D^2 / 2) + floor)`` with ``D`` the Mahalanobis distance to the fix."""
         pf = self._require()
         e = np.asarray(eta, dtype=float)
         O = np.asarray(omega, dtype=float)
+        definite = bool(np.all(np.linalg.eigvalsh(O) > 0))
         k = int(float(inject) * pf.n)
-        if k > 0 and np.all(np.linalg.eigvalsh(O) > 0):
+        if definite:
+            z = np.linalg.solve(O, e)
+            k = max(k, int(self.recovery_fraction(self.radio_fit(z, O)) * pf.n))
+        if k > 0 and definite:
             x = pf.particles.copy()
             lw = pf.log_weights.copy()
             worst = np.argsort(lw)[:k]
             C = np.linalg.inv(O)
-            x[worst] = self._draw(k, np.linalg.solve(O, e), 0.5 * (C + C.T), pf.rng)
+            x[worst] = self._draw(k, z, 0.5 * (C + C.T), pf.rng)
             top = lw.max()
             lw[worst] = top + np.log(np.mean(np.exp(lw - top)))
             pf.set_particles(x, lw)
+            self.injected += k
         p = pf.particles[:, :2]
         ll = p @ e - 0.5 * np.einsum("ij,jk,ik->i", p, O, p)
-        if floor > 0 and np.all(np.linalg.eigvalsh(O) > 0):
-            d = p - np.linalg.solve(O, e)
+        if floor > 0 and definite:
+            d = p - z
             ll = np.logaddexp(-0.5 * np.einsum("ij,jk,ik->i", d, O, d), np.log(floor))
         self._update(ll - ll.max())
         self._ref = self._fit()
