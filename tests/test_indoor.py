@@ -296,6 +296,34 @@ def test_augmented_mcl_redraws_a_lost_set_around_the_fix():
     assert off.recovery_fraction(0.01) == 0.0 and off.recovery_fraction(0.9) == 0.0
 
 
+def test_radio_track_is_the_gaussian_product_and_its_test_the_chi_square_p_value():
+    """The radio track is the information-form product of the fixes (moved by the particles' step), and
+    the test's p-value is scipy's chi-square survival function of the set-to-track Mahalanobis distance."""
+    from scipy.stats import chi2
+
+    mp, _ = synthetic_map()
+    loc = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=4000, roughening=0.0), seed=9)
+    loc.initialize(0.0, [20.0, 20.0], np.eye(2))
+    z1, C1 = np.array([22.0, 19.0]), np.diag([16.0, 9.0])
+    loc.radio_track_test(z1, C1)
+    assert loc.radio_track[0] == pytest.approx(z1) and loc.radio_track[1] == pytest.approx(C1)
+    before = loc.pf.particles[:, :2].copy(), loc.pf.weights.copy()
+    loc.step(1.0, 1.0, 0.0, None)                        # no magnetic update: the weights stay
+    d = loc.pf.particles[:, :2] - before[0]
+    dm = before[1] @ d
+    dC = (d - dm).T @ ((d - dm) * before[1][:, None])
+    r0, R0 = z1 + dm, C1 + dC
+    assert loc.radio_track[0] == pytest.approx(r0) and loc.radio_track[1] == pytest.approx(R0)
+    z2, C2 = np.array([18.0, 23.0]), np.array([[25.0, 4.0], [4.0, 10.0]])
+    pval = loc.radio_track_test(z2, C2)
+    R1 = np.linalg.inv(np.linalg.inv(R0) + np.linalg.inv(C2))
+    r1 = R1 @ (np.linalg.solve(R0, r0) + np.linalg.solve(C2, z2))
+    assert loc.radio_track[0] == pytest.approx(r1) and loc.radio_track[1] == pytest.approx(R1)
+    m = np.average(loc.pf.particles[:, :2], axis=0, weights=loc.pf.weights)
+    P = np.cov(loc.pf.particles[:, :2].T, aweights=loc.pf.weights, bias=True)
+    assert pval == pytest.approx(chi2.sf((m - r1) @ np.linalg.solve(P + R1, m - r1), 2))
+
+
 def test_bias_free_map_on_the_slice_tracks_the_other_walk():
     fl = read_floor(DATA)
     steps = [pdr_steps(t) for t in fl.traces]

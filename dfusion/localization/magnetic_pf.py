@@ -62,7 +62,9 @@ class MagneticPFSettings:
     none), ``features`` (columns of the field features used: 0 = B_z, 1 = B_h, 2 = |B|);
     ``roughening`` (Gordon's K, position only); ``recover_slow``, ``recover_fast`` (augmented MCL's
     ``alpha_slow < alpha_fast``; 0: off): the smoothing rates of the radio fit's averages that set how many
-    particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix."""
+    particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix;
+    ``recover_alpha`` (0: off): significance level of the test of the particle set against the radio track
+    (:meth:`MagneticLocalizer.radio_track_test`) below which particles are redrawn from that track."""
 
     n_particles: int = 2000
     sigma_delta: float = np.radians(0.5)
@@ -80,6 +82,7 @@ class MagneticPFSettings:
     roughening: float = 0.05
     recover_slow: float = 0.0
     recover_fast: float = 0.0
+    recover_alpha: float = 0.0
 
 
 class MagneticLocalizer:
@@ -125,6 +128,7 @@ class MagneticLocalizer:
         self._ref = self._fit()
         self.w_slow = self.w_fast = None
         self.injected = 0
+        self.radio_track: tuple[Array, Array] | None = None
 
     def _draw(self, n: int, mean: ArrayLike | None, cov: ArrayLike | None, rng: np.random.Generator) -> Array:
         """``n`` particles: positions from ``N(mean, cov)`` (uniform over the support without a mean),
@@ -166,6 +170,9 @@ class MagneticLocalizer:
         x[:, 1] += L * np.sin(a)
         if c.sigma_pos > 0:
             x[:, :2] += rng.standard_normal((n, 2)) * c.sigma_pos
+        if self.radio_track is not None:  # the radio track moves by the particles' step, mean and spread
+            dm, dC = weighted_mean_cov(x[:, :2] - pf.particles[:, :2], pf.weights)
+            self.radio_track = (self.radio_track[0] + dm, self.radio_track[1] + dC)
         pf.move(x)
         self.time = float(t)
         if field is not None:
@@ -220,6 +227,28 @@ class MagneticLocalizer:
             self.w_fast += c.recover_fast * (fit - self.w_fast)
         return max(0.0, 1.0 - self.w_fast / self.w_slow) if self.w_slow > 0 else 0.0
 
+    def radio_track_test(self, z: Array, C: Array) -> float:
+        """Update the radio track with the fix ``N(z, C)`` and test the particle set against it.
+
+        The radio track ``N(r, R)`` is a Kalman filter of the radio fixes alone, moved between fixes by the
+        particles' mean step and its spread (:meth:`step`): PDR + radio, the network's Kalman baseline. A fix
+        updates it (``G = R (R + C)^-1``, ``r += G (z - r)``, ``R = (I - G) R``; the first fix starts it).
+        The test: with the set's Gaussian fit ``N(m, P)``, ``D^2 = (m - r)^T (P + R)^-1 (m - r)`` is
+        chi-square with 2 degrees of freedom when both describe the same position, so its p-value is
+        ``exp(-D^2 / 2)``; returned. Shared PDR and radio information make ``D^2`` smaller than
+        independent estimates' would be, so the test is conservative."""
+        if self.radio_track is None:
+            self.radio_track = (z.copy(), C.copy())
+        else:
+            r, R = self.radio_track
+            G = np.linalg.solve(R + C, R).T
+            R1 = (np.eye(2) - G) @ R
+            self.radio_track = (r + G @ (z - r), 0.5 * (R1 + R1.T))
+        r, R = self.radio_track
+        m, P = self._fit()
+        d = m - r
+        return float(np.exp(-0.5 * d @ np.linalg.solve(P + R, d)))
+
     def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0,
                              floor: float = 0.0) -> None:
         """Multiply the weights by ``exp(eta^T p - p^T Omega p / 2)`` (information from the network on
@@ -242,15 +271,23 @@ class MagneticLocalizer:
         O = np.asarray(omega, dtype=float)
         definite = bool(np.all(np.linalg.eigvalsh(O) > 0))
         k = int(float(inject) * pf.n)
+        src = None
         if definite:
             z = np.linalg.solve(O, e)
+            C = np.linalg.inv(O)
+            C = 0.5 * (C + C.T)
+            src = (z, C)
             k = max(k, int(self.recovery_fraction(self.radio_fit(z, O)) * pf.n))
-        if k > 0 and definite:
+            if self.cfg.recover_alpha > 0:
+                pval = self.radio_track_test(z, C)
+                if pval < self.cfg.recover_alpha:
+                    k = max(k, int((1.0 - pval / self.cfg.recover_alpha) * pf.n))
+                    src = self.radio_track
+        if k > 0 and src is not None:
             x = pf.particles.copy()
             lw = pf.log_weights.copy()
             worst = np.argsort(lw)[:k]
-            C = np.linalg.inv(O)
-            x[worst] = self._draw(k, z, 0.5 * (C + C.T), pf.rng)
+            x[worst] = self._draw(k, src[0], src[1], pf.rng)
             top = lw.max()
             lw[worst] = top + np.log(np.mean(np.exp(lw - top)))
             pf.set_particles(x, lw)
