@@ -45,7 +45,7 @@ SETTINGS = dict(
     pf=MagneticPFSettings(),
     track_init_std=1.0,
     radio_weight=1.0, contribute_max_std=3.0, inject=0.0, radio_floor=0.0, mode_output=False,
-    network_q=0.5, use_beacon=False, wifi_shift=True,
+    network_q=0.5, use_beacon=False,
     localized_within=(2.0, 5.0), long_walk=30.0,
 )
 
@@ -75,8 +75,7 @@ def scan_positions(trace: IndoorTrace, steps: PDRSteps, gain: float, off: float,
         pos, tt = trace.waypoints[:, 1:], trace.waypoints[:, 0]
     if len(tt) == 0:
         return []
-    return [(s.rssi, np.array([np.interp(s.measured_at, tt, pos[:, 0]), np.interp(s.measured_at, tt, pos[:, 1])]))
-            for s in scans]
+    return [(s.rssi, np.array([np.interp(s.t, tt, pos[:, 0]), np.interp(s.t, tt, pos[:, 1])])) for s in scans]
 
 
 def beacon_epochs(trace: IndoorTrace, times: np.ndarray) -> list[dict[str, float]]:
@@ -117,9 +116,8 @@ class Fold:
         S, P, G = [], [], []
         for i in train:
             trc = floor.traces[i]
-            times, seen, wifi, beac = radio_epochs(trc)
-            scans = ([RadioScan(t, d, ts) for t, ts, d in zip(times, seen, wifi) if d] if kind == "wifi"
-                     else [RadioScan(t, d) for t, d in zip(times, beac) if d])
+            times, wifi, beac = radio_epochs(trc)
+            scans = [RadioScan(t, d) for t, d in zip(times, wifi if kind == "wifi" else beac) if d]
             for sc, p in scan_positions(trc, steps[i], self.gain, self.off, scans):
                 if sc:
                     S.append(sc)
@@ -132,51 +130,37 @@ class Fold:
         return loc
 
 
-def radio_epochs(trace: IndoorTrace) -> tuple[np.ndarray, np.ndarray, list[dict], list[dict]]:
-    """Epoch times (the WiFi scans' delivery; every 2 s without WiFi), the WiFi scans' measurement times
-    (:attr:`RadioScan.measured_at`), the WiFi scan and the beacon scan of each epoch."""
+def radio_epochs(trace: IndoorTrace) -> tuple[np.ndarray, list[dict], list[dict]]:
+    """Epoch times (the WiFi scans; every 2 s without WiFi), the WiFi scan and the beacon scan of each."""
     if trace.wifi:
         times = np.array([s.t for s in trace.wifi])
-        seen = np.array([s.measured_at for s in trace.wifi])
         wifi = [s.rssi for s in trace.wifi]
     else:
         times = np.arange(2.0, trace.duration + 2.0, 2.0)
-        seen = times.copy()
         wifi = [{} for _ in times]
-    return times, seen, wifi, beacon_epochs(trace, times)
-
-
-def pdr_shift(st: PDRSteps, t_from: float, t_to: float, gain: float, off: float, rel_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """The dead-reckoned displacement of the steps in ``(t_from, t_to]`` and its covariance
-    ``(rel_std |d|)^2 I``: moves a fix of the position when a scan was measured to the position at ``t_to``."""
-    m = (st.t > t_from) & (st.t <= t_to)
-    a = st.psi[m] + off
-    d = gain * np.array([np.sum(st.w[m] * np.cos(a)), np.sum(st.w[m] * np.sin(a))])
-    return d, (rel_std * float(np.hypot(*d))) ** 2 * np.eye(2)
+    return times, wifi, beacon_epochs(trace, times)
 
 
 def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int) -> tuple[dict, dict, dict]:
     """Every method on one walk: ``(tracks, run times, global-localization record)``; a track is ``(times, (n, 2))``."""
     wp = trace.waypoints
-    times, seen, wifi, beac = radio_epochs(trace)
+    times, wifi, beac = radio_epochs(trace)
     tracks: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     cpu: dict[str, float] = {}
 
     # radio fingerprints alone: the latest fix at each epoch
     for name, loc, scans in (("wifi_knn", fold.wifi, wifi), ("beacon_knn", fold.beacon, beac)):
         t0 = time.process_time()
-        T, X, C, TS = [], [], [], []
-        for t, ts, sc in zip(times, seen, scans):
+        T, X, C = [], [], []
+        for t, sc in zip(times, scans):
             fix = loc.locate(sc) if (loc is not None and sc) else None
             if fix is not None:
                 T.append(t)
                 X.append(fix.mean)
                 C.append(fix.cov)
-                TS.append(ts if name == "wifi_knn" else t)
         # hold the latest fix until the next one (a fix is not interpolated towards the future)
         tracks[name] = (np.array(T), np.array(X).reshape(-1, 2))
         tracks[name + "_cov"] = np.array(C).reshape(-1, 2, 2)
-        tracks[name + "_seen"] = np.array(TS)
         cpu[name] = time.process_time() - t0
 
     # PDR from the true start
@@ -188,13 +172,7 @@ def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int)
     # Kalman filter PDR + WiFi, started from the first WiFi fix
     t0 = time.process_time()
     wt, wx = tracks["wifi_knn"]
-    wc = tracks["wifi_knn_cov"].copy()
-    wx = wx.copy()
-    if cfg["wifi_shift"]:  # each fix moved from when its scan was measured to when it was delivered
-        for k, (t, ts) in enumerate(zip(wt, tracks["wifi_knn_seen"])):
-            d, Cd = pdr_shift(st, ts, t, fold.gain, fold.off, cfg["pf"].sigma_len)
-            wx[k] += d
-            wc[k] += Cd
+    wc = tracks["wifi_knn_cov"]
     ev = sorted([(t, 0, k) for k, t in enumerate(st.t)] + [(t, 1, k) for k, t in enumerate(wt)])
     x = P = None
     T, X = [], []
@@ -255,8 +233,7 @@ def run_walk(trace: IndoorTrace, st: PDRSteps, fold: Fold, cfg: dict, seed: int)
                 if t > nd.latest_time:
                     nd.predict(t)
             if radios["wifi"] and wifi[k]:
-                shift = pdr_shift(st, seen[k], t, fold.gain, fold.off, cfg["pf"].sigma_len) if cfg["wifi_shift"] else None
-                radios["wifi"].process(nodes["wifi"], t, wifi[k], shift)
+                radios["wifi"].process(nodes["wifi"], t, wifi[k])
             if radios["beacon"] and beac[k]:
                 radios["beacon"].process(nodes["beacon"], t, beac[k])
             phone.process(nodes["phone"], t)

@@ -24,10 +24,7 @@ Times are converted to seconds since the trace's first reading of any type.
 
 A *WiFi scan* is the group of ``TYPE_WIFI`` lines with one time stamp; an entry whose last-seen
 time is older than the scan by more than ``max_wifi_age`` seconds is a cached result of an earlier
-scan and is dropped (counted in :attr:`IndoorTrace.n_stale_wifi`). The scan's measurement time
-:attr:`RadioScan.t_seen` is the median last-seen time of the entries kept: the lines are written when
-the scan's results are delivered, about 1 s after the access points were heard (site1-F4, 30 walks:
-median lag 1.0 s, 10-90 % 0.83-1.15 s), over a metre of walking.
+scan and is dropped (counted in :attr:`IndoorTrace.n_stale_wifi`).
 
 **Floor outline.** The floor's ``geojson_map.json`` is in longitude/latitude degrees (its
 coordinates are near 120.07 E, 30.29 N), not in the waypoints' metres; :func:`read_floor_outline`
@@ -65,18 +62,10 @@ _SENSORS = {
 
 @dataclass
 class RadioScan:
-    """One radio scan: its time [s] (when its results were delivered), the RSSI [dBm] of each transmitter
-    heard (by id) and ``t_seen`` [s], when they were heard (WiFi: the median last-seen time of the entries;
-    ``None``: at ``t``)."""
+    """One radio scan: its time [s] and the RSSI [dBm] of each transmitter heard (by id)."""
 
     t: float
     rssi: dict[str, float]
-    t_seen: float | None = None
-
-    @property
-    def measured_at(self) -> float:
-        """When the scan was measured: ``t_seen`` if known, else ``t``."""
-        return self.t if self.t_seen is None else self.t_seen
 
 
 @dataclass
@@ -120,7 +109,6 @@ def read_trace(path: str | Path, max_wifi_age: float = 2.0) -> IndoorTrace:
     rows: dict[str, list] = {k: [] for k in _SENSORS.values()}
     way: list = []
     wifi: dict[int, dict[str, float]] = {}
-    seen: dict[int, list[int]] = {}
     beac: list[tuple[int, str, float]] = []
     header: dict[str, str] = {}
     skipped = stale = 0
@@ -154,7 +142,6 @@ def read_trace(path: str | Path, max_wifi_age: float = 2.0) -> IndoorTrace:
                         stale += 1
                         continue
                     wifi.setdefault(t, {})[f[3]] = float(f[4])
-                    seen.setdefault(t, []).append(int(f[6]))
                 elif kind == "TYPE_BEACON":
                     if len(f) < 10:
                         raise ValueError("fewer than 8 values")
@@ -178,7 +165,7 @@ def read_trace(path: str | Path, max_wifi_age: float = 2.0) -> IndoorTrace:
         t0_ms=int(t0),
         acc=arr(rows["acc"], 4), gyro=arr(rows["gyro"], 4), mag=arr(rows["mag"], 4), rotvec=arr(rows["rotvec"], 4),
         waypoints=arr(way, 3),
-        wifi=[RadioScan((t - t0) / 1000.0, d, (float(np.median(seen[t])) - t0) / 1000.0) for t, d in sorted(wifi.items())],
+        wifi=[RadioScan((t - t0) / 1000.0, d) for t, d in sorted(wifi.items())],
         beacons=[RadioScan((t - t0) / 1000.0, {k: r}) for t, k, r in beac],
         header=header, n_skipped=skipped, n_stale_wifi=stale,
     )

@@ -45,23 +45,16 @@ class FingerprintFrontEnd(FrontEnd):
         self.stats = FrontEndStats()
         self.last: tuple[float, Array, Array] | None = None
 
-    def process(self, node: FusionNode, t: float, z: dict[str, float],
-                shift: tuple[Array, Array] | None = None) -> bool:
-        """Locate the scan ``z`` (transmitter -> RSSI) and fuse it at ``t``; False if nothing known was heard.
-
-        ``shift = (d, C_d)``: the walker's displacement (dead reckoned) and its covariance between when the
-        scan was measured and ``t``; the fix ``N(p, C)`` becomes ``N(p + d, C + C_d)``."""
+    def process(self, node: FusionNode, t: float, z: dict[str, float]) -> bool:
+        """Locate the scan ``z`` (transmitter -> RSSI) taken at ``t`` and fuse it; False if nothing known was heard."""
         self.stats.processed += 1
         fix = self.localizer.locate(z)
         if fix is None:
             self.stats.rejected += 1
             return False
-        mean, cov = fix.mean, fix.cov
-        if shift is not None:
-            mean, cov = mean + np.asarray(shift[0], dtype=float), cov + np.asarray(shift[1], dtype=float)
-        Lam, y = position_information(mean, cov, node.filter.n)
+        Lam, y = position_information(fix.mean, fix.cov, node.filter.n)
         node.add_local_information(t, Lam, y)
-        self.last = (t, mean, cov)
+        self.last = (t, fix.mean, fix.cov)
         self.stats.contributed += 1
         return True
 

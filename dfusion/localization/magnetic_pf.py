@@ -64,7 +64,8 @@ class MagneticPFSettings:
     ``alpha_slow < alpha_fast``; 0: off): the smoothing rates of the radio fit's averages that set how many
     particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix;
     ``recover_alpha`` (0: off): significance level of the test of the particle set against the radio track
-    (:meth:`MagneticLocalizer.radio_track_test`) below which particles are redrawn from that track."""
+    (:meth:`MagneticLocalizer.radio_track_test`) below which particles are redrawn from that track;
+    ``redraw_from_track``: every redraw (also augmented MCL's) is from the radio track instead of the latest fix."""
 
     n_particles: int = 2000
     sigma_delta: float = np.radians(0.5)
@@ -83,6 +84,7 @@ class MagneticPFSettings:
     recover_slow: float = 0.0
     recover_fast: float = 0.0
     recover_alpha: float = 0.0
+    redraw_from_track: bool = False
 
 
 class MagneticLocalizer:
@@ -278,9 +280,11 @@ class MagneticLocalizer:
             C = 0.5 * (C + C.T)
             src = (z, C)
             k = max(k, int(self.recovery_fraction(self.radio_fit(z, O)) * pf.n))
-            if self.cfg.recover_alpha > 0:
+            if self.cfg.recover_alpha > 0 or self.cfg.redraw_from_track:
                 pval = self.radio_track_test(z, C)
-                if pval < self.cfg.recover_alpha:
+                if self.cfg.redraw_from_track:
+                    src = self.radio_track
+                if self.cfg.recover_alpha > 0 and pval < self.cfg.recover_alpha:
                     k = max(k, int((1.0 - pval / self.cfg.recover_alpha) * pf.n))
                     src = self.radio_track
         if k > 0 and src is not None:
