@@ -265,7 +265,7 @@ def test_augmented_mcl_redraws_a_lost_set_around_the_fix():
     """recovery_fraction follows Thrun's recurrences (a plain loop here); a set that stops agreeing with
     the fixes gets particles redrawn around them, a set that keeps agreeing gets none."""
     mp, _ = synthetic_map()
-    cfg = MagneticPFSettings(n_particles=2000, recover_slow=0.1, recover_fast=0.5)
+    cfg = MagneticPFSettings(n_particles=2000, recover_slow=0.1, recover_fast=0.5, redraw_from_track=False)
     fits = [0.4, 0.5, 0.45, 0.05, 0.02, 0.3]
     loc = MagneticLocalizer(mp, 0.5, 0.0, cfg, seed=5)
     loc.initialize(0.0, [20.0, 20.0], np.eye(2))
@@ -287,7 +287,8 @@ def test_augmented_mcl_redraws_a_lost_set_around_the_fix():
             target = np.asarray(truth) if c is cfg else np.array([(3 * 20.0 + 5 * truth[0]) / 8, 20.0])
             assert np.hypot(*(loc.estimate()[0] - target)) < 2.0
     # off: no redraws whatever the fit
-    off = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=500), seed=7)
+    off = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=500, recover_slow=0.0, recover_fast=0.0),
+                            seed=7)
     off.initialize(0.0, [20.0, 20.0], np.eye(2))
     assert off.recovery_fraction(0.01) == 0.0 and off.recovery_fraction(0.9) == 0.0
 

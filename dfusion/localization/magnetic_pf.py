@@ -61,7 +61,7 @@ class MagneticPFSettings:
     ``temper`` (divides the log-likelihood), ``off_map`` (likelihood factor off the map's support; 1:
     none), ``features`` (columns of the field features used: 0 = B_z, 1 = B_h, 2 = |B|);
     ``roughening`` (Gordon's K, position only); ``recover_slow``, ``recover_fast`` (augmented MCL's
-    ``alpha_slow < alpha_fast``; 0: off): the smoothing rates of the radio fit's averages that set how many
+    ``alpha_slow < alpha_fast``; 0: off; docs/indoor.md): the smoothing rates of the radio fit's averages that set how many
     particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix;
     ``recover_alpha`` (0: off): significance level of the test of the particle set against the radio track
     (:meth:`MagneticLocalizer.radio_track_test`) below which particles are redrawn from that track;
@@ -81,10 +81,10 @@ class MagneticPFSettings:
     off_map: float = 1.0
     features: tuple[int, ...] = (0, 1, 2)
     roughening: float = 0.05
-    recover_slow: float = 0.0
-    recover_fast: float = 0.0
+    recover_slow: float = 0.1
+    recover_fast: float = 0.5
     recover_alpha: float = 0.0
-    redraw_from_track: bool = False
+    redraw_from_track: bool = True
 
 
 class MagneticLocalizer:
