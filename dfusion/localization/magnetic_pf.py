@@ -29,7 +29,9 @@ errors are correlated in space (the map is smooth and the walker slow), so the l
 tempered (``temper > 1``) as the WSN tracker's ``std_scale`` does for correlated RSSI.
 
 :meth:`MagneticLocalizer.reweight_information` multiplies the weights by the Gaussian likelihood an
-information pair ``(eta, Omega)`` on ``(x, y)`` represents (WiFi's from the network);
+information pair ``(eta, Omega)`` on ``(x, y)`` represents (WiFi's from the network), after
+redrawing the worst particles from the radio track when the set's fit to the radio drops (augmented
+MCL, :meth:`MagneticLocalizer.recovery_fraction`; the track is :meth:`MagneticLocalizer.radio_track_test`'s);
 :meth:`MagneticLocalizer.information_contribution` gives what the magnetic readings since the last call added, as
 the WSN tracker's quotient of Gaussian fits (``docs/indoor.md`` says when it is withheld).
 """
@@ -78,7 +80,7 @@ class MagneticPFSettings:
     sensor_var: float = 1.0
     bias_var: float = 36.0
     temper: float = 2.0
-    off_map: float = 1.0
+    off_map: float = 0.9
     features: tuple[int, ...] = (0, 1, 2)
     roughening: float = 0.05
     recover_slow: float = 0.1
