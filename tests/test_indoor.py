@@ -247,6 +247,80 @@ def test_reweight_information_is_the_gaussian_product():
     assert cov == pytest.approx(P1, abs=0.05)
 
 
+def test_radio_fit_is_the_gaussian_integral():
+    """For particles from N(m, P), sum_i w_i exp(-d_i^T Omega d_i / 2) tends to the closed form
+    sqrt(det C / det(C + P)) exp(-(m - z)^T (C + P)^-1 (m - z) / 2), C = Omega^-1."""
+    mp, _ = synthetic_map()
+    loc = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=200000), seed=4)
+    m, P = np.array([20.0, 20.0]), np.array([[4.0, 1.0], [1.0, 2.0]])
+    loc.initialize(0.0, m, P)
+    C = np.array([[9.0, -2.0], [-2.0, 16.0]])
+    z = np.array([24.0, 15.0])
+    d = m - z
+    ref = np.sqrt(np.linalg.det(C) / np.linalg.det(C + P)) * np.exp(-0.5 * d @ np.linalg.solve(C + P, d))
+    assert loc.radio_fit(z, np.linalg.inv(C)) == pytest.approx(ref, rel=0.01)
+
+
+def test_augmented_mcl_redraws_a_lost_set_around_the_fix():
+    """recovery_fraction follows Thrun's recurrences (a plain loop here); a set that stops agreeing with
+    the fixes gets particles redrawn around them, a set that keeps agreeing gets none."""
+    mp, _ = synthetic_map()
+    cfg = MagneticPFSettings(n_particles=2000, recover_slow=0.1, recover_fast=0.5, redraw_from_track=False)
+    fits = [0.4, 0.5, 0.45, 0.05, 0.02, 0.3]
+    loc = MagneticLocalizer(mp, 0.5, 0.0, cfg, seed=5)
+    loc.initialize(0.0, [20.0, 20.0], np.eye(2))
+    ws = wf = None
+    for f in fits:
+        ws, wf = (f, f) if ws is None else (ws + 0.1 * (f - ws), wf + 0.5 * (f - wf))
+        assert loc.recovery_fraction(f) == pytest.approx(max(0.0, 1.0 - wf / ws))
+    C = 4.0 * np.eye(2)
+    track = MagneticPFSettings(n_particles=2000, recover_slow=0.1, recover_fast=0.5, redraw_from_track=True)
+    for truth, lost, c in (([20.0, 20.0], False, cfg), ([32.0, 20.0], True, cfg), ([20.0, 20.0], False, track),
+                           ([32.0, 20.0], True, track)):
+        loc = MagneticLocalizer(mp, 0.5, 0.0, c, seed=6)
+        loc.initialize(0.0, [20.0, 20.0], 0.25 * np.eye(2))
+        for k in range(8):  # the set stands at (20, 20); the fixes are at the truth
+            z = np.asarray(truth) if k >= 3 else np.array([20.0, 20.0])
+            loc.reweight_information(np.linalg.solve(C, z), np.linalg.inv(C))
+        assert (loc.injected > 0) == lost
+        if lost:  # redrawn around the latest fix, or around the radio track: here the mean of the 8 fixes
+            target = np.asarray(truth) if c is cfg else np.array([(3 * 20.0 + 5 * truth[0]) / 8, 20.0])
+            assert np.hypot(*(loc.estimate()[0] - target)) < 2.0
+    # off: no redraws whatever the fit
+    off = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=500, recover_slow=0.0, recover_fast=0.0),
+                            seed=7)
+    off.initialize(0.0, [20.0, 20.0], np.eye(2))
+    assert off.recovery_fraction(0.01) == 0.0 and off.recovery_fraction(0.9) == 0.0
+
+
+def test_radio_track_is_the_gaussian_product_and_its_test_the_chi_square_p_value():
+    """The radio track is the information-form product of the fixes (moved by the particles' step), and
+    the test's p-value is scipy's chi-square survival function of the set-to-track Mahalanobis distance."""
+    from scipy.stats import chi2
+
+    mp, _ = synthetic_map()
+    loc = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=4000, roughening=0.0), seed=9)
+    loc.initialize(0.0, [20.0, 20.0], np.eye(2))
+    z1, C1 = np.array([22.0, 19.0]), np.diag([16.0, 9.0])
+    loc.radio_track_test(z1, C1)
+    assert loc.radio_track[0] == pytest.approx(z1) and loc.radio_track[1] == pytest.approx(C1)
+    before = loc.pf.particles[:, :2].copy(), loc.pf.weights.copy()
+    loc.step(1.0, 1.0, 0.0, None)                        # no magnetic update: the weights stay
+    d = loc.pf.particles[:, :2] - before[0]
+    dm = before[1] @ d
+    dC = (d - dm).T @ ((d - dm) * before[1][:, None])
+    r0, R0 = z1 + dm, C1 + dC
+    assert loc.radio_track[0] == pytest.approx(r0) and loc.radio_track[1] == pytest.approx(R0)
+    z2, C2 = np.array([18.0, 23.0]), np.array([[25.0, 4.0], [4.0, 10.0]])
+    pval = loc.radio_track_test(z2, C2)
+    R1 = np.linalg.inv(np.linalg.inv(R0) + np.linalg.inv(C2))
+    r1 = R1 @ (np.linalg.solve(R0, r0) + np.linalg.solve(C2, z2))
+    assert loc.radio_track[0] == pytest.approx(r1) and loc.radio_track[1] == pytest.approx(R1)
+    m = np.average(loc.pf.particles[:, :2], axis=0, weights=loc.pf.weights)
+    P = np.cov(loc.pf.particles[:, :2].T, aweights=loc.pf.weights, bias=True)
+    assert pval == pytest.approx(chi2.sf((m - r1) @ np.linalg.solve(P + R1, m - r1), 2))
+
+
 def test_bias_free_map_on_the_slice_tracks_the_other_walk():
     fl = read_floor(DATA)
     steps = [pdr_steps(t) for t in fl.traces]

@@ -29,7 +29,9 @@ errors are correlated in space (the map is smooth and the walker slow), so the l
 tempered (``temper > 1``) as the WSN tracker's ``std_scale`` does for correlated RSSI.
 
 :meth:`MagneticLocalizer.reweight_information` multiplies the weights by the Gaussian likelihood an
-information pair ``(eta, Omega)`` on ``(x, y)`` represents (WiFi's from the network);
+information pair ``(eta, Omega)`` on ``(x, y)`` represents (WiFi's from the network), after
+redrawing the worst particles from the radio track when the set's fit to the radio drops (augmented
+MCL, :meth:`MagneticLocalizer.recovery_fraction`; the track is :meth:`MagneticLocalizer.radio_track_test`'s);
 :meth:`MagneticLocalizer.information_contribution` gives what the magnetic readings since the last call added, as
 the WSN tracker's quotient of Gaussian fits (``docs/indoor.md`` says when it is withheld).
 """
@@ -60,7 +62,12 @@ class MagneticPFSettings:
     magnetic likelihood: ``sensor_var`` [uT^2], ``bias_var`` [uT^2] (prior of the per-walk bias),
     ``temper`` (divides the log-likelihood), ``off_map`` (likelihood factor off the map's support; 1:
     none), ``features`` (columns of the field features used: 0 = B_z, 1 = B_h, 2 = |B|);
-    ``roughening`` (Gordon's K, position only)."""
+    ``roughening`` (Gordon's K, position only); ``recover_slow``, ``recover_fast`` (augmented MCL's
+    ``alpha_slow < alpha_fast``; 0: off; docs/indoor.md): the smoothing rates of the radio fit's averages that set how many
+    particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix;
+    ``recover_alpha`` (0: off): significance level of the test of the particle set against the radio track
+    (:meth:`MagneticLocalizer.radio_track_test`) below which particles are redrawn from that track;
+    ``redraw_from_track``: every redraw (also augmented MCL's) is from the radio track instead of the latest fix."""
 
     n_particles: int = 2000
     sigma_delta: float = np.radians(0.5)
@@ -73,9 +80,13 @@ class MagneticPFSettings:
     sensor_var: float = 1.0
     bias_var: float = 36.0
     temper: float = 2.0
-    off_map: float = 1.0
+    off_map: float = 0.9
     features: tuple[int, ...] = (0, 1, 2)
     roughening: float = 0.05
+    recover_slow: float = 0.1
+    recover_fast: float = 0.5
+    recover_alpha: float = 0.0
+    redraw_from_track: bool = True
 
 
 class MagneticLocalizer:
@@ -104,6 +115,9 @@ class MagneticLocalizer:
         self.time: float | None = None
         self._ref: tuple[Array, Array] | None = None
         self._fj = np.asarray(self.cfg.features, dtype=np.int64)
+        self.w_slow: float | None = None
+        self.w_fast: float | None = None
+        self.injected = 0
 
     # ---------------------------------------------------------------- set-up
     def initialize(self, t: float, mean: ArrayLike | None = None, cov: ArrayLike | None = None) -> None:
@@ -116,6 +130,9 @@ class MagneticLocalizer:
         self.pf.roughening_dims = (0, 1)
         self.time = float(t)
         self._ref = self._fit()
+        self.w_slow = self.w_fast = None
+        self.injected = 0
+        self.radio_track: tuple[Array, Array] | None = None
 
     def _draw(self, n: int, mean: ArrayLike | None, cov: ArrayLike | None, rng: np.random.Generator) -> Array:
         """``n`` particles: positions from ``N(mean, cov)`` (uniform over the support without a mean),
@@ -157,6 +174,9 @@ class MagneticLocalizer:
         x[:, 1] += L * np.sin(a)
         if c.sigma_pos > 0:
             x[:, :2] += rng.standard_normal((n, 2)) * c.sigma_pos
+        if self.radio_track is not None:  # the radio track moves by the particles' step, mean and spread
+            dm, dC = weighted_mean_cov(x[:, :2] - pf.particles[:, :2], pf.weights)
+            self.radio_track = (self.radio_track[0] + dm, self.radio_track[1] + dC)
         pf.move(x)
         self.time = float(t)
         if field is not None:
@@ -188,35 +208,100 @@ class MagneticLocalizer:
             return
         pf.resample_if_needed()
 
+    def radio_fit(self, mean: ArrayLike, omega: ArrayLike) -> float:
+        """The particle set's agreement with a radio fix ``N(mean, Omega^-1)``: the average likelihood of
+        augmented MCL scaled by the Gaussian's peak, ``w_avg = sum_i w_i exp(-d_i^T Omega d_i / 2)``,
+        ``d_i = p_i - mean``, in ``[0, 1]`` (fixes of different widths compare)."""
+        pf = self._require()
+        d = pf.particles[:, :2] - np.asarray(mean, dtype=float)
+        return float(pf.weights @ np.exp(-0.5 * np.einsum("ij,jk,ik->i", d, np.asarray(omega, dtype=float), d)))
+
+    def recovery_fraction(self, fit: float) -> float:
+        """Augmented MCL (Thrun, Burgard and Fox, *Probabilistic Robotics*, 2005, sec. 8.3.5, Table 8.3):
+        ``w_slow += alpha_slow (w_avg - w_slow)``, ``w_fast += alpha_fast (w_avg - w_fast)`` (both start at
+        the first ``w_avg``); the fraction of particles to redraw is ``max(0, 1 - w_fast / w_slow)``: the
+        set's recent fit to the radio fixes against its long-run fit. 0 when the rates are 0 (off)."""
+        c = self.cfg
+        if c.recover_slow <= 0 or c.recover_fast <= 0:
+            return 0.0
+        if self.w_slow is None or self.w_fast is None:
+            self.w_slow = self.w_fast = float(fit)
+        else:
+            self.w_slow += c.recover_slow * (fit - self.w_slow)
+            self.w_fast += c.recover_fast * (fit - self.w_fast)
+        return max(0.0, 1.0 - self.w_fast / self.w_slow) if self.w_slow > 0 else 0.0
+
+    def radio_track_test(self, z: Array, C: Array) -> float:
+        """Update the radio track with the fix ``N(z, C)`` and test the particle set against it.
+
+        The radio track ``N(r, R)`` is a Kalman filter of the radio fixes alone, moved between fixes by the
+        particles' mean step and its spread (:meth:`step`): PDR + radio, the network's Kalman baseline. A fix
+        updates it (``G = R (R + C)^-1``, ``r += G (z - r)``, ``R = (I - G) R``; the first fix starts it).
+        The test: with the set's Gaussian fit ``N(m, P)``, ``D^2 = (m - r)^T (P + R)^-1 (m - r)`` is
+        chi-square with 2 degrees of freedom when both describe the same position, so its p-value is
+        ``exp(-D^2 / 2)``; returned. Shared PDR and radio information make ``D^2`` smaller than
+        independent estimates' would be, so the test is conservative."""
+        if self.radio_track is None:
+            self.radio_track = (z.copy(), C.copy())
+        else:
+            r, R = self.radio_track
+            G = np.linalg.solve(R + C, R).T
+            R1 = (np.eye(2) - G) @ R
+            self.radio_track = (r + G @ (z - r), 0.5 * (R1 + R1.T))
+        r, R = self.radio_track
+        m, P = self._fit()
+        d = m - r
+        return float(np.exp(-0.5 * d @ np.linalg.solve(P + R, d)))
+
     def reweight_information(self, eta: ArrayLike, omega: ArrayLike, inject: float = 0.0,
                              floor: float = 0.0) -> None:
         """Multiply the weights by ``exp(eta^T p - p^T Omega p / 2)`` (information from the network on
         ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
         prediction, this resets the reference of :meth:`information_contribution`.
 
-        ``inject`` in ``[0, 1)``: first the fraction ``inject`` of the particles with the lowest weights
-        is replaced by draws from the Gaussian ``N(Omega^-1 eta, Omega^-1)`` (heading offset, scale and
-        bias from their initial laws) at the mean weight of the set: the mixture proposal of Monte
-        Carlo localization with sensor resetting (Lenser and Veloso, "Sensor resetting localization for
-        poorly modelled mobile robots", ICRA 2000; Thrun, Burgard and Fox, *Probabilistic Robotics*,
-        2005, sec. 8.3.5), so that a set locked onto the wrong corridor can recover."""
+        Particles are first redrawn around the fix (when ``Omega`` is positive definite): the fraction
+        ``max(inject, recovery_fraction)`` (:meth:`recovery_fraction`, augmented MCL) of the particles
+        with the lowest weights is replaced by draws from ``N(Omega^-1 eta, Omega^-1)`` (heading offset,
+        scale and bias from their initial laws) at the mean weight of the set: the mixture proposal of
+        Monte Carlo localization with sensor resetting (Lenser and Veloso, "Sensor resetting
+        localization for poorly modelled mobile robots", ICRA 2000; Thrun, Burgard and Fox,
+        *Probabilistic Robotics*, 2005, sec. 8.3.5), so that a set locked onto the wrong corridor can
+        recover.
+
+        ``floor > 0`` makes the radio likelihood robust: ``max``-normalized Gaussian plus a uniform
+        outlier floor, ``log(exp(-D^2 / 2) + floor)`` with ``D`` the Mahalanobis distance to the fix."""
         pf = self._require()
         e = np.asarray(eta, dtype=float)
         O = np.asarray(omega, dtype=float)
+        definite = bool(np.all(np.linalg.eigvalsh(O) > 0))
         k = int(float(inject) * pf.n)
-        if k > 0 and np.all(np.linalg.eigvalsh(O) > 0):
+        src = None
+        if definite:
+            z = np.linalg.solve(O, e)
+            C = np.linalg.inv(O)
+            C = 0.5 * (C + C.T)
+            src = (z, C)
+            k = max(k, int(self.recovery_fraction(self.radio_fit(z, O)) * pf.n))
+            if self.cfg.recover_alpha > 0 or self.cfg.redraw_from_track:
+                pval = self.radio_track_test(z, C)
+                if self.cfg.redraw_from_track:
+                    src = self.radio_track
+                if self.cfg.recover_alpha > 0 and pval < self.cfg.recover_alpha:
+                    k = max(k, int((1.0 - pval / self.cfg.recover_alpha) * pf.n))
+                    src = self.radio_track
+        if k > 0 and src is not None:
             x = pf.particles.copy()
             lw = pf.log_weights.copy()
             worst = np.argsort(lw)[:k]
-            C = np.linalg.inv(O)
-            x[worst] = self._draw(k, np.linalg.solve(O, e), 0.5 * (C + C.T), pf.rng)
+            x[worst] = self._draw(k, src[0], src[1], pf.rng)
             top = lw.max()
             lw[worst] = top + np.log(np.mean(np.exp(lw - top)))
             pf.set_particles(x, lw)
+            self.injected += k
         p = pf.particles[:, :2]
         ll = p @ e - 0.5 * np.einsum("ij,jk,ik->i", p, O, p)
-        if floor > 0 and np.all(np.linalg.eigvalsh(O) > 0):
-            d = p - np.linalg.solve(O, e)
+        if floor > 0 and definite:
+            d = p - z
             ll = np.logaddexp(-0.5 * np.einsum("ij,jk,ik->i", d, O, d), np.log(floor))
         self._update(ll - ll.max())
         self._ref = self._fit()
