@@ -19,7 +19,10 @@ out (:meth:`information_blocks`, :meth:`received_information`), the value for on
 (``V_j(t) = T(t) - M_j(t)``, :meth:`_values_for`), what a link delivered
 (:meth:`_link_blocks`), and pruning what left the window. The node's other parts (receiving,
 the steady path, the guard, the tree rule, sending) call these and reach the target's state
-through them or directly within one receive transaction.
+through them or directly within one receive transaction. What this part asks of the node:
+``_settle`` (the bookkeeping left for later is done before the state is read or changed),
+``is_quarantined`` (a quarantined link's value is ``T(t)``), ``_release_tree_held`` (held
+times expire as the trajectory moves on), ``name`` and ``_ack_lag`` (for new channels).
 
 Multi-target tracking (``docs/architecture.md``, "Tracks") turns this part into one object
 per track, each with these attributes; today the node is its single instance.
@@ -82,15 +85,19 @@ class TargetFusion:
         """
         self._settle()
         f = self.filter
-        t = as_time(t)
-        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
-            raise OutsideWindowError(
-                f"measurement time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
-            )
+        t = self._window_time(t, "measurement")
         Lam, y = f.update(t, z, sensor)
         self._add_own(t, Lam, y, share)
         self._prune()
         return Lam, y
+
+    def _window_time(self, t: float, what: str) -> float:
+        """``t`` as a time, checked to be inside the window (``what``: the error's word for it)."""
+        f = self.filter
+        t = as_time(t)
+        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
+            raise OutsideWindowError(f"{what} time {t} is outside the window [{f.oldest_time}, {f.latest_time}]")
+        return t
 
     def add_local_information(self, t: float, info_matrix: ArrayLike, info_vector: ArrayLike, *,
                               share: bool = True) -> None:
@@ -108,11 +115,7 @@ class TargetFusion:
         """
         self._settle()
         f = self.filter
-        t = as_time(t)
-        if t < f.oldest_time - f.time_tol or t > f.latest_time + f.time_tol:
-            raise OutsideWindowError(
-                f"information time {t} is outside the window [{f.oldest_time}, {f.latest_time}]"
-            )
+        t = self._window_time(t, "information")
         Lam = as_matrix(info_matrix, (f.n, f.n), "information matrix")
         check_psd(Lam, "information matrix")
         Lam = symmetrize(Lam)
