@@ -312,6 +312,30 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
             self._settle()
         return self._guard
 
+    def _channel(self, j: str) -> ChannelFilter:
+        ch = ChannelFilter(self.name, j, self.filter.n)
+        ch.ack_lag = self._ack_lag
+        return ch
+
+    @property
+    def ack_lag(self) -> int:
+        """Messages an acknowledgement may lag behind before partial messages to that neighbour
+        carry everything since the newest acknowledged one (:data:`dfusion.fusion.channel.ACK_LAG`,
+        2: two send periods when every message is periodic). Event-triggered sends
+        (:class:`dfusion.fusion.sending.SendSchedule`) send up to ``period / min_interval``
+        messages per period on a link while the neighbour acknowledges with its own (fewer)
+        messages: they set it to two periods' worth, so that the rule still means "no
+        acknowledgement for two send periods" (a link outage)."""
+        return self._ack_lag
+
+    @ack_lag.setter
+    def ack_lag(self, value: int) -> None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValidationError(f"ack_lag must be a non-negative integer, got {value!r}")
+        self._ack_lag = value
+        for ch in self.channels.values():
+            ch.ack_lag = value
+
     def receive(self, data: bytes) -> int:
         """Fuse a neighbour's message; returns the number of state blocks that changed.
 

@@ -21,8 +21,8 @@ out (:meth:`information_blocks`, :meth:`received_information`), the value for on
 the steady path, the guard, the tree rule, sending) call these and reach the target's state
 through them or directly within one receive transaction. What this part asks of the node:
 ``_settle`` (the bookkeeping left for later is done before the state is read or changed),
-``is_quarantined`` (a quarantined link's value is ``T(t)``), ``_release_tree_held`` (held
-times expire as the trajectory moves on), ``name`` and ``_ack_lag`` (for new channels).
+``is_quarantined`` (a quarantined link's value is ``T(t)``) and ``_release_tree_held`` (held
+times expire as the trajectory moves on).
 
 Multi-target tracking (``docs/architecture.md``, "Tracks") turns this part into one object
 per track, each with these attributes; today the node is its single instance.
@@ -34,7 +34,7 @@ from typing import Iterable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from dfusion.errors import OutsideWindowError, ValidationError
+from dfusion.errors import OutsideWindowError
 from dfusion.fusion.channel import any_of, nonzero_blocks, ChannelFilter, time_key
 from dfusion.fusion.stats import node_log as log
 from dfusion.fusion.stores import clean_difference
@@ -307,27 +307,3 @@ class TargetFusion:
             del self._tree_held[k]
         for ch in self.channels.values():
             ch.prune(cutoff)
-
-    def _channel(self, j: str) -> ChannelFilter:
-        ch = ChannelFilter(self.name, j, self.filter.n)
-        ch.ack_lag = self._ack_lag
-        return ch
-
-    @property
-    def ack_lag(self) -> int:
-        """Messages an acknowledgement may lag behind before partial messages to that neighbour
-        carry everything since the newest acknowledged one (:data:`dfusion.fusion.channel.ACK_LAG`,
-        2: two send periods when every message is periodic). Event-triggered sends
-        (:class:`dfusion.fusion.sending.SendSchedule`) send up to ``period / min_interval``
-        messages per period on a link while the neighbour acknowledges with its own (fewer)
-        messages: they set it to two periods' worth, so that the rule still means "no
-        acknowledgement for two send periods" (a link outage)."""
-        return self._ack_lag
-
-    @ack_lag.setter
-    def ack_lag(self, value: int) -> None:
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ValidationError(f"ack_lag must be a non-negative integer, got {value!r}")
-        self._ack_lag = value
-        for ch in self.channels.values():
-            ch.ack_lag = value
