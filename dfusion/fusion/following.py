@@ -87,7 +87,7 @@ class TreeFollowing:
         (:meth:`_tree_hold`). ``everything``: these are all the channels, what the node sends from
         becomes its own information alone (what it fused but does not share yet stays out).
 
-        A quarantined channel's information was withdrawn already (:meth:`_withdraw`): it is
+        A quarantined channel's information was withdrawn already (:meth:`FusionNode._withdraw`): it is
         not subtracted again."""
         entries: dict[int, list] = {}
         for ch in channels:
@@ -120,7 +120,7 @@ class TreeFollowing:
         until the new tree delivers as much (``docs/dynamic-topology.md``).
 
         The filter holds, per state time, the node's own information plus either ``L(t)``
-        (a held time) or what its current channels delivered ``R(t)`` (:meth:`_received_at`); each is
+        (a held time) or what its current channels delivered ``R(t)`` (:meth:`FusionNode._received_at`); each is
         information of other nodes counted once, so either choice never double counts.
         Messages are made from ``T(t)`` alone: held information is never sent.
         """
@@ -176,13 +176,13 @@ class TreeFollowing:
         self._add_to_filter(change)
 
     def _tree_heard(self, msg: InfoMessage) -> bool:
-        """The tree rule's part of :meth:`receive` (links that change): whether to fuse ``msg``.
+        """The tree rule's part of :meth:`FusionNode.receive` (links that change): whether to fuse ``msg``.
 
         Checks what the rule needs (recipient, sender, tree mode, dimension, incarnation),
         gives the tree fields to the rule and makes the channels follow its changes. A
         message is fused only when it is a fusion message of this node's tree epoch over a
         tree link; the others are counted in ``stats.not_fused`` (``stats.not_linked`` when
-        the link no longer exists). If the message is then refused, :meth:`_reject` undoes
+        the link no longer exists). If the message is then refused, :meth:`FusionNode._reject` undoes
         what this did (``self._tree_undo``): a rejection changes nothing.
         """
         src = msg.src

@@ -1,11 +1,11 @@
 """What a node sends: its messages (partial, full or naive), beacons, and which links have news.
 
 :meth:`MessageSending.message_to` makes the message for one neighbour from the target's
-values for that link (``V_j(t) = T(t) - M_j(t)``, :meth:`TargetFusion._values_for`) at the
+values for that link (``V_j(t) = T(t) - M_j(t)``, :meth:`FusionNode._values_for`) at the
 times the channel says changed or turned out lost (:mod:`dfusion.fusion.channel`), with the
 acknowledgement of what the node applied from that neighbour and, with links that change,
 the tree fields; a link that is not a tree link gets a beacon. :meth:`MessageSending.news`
-and :attr:`urgent` tell an event-triggered sender (:class:`dfusion.fusion.sending.SendSchedule`)
+and :attr:`FusionNode.urgent` tell an event-triggered sender (:class:`dfusion.fusion.sending.SendSchedule`)
 when to send.
 """
 from __future__ import annotations
@@ -112,7 +112,7 @@ class MessageSending:
         """``(neighbour, message)`` for every link: a fusion message on a tree link, a beacon on
         the others (links that change); every neighbour's message on a fixed tree. ``only``:
         those of the links only (the others are sent later: a minimum interval per link,
-        :class:`dfusion.fusion.sending.SendSchedule`). Clears :attr:`urgent`."""
+        :class:`dfusion.fusion.sending.SendSchedule`). Clears :attr:`FusionNode.urgent`."""
         self._settle()
         self._sent_tree_changes = self.stats.tree_changes
         pick = None if only is None else set(only)

@@ -55,7 +55,7 @@ class GuardedLinks:
     def _deferred_test(self, block: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array) -> tuple[float, int, int]:
         """:meth:`_add_tested`'s verdict of one block at the newest state, from the moments saved
         when it was added (the same values: :meth:`DelayedStateEIF.add_information_moments` reads
-        the same filtered moments), for :meth:`settle`."""
+        the same filtered moments), for :meth:`FusionNode.settle`."""
         eigen = block_eigen(block[1])
         add, _ = split_blocks([block], eigen)
         if not add:
@@ -75,7 +75,7 @@ class GuardedLinks:
         """Remove everything that came over the link to ``neighbor`` (quarantine): from the filter
         and from what the node shares; the other links are sent the changed times. Times held
         after a change of the tree are let go first (the filter then holds what its channels
-        delivered, :meth:`_release_tree_held`): what it subtracts is in the filter once."""
+        delivered, :meth:`FusionNode._release_tree_held`): what it subtracts is in the filter once."""
         self._release_tree_held(math.inf)
         now, every = self._link_blocks(self.channels[neighbor], -1.0)
         if now:

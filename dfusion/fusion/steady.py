@@ -1,4 +1,4 @@
-"""The steady-state receive path: the critical path first, the bookkeeping left for :meth:`settle`.
+"""The steady-state receive path: the critical path first, the bookkeeping left for :meth:`FusionNode.settle`.
 
 A message planned as an append of new blocks (the usual message of a running network) is
 fused into the filter at once and the rest of its work, which the estimate does not need
@@ -7,7 +7,7 @@ pruning; with a guard, the consistency test when no verdict could change the bel
 left for :meth:`SteadyPath.settle`, which every method that reads or changes that state
 runs first. Every observable is the same, bit for bit, as on the general path
 (:mod:`dfusion.fusion.transaction`); ``FusionNode.critical_path_first = False`` sends every
-message there. :meth:`settle` also records the messages :meth:`message_to` sent.
+message there. :meth:`FusionNode.settle` also records the messages :meth:`FusionNode.message_to` sent.
 """
 from __future__ import annotations
 
@@ -37,24 +37,24 @@ class SteadyPath:
         return all(d[0] <= latest for d in deltas)
 
     def _apply_steady(self, msg: InfoMessage, ch: ChannelFilter, plan, deltas: list) -> int | None:
-        """:meth:`_apply` of a steady-state message (:meth:`_steady`), the critical path first: the
+        """:meth:`FusionNode._apply` of a steady-state message (:meth:`_steady`), the critical path first: the
         blocks go into the filter (and its estimate is brought up to date, which also tests
         that the belief stays proper) at once; with a guard they are tested as they are added
-        and the verdict recorded (:meth:`_add_tested`, :meth:`NeighbourGuard.judge`); the rest
-        is left to :meth:`settle`. Every result is the same, bit for bit, as :meth:`_apply`'s.
+        and the verdict recorded (:meth:`FusionNode._add_tested`, :meth:`NeighbourGuard.judge`); the rest
+        is left to :meth:`FusionNode.settle`. Every result is the same, bit for bit, as :meth:`FusionNode._apply`'s.
 
-        The test itself is left to :meth:`settle` too when the message is one block at the
+        The test itself is left to :meth:`FusionNode.settle` too when the message is one block at the
         newest state and a failing verdict would not quarantine the neighbour
         (:meth:`NeighbourGuard.may_quarantine`): no verdict can then change the filter, only
         the link's counters, so the estimate is final at once. The moments the statistic
         needs are saved as the block is added (the newest state's filtered moments before and
         after: what :meth:`DelayedStateEIF.add_information_moments` reads) and the verdict is
-        recorded by :meth:`_settle_receive` (:meth:`_deferred_test`); reading :attr:`guard` or
-        :meth:`health` settles first.
+        recorded by :meth:`_settle_receive` (:meth:`FusionNode._deferred_test`); reading :attr:`guard` or
+        :meth:`FusionNode.health` settles first.
 
         A verdict that would quarantine the neighbour (its withdrawal needs the bookkeeping
         done) is not recorded: the filter is put back and ``None`` returned, and the caller
-        takes :meth:`_apply`, which tests the message again (the same statistic) in its
+        takes :meth:`FusionNode._apply`, which tests the message again (the same statistic) in its
         transaction."""
         f = self.filter
         guard = self._guard
@@ -113,13 +113,13 @@ class SteadyPath:
     def settle(self) -> None:
         """Do the work that the last message received or sent left for later now (a node may call
         it when idle; every method that reads or changes what is left does it first, and so does
-        reading :attr:`channels`; :meth:`estimate`, :meth:`output`, :meth:`check_frame`,
-        :meth:`is_quarantined`, :meth:`health` and :meth:`report_source` read none of it and
+        reading :attr:`FusionNode.channels`; :meth:`FusionNode.estimate`, :meth:`FusionNode.output`, :meth:`FusionNode.check_frame`,
+        :meth:`FusionNode.is_quarantined`, :meth:`FusionNode.health` and :meth:`FusionNode.report_source` read none of it and
         leave it for later). What a caller waits for is done
         first, the rest after; no caller sees the node in between: every observable is the same,
         bit for bit, as if all of it had been done at once.
 
-        * :meth:`receive` fuses a steady-state message into the filter at once (the estimate
+        * :meth:`FusionNode.receive` fuses a steady-state message into the filter at once (the estimate
           changes) and leaves what the estimate does not need (with a guard, its consistency
           test and verdict too when no verdict could complete a quarantine: the belief is then
           final whatever the verdict; else it is tested and judged at once): storing the blocks in the
@@ -127,9 +127,9 @@ class SteadyPath:
           the acknowledgement the message carries, pruning. A failure of this bookkeeping (a
           defect; nothing in it depends on the message's values) undoes the whole message, the
           filter's part too, and counts and logs it as an ``"internal"`` rejection.
-        * :meth:`message_to` returns the message and leaves the record of what it carried
+        * :meth:`FusionNode.message_to` returns the message and leaves the record of what it carried
           (:meth:`ChannelFilter.record_sent`), and the filter's forward pass up to the newest
-          state (its estimate: the next :meth:`predict` that marginalizes the oldest state
+          state (its estimate: the next :meth:`FusionNode.predict` that marginalizes the oldest state
           needs part of it; nothing else changes).
         """
         if self._deferred:

@@ -13,11 +13,11 @@ target's estimate and nothing of the network around it. Its state (set up by the
   estimate keeps a while (:mod:`dfusion.fusion.following`);
 * ``_pruned_at``, ``_naive_sent``: the prune mark; naive fusion's record of what it sent.
 
-Its methods: local information in (:meth:`predict`, :meth:`update`,
-:meth:`add_local_information`, sharing and withdrawing it), the estimate, the stores read
-out (:meth:`information_blocks`, :meth:`received_information`), the value for one link
-(``V_j(t) = T(t) - M_j(t)``, :meth:`_values_for`), what a link delivered
-(:meth:`_link_blocks`), and pruning what left the window. The node's other parts (receiving,
+Its methods: local information in (:meth:`FusionNode.predict`, :meth:`FusionNode.update`,
+:meth:`FusionNode.add_local_information`, sharing and withdrawing it), the estimate, the stores read
+out (:meth:`FusionNode.information_blocks`, :meth:`FusionNode.received_information`), the value for one link
+(``V_j(t) = T(t) - M_j(t)``, :meth:`FusionNode._values_for`), what a link delivered
+(:meth:`FusionNode._link_blocks`), and pruning what left the window. The node's other parts (receiving,
 the steady path, the guard, the tree rule, sending) call these and reach the target's state
 through them or directly within one receive transaction. What this part asks of the node:
 ``_settle`` (the bookkeeping left for later is done before the state is read or changed),
@@ -272,7 +272,7 @@ class TargetFusion:
     def _link_blocks(self, ch: ChannelFilter, sign: float = 1.0) -> tuple[list, list]:
         """The channel's stored blocks in the window as ``(t, info, vec)`` times ``sign``:
         ``(those the filter holds, all)``; the others are newer than the newest state and wait
-        in the total store for :meth:`predict`."""
+        in the total store for :meth:`FusionNode.predict`."""
         if not len(ch):
             return [], []
         f = self.filter

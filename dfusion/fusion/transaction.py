@@ -159,7 +159,7 @@ class ReceiveTransaction:
         ``src``'s link. ``cp_filter``, ``cp_guard``: the filter's checkpoint and the record's
         copy taken earlier (the critical path changed them before the rest was marked).
 
-        The one place that lists the stores: :meth:`_apply` and :meth:`_settle_receive` both undo
+        The one place that lists the stores: :meth:`_apply` and :meth:`FusionNode._settle_receive` both undo
         with it (``tests/fusion/test_store_rollback.py`` compares every attribute of the node)."""
         guard = self._guard
         if cp_guard is None and guard is not None and src in guard.links:
