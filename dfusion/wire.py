@@ -7,7 +7,7 @@ format byte by byte; in short::
 
     frame = b"DF" | version (1 byte, 2) | flags (1 byte) | body | crc32 (4 bytes) | mac (16 bytes, keyed frames)
     body  = msgpack array [src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at,
-                           times, mask, values, cleared, tree_term, tree_root, parent]
+                           times, mask, values, cleared, tree_term, tree_root, parent, seq_start]
 
 * ``times``: the blocks' time keys (integer nanoseconds): the first as int64, then the
   gaps as uint32 (int64 when a gap exceeds 4.29 s: flag ``WIDE_TIMES``);
@@ -19,6 +19,11 @@ format byte by byte; in short::
 * ``tree_term``, ``tree_root``, ``parent``: the sender's tree epoch and its parent in it, for
   the tree rule over links that change (:mod:`dfusion.fusion.tree`); ``0, "", ""`` on a
   fixed tree. A *beacon* (flag ``BEACON``) carries only these: no blocks;
+* ``seq_start``: the sequence number at which the sender's channel for this link started
+  (``0 <= seq_start <= seq``). A node that starts a fresh channel for a link in the same
+  incarnation (the tree rule dropped and re-made the link) numbers on from where the
+  previous one stopped and sends the new start: the recipient then knows the sender forgot
+  what it had sent it (``docs/fusion.md``, resynchronization);
 * ``crc32`` (:func:`zlib.crc32`, little-endian) over every byte before it: corruption is
   detected without a key;
 * ``mac``: ``HMAC-SHA256(K, frame up to and including the crc)`` truncated to 16 bytes,
@@ -70,9 +75,9 @@ MAGIC = b"DF"
 #: Flags (the fourth byte).
 KEYED, FULL, NAIVE, WIDE_TIMES, BEACON = 1, 2, 4, 8, 16
 _KNOWN_FLAGS = KEYED | FULL | NAIVE | WIDE_TIMES | BEACON
-#: Fields of the body; :data:`_EARLIER_FIELDS` is the layout before the tree fields.
-BODY_FIELDS = 17
-_EARLIER_FIELDS = 14
+#: Fields of the body; :data:`_EARLIER_LAYOUTS` are the layouts before it (refused with their own message).
+BODY_FIELDS = 18
+_EARLIER_LAYOUTS = {14: "the layout before the tree fields", 17: "the layout before the channel start seq_start"}
 _HEAD = 4
 _CRC = 4
 MAC_BYTES = 16
@@ -181,6 +186,11 @@ class InfoMessage:
     beacon : bool
         A beacon: only the tree fields mean something (no blocks; sent over links that
         are not tree links).
+    seq_start : int
+        The sequence number at which the sender's channel for this link started
+        (``<= seq``); it changes when the sender starts a fresh channel for the link in the
+        same incarnation, which tells the recipient that the sender forgot what the
+        recipient had sent it (:mod:`dfusion.fusion.channel`).
     """
 
     src: str
@@ -202,6 +212,7 @@ class InfoMessage:
     tree_root: str = ""
     parent: str = ""
     beacon: bool = False
+    seq_start: int = 0
 
     @property
     def n(self) -> int:
@@ -344,7 +355,7 @@ def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
         [msg.src, msg.dst, int(msg.epoch), int(msg.dst_epoch), int(msg.seq), int(msg.ack), int(msg.ack_mask), int(n),
          float(msg.start), float(msg.sent_at), times, mask_b, values_b,
          time_keys(msg.cleared).astype(_I8).tobytes() if len(msg.cleared) else b"",
-         int(msg.tree_term), msg.tree_root, msg.parent],
+         int(msg.tree_term), msg.tree_root, msg.parent, int(msg.seq_start)],
         use_bin_type=True,
     )
     flags = (KEYED if key is not None else 0) | (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) \
@@ -506,17 +517,18 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
                                  max_array_len=32, max_map_len=0, max_str_len=256)
     except Exception as exc:  # msgpack raises many types on garbage
         raise _reject("malformed", f"not a msgpack body: {type(exc).__name__}: {exc}") from None
-    if isinstance(fields, list) and len(fields) == _EARLIER_FIELDS:
-        raise _reject("malformed", f"a body of {_EARLIER_FIELDS} fields (the layout before the tree fields): this "
-                                   f"node reads {BODY_FIELDS} (docs/wire-format.md)")
+    if isinstance(fields, list) and len(fields) in _EARLIER_LAYOUTS:
+        raise _reject("malformed", f"a body of {len(fields)} fields ({_EARLIER_LAYOUTS[len(fields)]}): this node "
+                                   f"reads {BODY_FIELDS} (docs/wire-format.md)")
     if not isinstance(fields, list) or len(fields) != BODY_FIELDS:
         raise _reject("malformed", f"the body must be an array of {BODY_FIELDS} fields")
     (src, dst, epoch, dst_epoch, seq, ack, ack_mask, n, start, sent_at, times_b, mask_b, values_b, cleared_b,
-     tree_term, tree_root, parent) = fields
+     tree_term, tree_root, parent, seq_start) = fields
     src, dst = _str(src, "src"), _str(dst, "dst")
     epoch = _int(epoch, "epoch", 0, MAX_SEQ)
     dst_epoch = _int(dst_epoch, "dst_epoch", 0, MAX_SEQ)
     seq = _int(seq, "seq", 0, MAX_SEQ)
+    seq_start = _int(seq_start, "seq_start", 0, seq + 1)
     ack = _int(ack, "ack", -1, MAX_SEQ)
     ack_mask = _int(ack_mask, "ack_mask", 0, 2**64)
     n = _int(n, "n", 1, MAX_STATE_DIM + 1)
@@ -579,7 +591,7 @@ def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
             raise _reject("malformed", f"information block at t={times[bad]} is not positive semi-definite")
     return _message(src, dst, epoch, seq, start, sent_at, times, info, vec, dst_epoch, ack, ack_mask,
                     cleared / 1e9 if cleared.size else np.zeros(0), full, naive, tree_term, tree_root, parent,
-                    bool(flags & BEACON))
+                    bool(flags & BEACON), seq_start)
 
 
 def _not_psd(info: Array, diagonal: Array | None = None) -> int | None:

@@ -51,7 +51,7 @@ KEY = FrameKey(NETWORK_KEY, NETWORK, RUN)
 # the flag bits (the fourth byte), from docs/wire-format.md
 KEYED, FULL, NAIVE, WIDE, BEACON = 1, 2, 4, 8, 16
 FIELDS = ("src", "dst", "epoch", "dst_epoch", "seq", "ack", "ack_mask", "n", "start", "sent_at",
-          "times", "mask", "values", "cleared", "tree_term", "tree_root", "parent")
+          "times", "mask", "values", "cleared", "tree_term", "tree_root", "parent", "seq_start")
 
 
 # ---------------------------------------------------------------- independent references
@@ -85,7 +85,7 @@ def upper_triangle(L) -> list[float]:
 
 
 def reference_fields(msg: InfoMessage) -> tuple[list, int]:
-    """The 17 body fields and the flags of ``msg``, by the rules of docs/wire-format.md, with
+    """The 18 body fields and the flags of ``msg``, by the rules of docs/wire-format.md, with
     plain Python (no numpy bit packing, no dfusion code)."""
     m, n = len(msg.times), msg.vec.shape[1]
     keys = [round(float(t) * 1e9) for t in msg.times]          # Python's round: half to even
@@ -107,7 +107,7 @@ def reference_fields(msg: InfoMessage) -> tuple[list, int]:
     cleared = b"".join(struct.pack("<q", round(float(t) * 1e9)) for t in msg.cleared)
     fields = [msg.src, msg.dst, int(msg.epoch), int(msg.dst_epoch), int(msg.seq), int(msg.ack), int(msg.ack_mask), n,
               float(msg.start), float(msg.sent_at), times, bytes(mask), bytes(values), cleared,
-              int(msg.tree_term), msg.tree_root, msg.parent]
+              int(msg.tree_term), msg.tree_root, msg.parent, int(msg.seq_start)]
     flags = (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) | (WIDE if wide else 0) | \
         (BEACON if msg.beacon else 0)
     return fields, flags
@@ -183,7 +183,7 @@ def plain(x: np.ndarray) -> np.ndarray:
 
 def assert_same(out: InfoMessage, msg: InfoMessage) -> None:
     """Bit-exact equality of every field (times through their nanosecond keys, -0.0 as 0.0)."""
-    for name in ("src", "dst", "epoch", "dst_epoch", "seq", "ack", "ack_mask", "full", "naive"):
+    for name in ("src", "dst", "epoch", "dst_epoch", "seq", "ack", "ack_mask", "full", "naive", "seq_start"):
         assert getattr(out, name) == getattr(msg, name), name
     for name in ("start", "sent_at"):
         assert struct.pack("<d", getattr(out, name)) == struct.pack("<d", getattr(msg, name)), name
@@ -230,9 +230,10 @@ def messages(draw) -> InfoMessage:
         info = sym_upper(info - scale * rng.random((m, n, n)))
     info = np.clip(info, -MAX_ABS_INFO, MAX_ABS_INFO)
     vec = rng.normal(size=(m, n)) * scale * (rng.random((m, n)) < 0.7)
+    seq = draw(st.integers(0, 2**63 - 1))
     return InfoMessage(
         src=draw(st.text(min_size=1, max_size=40)), dst=draw(st.text(min_size=1, max_size=40)),
-        epoch=draw(st.integers(0, 2**63 - 1)), seq=draw(st.integers(0, 2**63 - 1)), start=start,
+        epoch=draw(st.integers(0, 2**63 - 1)), seq=seq, seq_start=draw(st.integers(0, seq)), start=start,
         sent_at=draw(st.floats(-MAX_ABS_TIME, MAX_ABS_TIME)), times=keys / 1e9, info=info, vec=vec,
         dst_epoch=draw(st.integers(0, 2**63 - 1)), ack=draw(st.integers(-1, 2**63 - 1)),
         ack_mask=draw(st.integers(0, 2**64 - 1)), cleared=cleared / 1e9, full=full, naive=naive)
@@ -260,7 +261,7 @@ def test_round_trip_of_extreme_but_valid_values():
                                   np.zeros((2, 2))]),
                    vec=np.array([[-MAX_ABS_VEC, MAX_ABS_VEC], [tiny, -tiny], [0.0, 0.0]]),
                    epoch=2**63 - 1, dst_epoch=2**63 - 1, seq=2**63 - 1, ack=2**63 - 1, ack_mask=2**64 - 1,
-                   src="ñødé/α", dst="x" * 256)
+                   seq_start=2**63 - 1, src="ñødé/α", dst="x" * 256)
     for key in (None, KEY):
         data = encode(msg, key)
         assert data == reference_frame(msg, key is not None)
@@ -297,7 +298,7 @@ def test_a_frame_written_out_by_hand():
                       dst_epoch=9, ack=2, ack_mask=1, full=True)
     f8 = lambda x: struct.pack("<d", x)            # noqa: E731 (little-endian float64)
     body = (
-        b"\xdc\x00\x11"                             # array 16 of 17 fields
+        b"\xdc\x00\x12"                             # array 16 of 18 fields
         + b"\xa1a" + b"\xa1b"                       # fixstr "a", "b"
         + b"\x07" + b"\x09" + b"\x03" + b"\x02" + b"\x01" + b"\x02"   # epoch dst_epoch seq ack ack_mask n
         + b"\xcb" + struct.pack(">d", 0.5)          # start: msgpack float 64 (big-endian)
@@ -307,6 +308,7 @@ def test_a_frame_written_out_by_hand():
         + b"\xc4\x28" + f8(4.0) + f8(0.5) + f8(2.0) + f8(1.0) + f8(-2.0)
         + b"\xc4\x00"                               # cleared: none
         + b"\x00" + b"\xa0" + b"\xa0"                # tree_term 0, tree_root "", parent "": a fixed tree
+        + b"\x00"                                   # seq_start 0: the channel's first number
     )
     head = b"DF\x02\x02" + body                     # version 2, flags FULL
     crc = struct.pack("<I", zlib.crc32(head))
@@ -575,16 +577,17 @@ def test_the_mac_is_checked_before_the_body_is_parsed():
 
 
 # ---------------------------------------------------------------- rejections: the body
-def test_body_not_msgpack_or_not_17_fields():
+def test_body_not_msgpack_or_not_18_fields():
     raw = lambda body: seal(b"DF\x02\x02" + body, False)        # noqa: E731
     rejected(raw(b"\xc1"), reason="malformed", match="not a msgpack body")
     rejected(raw(msgpack.packb(fields_of()) + b"\x00"), reason="malformed", match="not a msgpack body")  # trailing
     rejected(raw(msgpack.packb(fields_of())[:-3]), reason="malformed", match="not a msgpack body")      # truncated
-    for body in ([], fields_of()[:16], fields_of() + [0], {"src": "a"}, 17, "x" * 17, None):
+    for body in ([], fields_of()[:16], fields_of() + [0], {"src": "a"}, 18, "x" * 18, None):
         rejected(frame_of(body) if not isinstance(body, list) else frame_of(body), reason="malformed")
-    for body in (fields_of()[:16], fields_of()[:13], fields_of() + [0], [None] * 17 + [0]):
-        rejected(frame_of(body), reason="malformed", match="array of 17 fields")
+    for body in (fields_of()[:16], fields_of()[:13], fields_of() + [0], [None] * 18 + [0]):
+        rejected(frame_of(body), reason="malformed", match="array of 18 fields")
     rejected(frame_of(fields_of()[:14]), reason="malformed", match="14 fields .the layout before the tree fields")
+    rejected(frame_of(fields_of()[:17]), reason="malformed", match="17 fields .the layout before the channel start")
     rejected(raw(b"\xdc\x00\x21" + b"\x00" * 33), reason="malformed", match="not a msgpack body")  # 33 > 32 items
 
 
@@ -595,7 +598,7 @@ WRONG_TYPES = [
     ("start", "0.25"), ("start", True), ("start", None), ("start", b"\x00" * 8), ("sent_at", [3.5]),
     ("sent_at", False), ("times", "x"), ("times", [0.5, 1.5, 2.5]), ("times", 0.5), ("times", None),
     ("mask", "x"), ("mask", 7), ("mask", [255]), ("values", 1.0), ("values", "v"), ("values", None),
-    ("cleared", []), ("cleared", 0), ("cleared", "c"),
+    ("cleared", []), ("cleared", 0), ("cleared", "c"), ("seq_start", 1.0), ("seq_start", None),
     ("epoch", msgpack.ExtType(5, b"x")), ("start", msgpack.Timestamp(1, 0)),
 ]
 
@@ -626,7 +629,8 @@ def test_invalid_utf8_in_a_name_is_rejected():
 
 # each integer field over the edges: (field, lowest accepted, first refused above)
 INT_RANGES = [("epoch", 0, 2**63), ("dst_epoch", 0, 2**63), ("seq", 0, 2**63), ("ack", -1, 2**63),
-              ("ack_mask", 0, 2**64), ("n", 1, MAX_STATE_DIM + 1)]
+              ("ack_mask", 0, 2**64), ("n", 1, MAX_STATE_DIM + 1),
+              ("seq_start", 0, 8)]   # (at most seq: make_msg's seq is 7)
 EDGES = [-(2**63), -(2**31), -2, -1, 0, 1, 2**31, 2**32, 2**63 - 1, 2**63, 2**64 - 1]
 
 
@@ -982,12 +986,12 @@ def predicted_size(msg: InfoMessage, keyed: bool) -> int:
     nonzero = int(np.count_nonzero(msg.info[:, *np.triu_indices(n)])) + int(np.count_nonzero(msg.vec))
     keys = time_keys(msg.times)
     gap = 8 if m > 1 and np.diff(keys).max() >= 2**32 else 4
-    body = (3 + _str(msg.src) + _str(msg.dst)      # array 16 header: 17 fields
+    body = (3 + _str(msg.src) + _str(msg.dst)      # array 16 header: 18 fields
             + sum(_int(x) for x in (msg.epoch, msg.dst_epoch, msg.seq, msg.ack, msg.ack_mask, n))
             + 9 + 9
             + _bin(8 + gap * (m - 1) if m else 0) + _bin(m * ((width + 7) // 8)) + _bin(8 * nonzero)
             + _bin(8 * len(msg.cleared))
-            + _int(msg.tree_term) + _str(msg.tree_root) + _str(msg.parent))
+            + _int(msg.tree_term) + _str(msg.tree_root) + _str(msg.parent) + _int(msg.seq_start))
     return 4 + body + 4 + (16 if keyed else 0)
 
 
@@ -999,7 +1003,7 @@ SIZE_CASES = [(0, 1), (1, 1), (1, 4), (5, 4), (31, 1), (32, 1), (10, 6), (100, 4
 def test_size_matches_the_layout(m, n, keyed):
     rng = np.random.default_rng(m * 100 + n)
     for sparse in (False, True):
-        msg = make_msg(n=n, m=m, epoch=2**62 + 5, dst_epoch=300, seq=70_000, ack=-1, ack_mask=2**40,
+        msg = make_msg(n=n, m=m, epoch=2**62 + 5, dst_epoch=300, seq=70_000, seq_start=69_990, ack=-1, ack_mask=2**40,
                        src="node-17", dst="node-3", times=np.cumsum(rng.uniform(1e-3, 2.0, m)), start=0.0)
         if sparse:   # position fixes: only the first two diagonal entries and vector entries
             info = np.zeros((m, n, n))

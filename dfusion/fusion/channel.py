@@ -62,6 +62,20 @@ whatever the transport does:
 * a restarted node has a new, larger ``epoch``: its neighbours forget what it had
   acknowledged and send it a full message, and treat the blocks its previous incarnation
   sent as older than any new message; a message of an earlier incarnation is rejected;
+* **resynchronization**: a node may drop a channel and start a fresh one for the same link
+  in the same incarnation (the tree rule withdrew the link and took it back, perhaps while
+  the other end noticed nothing). The fresh channel forgot what the neighbour sent, and
+  its sequence numbers go on from where the previous channel's stopped (``start``), so the
+  neighbour never takes its messages for duplicates of old ones, and an acknowledgement
+  the neighbour sent for a message of the previous channel (a number below ``start``) is
+  ignored. Every message carries ``seq_start``, the number its channel started at: a
+  recipient that sees a new ``seq_start`` on a message newer than any it received from
+  that incarnation knows the sender forgot what it had sent it, and does what it does for a
+  restarted sender (:meth:`ChannelFilter.remote_restarted`: forget the acknowledgements,
+  send a full message); the sender's fresh channel sends a full message first, which
+  replaces everything the recipient holds from it. Both directions are then resynchronized
+  without double counting anything: per-time replacement keeps at most one value per time
+  from each neighbour, whichever channel it came from;
 * times older than the sender's window (``start``) are kept as they are: the
   sender dropped them, the recipient may still hold them.
 """
@@ -220,6 +234,14 @@ class ChannelFilter:
         with :meth:`received_mask`).
     seq_out : int
         Sequence number of the next message to ``remote``.
+    seq_start : int
+        The sequence number this channel started at (sent in every message): a channel made
+        for a link that had one before in this incarnation goes on from its ``seq_out``.
+    remote_start : int or None
+        The ``seq_start`` of ``remote``'s newest message (``None``: nothing received yet).
+    ack_floor : int
+        Acknowledgements of messages below this number refer to an earlier channel, or were
+        made before ``remote`` restarted or resynchronized: they are ignored.
     need_full : bool
         The next message to ``remote`` must be full.
     acked : int
@@ -236,7 +258,12 @@ class ChannelFilter:
     #: channel): the general plan for every message (the same results; for tests and comparisons).
     append_plans: bool = True
 
-    def __init__(self, local: str, remote: str, n: int) -> None:
+    def __init__(self, local: str, remote: str, n: int, start: int = 0, epoch: int | None = None,
+                 last_seq: int = -1) -> None:
+        """``start``: the first sequence number (a channel replacing an earlier one for the link
+        goes on from that one's ``seq_out``); ``epoch``, ``last_seq``: the incarnation of ``remote``
+        and the newest sequence number received from it over the earlier channel (the reference of
+        the sequence-jump bound; nothing it sent is kept)."""
         self.local = local
         self.remote = remote
         self.n = n
@@ -245,16 +272,17 @@ class ChannelFilter:
         self.seqs = np.zeros(0, dtype=np.int64)
         self.info = np.zeros((0, n, n))
         self.vec = np.zeros((0, n))
-        self.epoch: int | None = None
-        self.last_seq = -1
+        self.epoch: int | None = epoch
+        self.last_seq = last_seq
         self.applied_seq = -1
         self._applied_mask = 0
-        self.seq_out = 0
+        self.seq_out = self.seq_start = self.ack_floor = start
+        self.remote_start: int | None = None
         self.need_full = True
         self.acked = -1
         #: ``seq_out`` when :attr:`acked` last advanced: the messages sent since are those the
         #: recipient has not answered yet (:meth:`pending_keys`).
-        self.acked_at = 0
+        self.acked_at = start
         self.dirty: set[int] = set()
         #: Messages the acknowledgement may lag behind before partial messages carry everything
         #: since the newest acknowledged one (:data:`ACK_LAG`; more with event-triggered sends,
@@ -311,12 +339,14 @@ class ChannelFilter:
         """Everything :meth:`commit`, :meth:`acknowledged` and :meth:`record_sent` change (to undo them)."""
         return (self.keys, self.times, self.seqs, self.info, self.vec, self.epoch, self.last_seq, self.applied_seq,
                 self._applied_mask, self.need_full, self.acked, set(self.dirty), self._resend, dict(self._sent), self.seq_out,
-                self.messages_in, self.messages_out, self.duplicates, self.acked_at)
+                self.messages_in, self.messages_out, self.duplicates, self.acked_at, self.seq_start, self.remote_start,
+                self.ack_floor)
 
     def restore(self, state: tuple) -> None:
         (self.keys, self.times, self.seqs, self.info, self.vec, self.epoch, self.last_seq, self.applied_seq,
          self._applied_mask, self.need_full, self.acked, self.dirty, self._resend, self._sent, self.seq_out,
-         self.messages_in, self.messages_out, self.duplicates, self.acked_at) = state
+         self.messages_in, self.messages_out, self.duplicates, self.acked_at, self.seq_start, self.remote_start,
+         self.ack_floor) = state
 
     def plan(self, msg: InfoMessage, oldest: float, time_tol: float) -> Plan:
         """What receiving ``msg`` changes, without changing anything.
@@ -415,7 +445,9 @@ class ChannelFilter:
             self.epoch = msg.epoch
             self.last_seq = self.applied_seq = -1
             self._applied_mask = 0
-        self.last_seq = max(self.last_seq, msg.seq)
+        if msg.seq > self.last_seq:
+            self.remote_start = msg.seq_start
+            self.last_seq = msg.seq
         if complete:
             self.note_applied(msg.seq)
         self.messages_in += 1
@@ -517,7 +549,7 @@ class ChannelFilter:
         before it. Messages up to ``ack`` it did not acknowledge are taken as lost: the times
         they carried are sent again (:meth:`pending_keys`); a lost full message makes the next
         one full."""
-        if ack < 0 or ack >= self.seq_out:
+        if ack < self.ack_floor or ack >= self.seq_out:
             return
         if ack > self.acked:
             self.acked_at = self.seq_out
@@ -531,12 +563,33 @@ class ChannelFilter:
                 self._resend = np.union1d(self._resend, keys)
 
     def remote_restarted(self) -> None:
-        """``remote`` is a new incarnation: it holds nothing of this node's; the next message is full."""
+        """``remote`` holds nothing of this node's (a new incarnation, or it started a fresh channel
+        for the link): forget its acknowledgements, including those still under way (below
+        :attr:`ack_floor`); the next message is full."""
         self.need_full = True
         self.acked = -1
-        self.acked_at = 0
+        self.acked_at = self.ack_floor = self.seq_out
         self._sent.clear()
         self._resend = np.zeros(0, dtype=np.int64)
+
+    def follow_remote(self, forgot: bool, reverted: bool = False) -> None:
+        """After a message was committed: ``forgot``, the sender holds nothing of this node's (it
+        restarted, or started a fresh channel: :meth:`remote_restarted`); ``reverted``, the link
+        went back to an incarnation of the sender that a newer one had replaced (without a key,
+        :mod:`dfusion.fusion.incarnation`): what this node holds from it may have been replaced by
+        the other one's messages, so this end starts afresh too (a new :attr:`seq_start`), and
+        the sender, seeing it, sends a full message."""
+        if forgot:
+            self.remote_restarted()
+        if reverted:
+            self.seq_start = self.seq_out
+
+    def remote_resynchronizes(self, msg: InfoMessage) -> bool:
+        """Whether ``msg`` (of ``remote``'s current incarnation) shows that ``remote`` started a
+        fresh channel for the link since its previous message: a new ``seq_start`` on a message
+        newer than any received (a reordered message of the earlier channel does not count)."""
+        return (self.remote_start is not None and msg.seq_start != self.remote_start and msg.epoch == self.epoch
+                and msg.seq > self.last_seq)
 
     def next_is_full(self) -> bool:
         """Whether the next message must be full (first one, after a restart or a lost full one,

@@ -18,7 +18,7 @@ import dataclasses
 import numpy as np
 
 from dfusion.errors import ValidationError
-from dfusion.fusion.channel import ChannelFilter, nonzero_blocks, time_key
+from dfusion.fusion.channel import MAX_SEQ_JUMP, ChannelFilter, nonzero_blocks, time_key
 from dfusion.fusion.guard import LinkRecord
 from dfusion.fusion.tree import TreeChange, TreeEpoch
 from dfusion.wire import InfoMessage
@@ -63,9 +63,13 @@ class TreeFollowing:
             if change.new_epoch:
                 self.stats.new_epochs += 1
                 self._tree_withdraw(list(self.channels.values()), everything=True)
+                for ch in self.channels.values():
+                    self._link_seq[ch.remote] = ch.seq_out
                 self.channels = {j: self._channel(j) for j in sorted(self.tree.tree_links())}
             else:
                 lost = [self.channels.pop(j) for j in sorted(change.lost) if j in self.channels]
+                for ch in lost:
+                    self._link_seq[ch.remote] = ch.seq_out
                 if lost:
                     self._tree_withdraw(lost)
                 for j in sorted(change.gained):
@@ -195,21 +199,25 @@ class TreeFollowing:
         if msg.n != self.filter.n:
             raise self._reject("dimension", f"state dimension {msg.n} from {src!r}, expected {self.filter.n}")
         known = self.incarnations.get(src)
-        if known is not None and msg.epoch < known:
-            raise self._reject("previous-incarnation",
-                               f"message of an earlier incarnation of {src!r} ({msg.epoch} < {known})")
+        newest = self._heard_seq.get(src, -1)
+        verdict, last = ("same", newest) if msg.epoch == known else self._judge_incarnation(msg, known, newest)
+        if msg.beacon and msg.seq > last + MAX_SEQ_JUMP and self.frame_key is None:
+            # (a fusion message's jump is checked against its channel, :meth:`_check`)
+            raise self._reject("sequence-jump", f"sequence number {msg.seq} from {src!r} jumps past {last}")
         if src not in self.tree.links:
             self.stats.not_linked += 1
             return False
         undo = None if msg.beacon else self._tree_checkpoint()
         self._tree_undo = undo     # a failure from here on undoes the rule's changes (_reject)
-        if known is not None and msg.epoch > known:   # src restarted: what it said before no longer holds
+        if verdict in ("new", "revert"):   # src restarted (or went back): what it said before no longer holds
             self._follow(self.tree.forget(src))
         self.incarnations[src] = msg.epoch
+        self._heard_seq[src] = last   # (a channel the rule makes now starts its jump bound there)
         parent = msg.parent or None
         if parent == self.name and msg.dst_epoch not in (0, self.epoch):
             parent = None     # it names an earlier incarnation of this node
         self._follow(self.tree.heard_from(src, TreeEpoch(msg.tree_term, msg.tree_root), parent))
+        self._heard_seq[src] = max(msg.seq, last)
         if msg.beacon or src not in self.channels or TreeEpoch(msg.tree_term, msg.tree_root) != self.tree.epoch:
             self.stats.not_fused += 1
             self._tree_undo = None
@@ -220,10 +228,11 @@ class TreeFollowing:
         return (self.tree.snapshot(), dict(self.incarnations), dict(self.channels),
                 {j: ch.state() for j, ch in self.channels.items()}, self.filter.checkpoint(),
                 self._total.checkpoint(), self.neighbors, dataclasses.replace(self.stats), dict(self._tree_held),
-                None if self._guard is None else dict(self._guard.links))
+                None if self._guard is None else dict(self._guard.links), dict(self._heard_seq), dict(self._link_seq))
 
     def _tree_restore(self, cp: tuple) -> None:
-        tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links = cp
+        tree, inc, channels, states, filt, total, nbrs, stats, held, guard_links, heard_seq, link_seq = cp
+        self._heard_seq, self._link_seq = heard_seq, link_seq
         self._tree_held = held
         if guard_links is not None:
             self._guard.links = guard_links

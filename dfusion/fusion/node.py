@@ -87,9 +87,11 @@ from dfusion.estimation.estimate import Estimate
 from dfusion.fusion.channel import ACK_LAG, MAX_SEQ_JUMP, ChannelFilter, time_keys
 from dfusion.fusion.following import TreeFollowing
 from dfusion.fusion.guard import GuardConfig, NeighbourGuard
+from dfusion.fusion.incarnation import Incarnations
 from dfusion.fusion.outgoing import MessageSending
 from dfusion.fusion.quarantine import GuardedLinks
 from dfusion.fusion.stats import LOG_INTERVAL, NodeStats, RejectionLog
+from dfusion.fusion.stats import node_log as log
 from dfusion.fusion.steady import SteadyPath
 from dfusion.fusion.stores import InformationBlocks
 from dfusion.fusion.target import TargetFusion
@@ -253,8 +255,15 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         #: The tree rule's state (``None``: a fixed tree).
         self.tree = tree
         self.peers = None if peers is None else frozenset(peers)
-        #: The newest incarnation heard from each node (links that change).
+        #: The newest incarnation heard from each node (links that change), and the newest sequence
+        #: number heard from it (beacons included).
         self.incarnations: dict[str, int] = {}
+        self._heard_seq: dict[str, int] = {}
+        #: The judgement of neighbours' incarnation numbers (:mod:`dfusion.fusion.incarnation`).
+        self._incarnation_judge = Incarnations(keyed=self.frame_key is not None)
+        #: Per neighbour, the next sequence number of a channel made for the link or of a beacon
+        #: over it: a fresh channel goes on from where the previous one stopped (links that change).
+        self._link_seq: dict[str, int] = {}
         fusing = nbrs if tree is None else sorted(tree.tree_links())
         self._ack_lag = ACK_LAG
         self.channels: dict[str, ChannelFilter] = {j: self._channel(j) for j in fusing}
@@ -313,7 +322,15 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         return self._guard
 
     def _channel(self, j: str) -> ChannelFilter:
-        ch = ChannelFilter(self.name, j, self.filter.n)
+        """A fresh channel for the link to ``j``: its sequence numbers go on from the link's earlier
+        channels and beacons, and the sequence-jump bound starts from the newest number heard from
+        ``j``'s current incarnation (:mod:`dfusion.fusion.channel`, resynchronization)."""
+        if self.tree is None:
+            ch = ChannelFilter(self.name, j, self.filter.n)
+        else:
+            epoch = self.incarnations.get(j)
+            ch = ChannelFilter(self.name, j, self.filter.n, self._link_seq.get(j, 0), epoch,
+                               self._heard_seq.get(j, -1) if epoch is not None else -1)
         ch.ack_lag = self._ack_lag
         return ch
 
@@ -405,13 +422,30 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
             raise self._reject("malformed", f"{msg.src!r} uses another fusion mode")
         if bool(msg.tree_root) != (self.tree is not None):
             raise self._reject("malformed", f"{msg.src!r} uses another tree mode (a fixed tree or the tree rule)")
-        if ch.epoch is not None and msg.epoch < ch.epoch:
-            raise self._reject("previous-incarnation",
-                               f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {ch.epoch})")
-        last = ch.last_seq if msg.epoch == ch.epoch else -1
+        if msg.epoch == ch.epoch:
+            last = ch.last_seq
+        elif self.tree is None:
+            last = self._judge_incarnation(msg, ch.epoch, ch.last_seq)[1]
+        else:   # (judged by the tree rule's part, _tree_heard)
+            last = -1
         if msg.seq > last + MAX_SEQ_JUMP and self.frame_key is None:
             raise self._reject("sequence-jump", f"sequence number {msg.seq} from {msg.src!r} jumps past {last}")
         return ch
+
+    def _judge_incarnation(self, msg: InfoMessage, current: int | None, newest: int) -> tuple[str, int]:
+        """:meth:`Incarnations.judge` of ``msg``: the verdict and the reference of the sequence-jump
+        bound; a rejection is counted and raised."""
+        verdict, last = self._incarnation_judge.judge(msg.src, msg.epoch, msg.seq, msg.sent_at, current, newest)
+        if verdict == "previous-incarnation":
+            raise self._reject(verdict, f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {current})")
+        if verdict == "implausible-incarnation":
+            raise self._reject(verdict, f"incarnation {msg.epoch} of {msg.src!r} is more than 24 h ahead of this "
+                                        "node's clock")
+        if verdict == "revert":
+            self.stats.incarnations_reverted += 1
+            log.warning("%s: %s's incarnation %d goes on after %d replaced it: the link switches back to it", self.name,
+                        msg.src, msg.epoch, current)
+        return verdict, last
 
     def _reject(self, reason: str, detail: str) -> MessageError:
         if self._tree_undo is not None:   # the tree rule took the message in before it was refused: undo that

@@ -83,6 +83,7 @@ class MessageSending:
             cleared=cleared,
             full=full and self.fusion != "naive",
             naive=self.fusion == "naive",
+            seq_start=ch.seq_start,
             **self._tree_fields(),
         )
         data = encode(msg, self.frame_key)
@@ -131,7 +132,9 @@ class MessageSending:
     def _beacon(self, neighbor: str, sent_at: float | None) -> bytes:
         """A beacon for ``neighbor``: the tree fields, no blocks."""
         f = self.filter
-        msg = InfoMessage(src=self.name, dst=neighbor, epoch=self.epoch, seq=0, start=f.oldest_time,
+        seq = self._link_seq.get(neighbor, 0)
+        self._link_seq[neighbor] = seq + 1
+        msg = InfoMessage(src=self.name, dst=neighbor, epoch=self.epoch, seq=seq, seq_start=seq, start=f.oldest_time,
                           sent_at=f.latest_time if sent_at is None else float(sent_at), times=np.zeros(0),
                           info=np.zeros((0, f.n, f.n)), vec=np.zeros((0, f.n)),
                           dst_epoch=self.incarnations.get(neighbor, 0), full=False, beacon=True,

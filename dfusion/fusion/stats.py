@@ -24,8 +24,9 @@ class NodeStats:
 
     ``rejections`` counts rejected messages by reason: ``malformed``, ``corrupt``,
     ``unauthenticated``, ``version``, ``oversized`` (the frame), ``misaddressed``,
-    ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``sequence-jump``,
-    ``numerical`` (the filter would not stay proper), ``internal``. ``duplicates`` counts
+    ``not-a-neighbour``, ``dimension``, ``previous-incarnation``, ``implausible-incarnation`` (an
+    incarnation number far ahead of this node's clock, :mod:`dfusion.fusion.incarnation`),
+    ``sequence-jump``, ``numerical`` (the filter would not stay proper), ``internal``. ``duplicates`` counts
     copies of messages the node had applied already (network duplicates, replays inside the
     run, or messages older than the replay window, :meth:`ChannelFilter.was_applied`):
     discarded without an error, they change nothing.
@@ -55,6 +56,13 @@ class NodeStats:
     #: of ``messages_rejected``: copies rejected by the cheap checks as they arrived, before they
     #: were queued (:meth:`FusionNode.check_frame` run by the transport), so never delivered
     rejected_on_arrival: int = 0
+    #: messages that showed a neighbour started a fresh channel for the link in the same
+    #: incarnation (a new ``seq_start``): this node forgot its acknowledgements and sent it a full
+    #: message (:mod:`dfusion.fusion.channel`, resynchronization)
+    resyncs: int = 0
+    #: messages that switched a link back to a neighbour's incarnation that a newer one had
+    #: replaced, because it went on sending (without a key, :mod:`dfusion.fusion.incarnation`)
+    incarnations_reverted: int = 0
 
 
 class RejectionLog:

@@ -31,7 +31,7 @@ class SteadyPath:
         the newest state, a fixed tree (the tree rule's holds stay on the general path) and a link
         that is not quarantined (its messages are probation tests)."""
         if (not self.critical_path_first or self.tree is not None or self._tree_held or msg.seq <= ch.last_seq
-                or (self._guard is not None and self._guard.is_quarantined(msg.src))):
+                or msg.seq_start != ch.remote_start or (self._guard is not None and self._guard.is_quarantined(msg.src))):
             return False
         latest = self.filter.latest_time + self.filter.time_tol
         return all(d[0] <= latest for d in deltas)

@@ -95,14 +95,17 @@ class ReceiveTransaction:
         now = [d for d in deltas if d[0] <= latest]
         mark = self._mark_stores(msg.src)
         guard = self._guard
-        restarted = ch.epoch is not None and msg.epoch > ch.epoch
+        # the sender restarted (or, without a key, its replaced incarnation went on: a switch back), or
+        # it started a fresh channel for the link in this incarnation (resynchronization)
+        restarted = ch.epoch is not None and msg.epoch != ch.epoch
+        reverted = restarted and msg.epoch < ch.epoch
+        resync = not restarted and ch.remote_resynchronizes(msg)
         duplicate = msg.epoch == ch.epoch and msg.seq == ch.last_seq
         event = None
         try:
             if guard is not None and guard.is_quarantined(msg.src):
                 ch.commit(msg, plan, complete=not too_far)
-                if restarted:
-                    ch.remote_restarted()
+                ch.follow_remote(restarted or resync, reverted)
                 event = self._probation(msg.src, ch)
             else:
                 verdict = None
@@ -116,8 +119,7 @@ class ReceiveTransaction:
                     except DfusionError as exc:
                         raise _Numerical(str(exc)) from None
                 ch.commit(msg, plan, complete=not too_far)
-                if restarted:
-                    ch.remote_restarted()
+                ch.follow_remote(restarted or resync, reverted)
                 if deltas:
                     self._total.add_many(deltas)
                 self._mark_dirty(changed.tolist(), skip=msg.src)
@@ -140,6 +142,7 @@ class ReceiveTransaction:
         if not too_far and not duplicate:
             self._heard[msg.src] = max(self._heard.get(msg.src, -np.inf), float(msg.sent_at))
         self.stats.duplicates += int(duplicate)
+        self.stats.resyncs += int(resync)
         self.stats.blocks_outside_window += outside
         self.stats.blocks_too_far_ahead += len(too_far)
         if outside:

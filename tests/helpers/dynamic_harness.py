@@ -43,6 +43,15 @@ class DynamicSchedule:
     #: per link, the heartbeat every ``send_every`` steps)
     sends: str = "periodic"
     min_interval: float = 0.0
+    #: chance per step of a link *flicker*: a link that exists goes down and up again within the
+    #: step at one end only (the other end notices nothing: a lapse of a liveliness token), or,
+    #: with chance ``flicker_both``, at both ends. A one-sided flicker is at the parent's end of a
+    #: tree link with chance ``flicker_parent`` (the child notices nothing and stays in its tree
+    #: epoch), else at a random end (at the child's end it starts a new tree epoch). Drawn from a
+    #: random stream of its own, so the other draws (and the schedules without flickers) stay the same.
+    flicker: float = 0.0
+    flicker_both: float = 0.0
+    flicker_parent: float = 0.5
 
 
 @dataclass
@@ -57,6 +66,7 @@ class DynamicRun:
     link_changes: int
     epochs: int
     settle_rounds: int
+    flickers: int = 0
 
 
 def single_state_information(node: FusionNode) -> tuple[np.ndarray, np.ndarray]:
@@ -157,6 +167,8 @@ def run_dynamic(s: DynamicSchedule, reference_every_step: bool = True) -> Dynami
     changes = 0
     t = 0.0
     schedules: dict[tuple[str, int], SendSchedule] = {}
+    flicker_rng = np.random.default_rng([s.seed, 7])
+    flickers = 0
 
     def drop_link(a: str, b: str) -> None:
         links.discard(_pair(a, b))
@@ -197,6 +209,20 @@ def run_dynamic(s: DynamicSchedule, reference_every_step: bool = True) -> Dynami
             else:
                 add_link(a, b)
             changes += 1
+        if links and flicker_rng.random() < s.flicker:
+            pair = sorted(links)[int(flicker_rng.integers(len(links)))]
+            parents = [x for x, y in (pair, pair[::-1]) if nodes[y].tree.parent == x]
+            if flicker_rng.random() < s.flicker_both:
+                ends = pair
+            elif parents and flicker_rng.random() < s.flicker_parent:
+                ends = (parents[0],)
+            else:
+                ends = (pair[int(flicker_rng.integers(2))],)
+            for x in ends:
+                y = pair[1] if x == pair[0] else pair[0]
+                nodes[x].link_down(y)
+                nodes[x].link_up(y)
+            flickers += 1
         for n in sorted(present):
             nodes[n].predict(t)
         for n in sorted(present):
@@ -265,4 +291,4 @@ def run_dynamic(s: DynamicSchedule, reference_every_step: bool = True) -> Dynami
         x.predict(t_end)
     rounds += settle(live, links)
     epochs = sum(x.stats.new_epochs for x in nodes.values())
-    return DynamicRun(nodes, present, measurements, t_end, worst, worst_block, changes, epochs, rounds)
+    return DynamicRun(nodes, present, measurements, t_end, worst, worst_block, changes, epochs, rounds, flickers)

@@ -386,6 +386,7 @@ def full_state(node: FusionNode) -> dict:
     store added to the node later is compared, or this fails, but it is never left out."""
     from dfusion.estimation.delayed_state import DelayedStateEIF
     from dfusion.fusion import ChannelFilter, NeighbourGuard
+    from dfusion.fusion.incarnation import Incarnations
     from dfusion.fusion.node import NodeStats, _Blocks
 
     def plain(x):
@@ -399,6 +400,9 @@ def full_state(node: FusionNode) -> dict:
         if isinstance(x, NeighbourGuard):
             return ("guard", repr(x.config), {j: plain({k: v for k, v in vars(r).items()})
                                               for j, r in x.links.items()})
+        if isinstance(x, Incarnations):
+            return ("incarnations", x.keyed, {j: (r.epoch, r.newest_seq, r.sent_at, r.streak, r.mark)
+                                              for j, r in x.replaced.items()})
         if isinstance(x, NodeStats):
             return {k: plain(v) for k, v in vars(x).items() if k not in ("messages_rejected", "rejections")}
         if isinstance(x, dict):
