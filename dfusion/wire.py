@@ -159,7 +159,8 @@ class InfoMessage:
     dst_epoch : int
         The recipient's incarnation that ``ack`` refers to (0: unknown).
     seq : int
-        Per-link sequence number, from 0 in each incarnation.
+        Per-link sequence number, from 0 in each incarnation (beacons and every channel of the
+        link share the numbering: a fresh channel goes on from the previous one).
     ack : int
         Highest sequence number the sender applied from ``dst`` (-1: none).
     ack_mask : int

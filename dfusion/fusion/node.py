@@ -34,7 +34,9 @@ keeps the fusion links a tree with its neighbours by the tree rule: every messag
 the node's tree epoch and parent, fusion messages go over tree links and beacons over the
 others (:meth:`FusionNode.outgoing`). When the rule changes the tree the node withdraws
 what came over the links that left it (everything, when it enters a new epoch) and starts
-fresh channels on the links that joined it (``docs/dynamic-topology.md``).
+fresh channels on the links that joined it (``docs/dynamic-topology.md``). A fresh channel
+numbers its messages on from the link's previous one and announces its start, so that a
+neighbour that noticed nothing resynchronizes with it (:mod:`dfusion.fusion.channel`).
 
 **Consistency test and quarantine** (``guard=``, off by default; on in scenarios through
 ``[protection]``): the blocks a message adds are tested jointly against the node's belief
@@ -149,7 +151,8 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
     epoch : int, optional
         Identifier of this incarnation; must grow when a node restarts (default: the
         current time in nanoseconds). Neighbours replace what the old incarnation sent and
-        reject messages of earlier incarnations.
+        reject messages of earlier incarnations, and of a new incarnation more than 24 h
+        ahead of their clocks (:mod:`dfusion.fusion.incarnation`).
     max_message_bytes, max_ahead, max_held : bounds
         Largest frame accepted; how far (seconds) and how many state times ahead of the
         newest state received information may be held back (default ``window`` times).

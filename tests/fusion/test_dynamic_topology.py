@@ -15,22 +15,9 @@ from dfusion.fusion import FusionNode
 from dfusion.fusion.tree import SpanningTree, TreeEpoch, forest_settled, initial_parents
 from dfusion.models import ConstantVelocity, PositionSensor
 from dfusion.wire import decode, encode
-from tests.helpers.dynamic_harness import PRIOR, DynamicSchedule, build_node, run_dynamic, settle
+from tests.helpers.dynamic_harness import (PRIOR, DynamicSchedule, assert_exact, build_node, rel, run_dynamic,
+                                           settle)
 from tests.helpers.fusion_harness import Q_PSD, central_kalman
-
-
-def rel(a, b) -> float:
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
-
-
-def assert_exact(run) -> None:
-    """Every node still present equals the Kalman filter on every measurement of those nodes."""
-    meas = [(t, z, std) for t, z, std, node in run.measurements if node in run.present]
-    mean, cov = central_kalman(meas, run.t_end)
-    for name in sorted(run.present):
-        m, P = run.nodes[name].estimate()
-        assert rel(m, mean) < 1e-9, (name, rel(m, mean))
-        assert rel(P, cov) < 1e-9, (name, rel(P, cov))
 
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])

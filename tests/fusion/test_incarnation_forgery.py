@@ -15,15 +15,11 @@ from dfusion.fusion.incarnation import MAX_EPOCH_AHEAD_NS, REVERT_STREAK, Incarn
 from dfusion.fusion.tree import initial_parents
 from dfusion.models import PositionSensor
 from dfusion.wire import FrameKey, decode, encode
-from tests.helpers.dynamic_harness import build_node, settle
+from tests.helpers.dynamic_harness import build_node, rel, settle
 from tests.helpers.fusion_harness import KEY, central_kalman, make_node, state_digest
 
 SENSOR = PositionSensor(2, 0.5)
 HOUR = 3600 * 10**9
-
-
-def rel(a, b) -> float:
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
 
 
 class Pair:
@@ -187,9 +183,10 @@ def test_the_judge_on_its_own():
 
 
 def test_links_that_change_recover_from_a_forged_incarnation_too():
-    """With the tree rule: a forged beacon-free fusion frame of a (b's parent) with a plausible
-    incarnation makes b forget a (a new tree epoch); a's next message takes it back, and after
-    the links settle (and what b held is released) both are exact."""
+    """With the tree rule: a forged fusion frame of a (b's parent) with a plausible incarnation
+    makes b forget a (a new tree epoch); a's next message takes the incarnation back, the one
+    after it is fused in the re-formed tree, and after the links settle (and what b held is
+    released) both are exact."""
     p = Pair(tree=True)
     for _ in range(8):
         p.step()
@@ -197,6 +194,7 @@ def test_links_that_change_recover_from_a_forged_incarnation_too():
     assert p.b.incarnations["a"] != p.a.epoch
     p.step()
     assert p.b.incarnations["a"] == p.a.epoch and p.b.stats.incarnations_reverted == 1
+    assert p.step() > 0        # fused again in the re-formed tree (b had started a new tree epoch)
     nodes = {"a": p.a, "b": p.b}
     settle(nodes, p.links)
     t = round(0.1 * p.k + p.b.hold + 0.1, 9)

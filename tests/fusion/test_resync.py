@@ -13,15 +13,11 @@ from hypothesis import strategies as st
 from dfusion.fusion.tree import initial_parents
 from dfusion.models import PositionSensor
 from dfusion.wire import decode
-from tests.helpers.dynamic_harness import (DynamicSchedule, build_node, measurement_information, run_dynamic,
-                                           single_state_information)
+from tests.helpers.dynamic_harness import (DynamicSchedule, assert_exact, build_node, measurement_information, rel,
+                                           run_dynamic, single_state_information)
 from tests.helpers.fusion_harness import central_kalman
 
 STD = 0.6
-
-
-def rel(a, b) -> float:
-    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
 
 
 def pair_run(flicker: dict[int, list[tuple[str, str]]], steps: int, check_from: int | None = None):
@@ -154,15 +150,6 @@ def test_a_reordered_message_of_the_previous_channel_changes_nothing_it_should_n
         assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9
 
 
-def assert_exact(run) -> None:
-    meas = [(t, z, std) for t, z, std, node in run.measurements if node in run.present]
-    mean, cov = central_kalman(meas, run.t_end)
-    for name in sorted(run.present):
-        m, P = run.nodes[name].estimate()
-        assert rel(m, mean) < 1e-9, (name, rel(m, mean))
-        assert rel(P, cov) < 1e-9, (name, rel(P, cov))
-
-
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**31 - 1),
@@ -205,3 +192,37 @@ def test_flickers_are_exercised():
     assert sum(x.stats.resyncs for x in run.nodes.values()) >= 5
     assert run.worst_overconfidence >= -1e-9 and run.worst_block >= -1e-10
     assert_exact(run)
+
+
+def test_the_channel_rules_on_their_own():
+    """A new start counts only on a message newer than any received (a reordered message of the
+    earlier channel does not); acknowledgements below the floor (of an earlier channel, or made
+    before the other end resynchronized) are ignored."""
+    from dfusion.fusion.channel import ChannelFilter
+    from dfusion.wire import InfoMessage
+
+    def msg(seq, start, ack=-1):
+        return InfoMessage(src="a", dst="b", epoch=1, seq=seq, seq_start=start, start=0.0, sent_at=0.0,
+                           times=np.zeros(0), info=np.zeros((0, 2, 2)), vec=np.zeros((0, 2)), ack=ack, full=False)
+
+    ch = ChannelFilter("b", "a", 2)
+    for s in range(6):
+        ch.commit(msg(s, 0), None)
+    assert ch.remote_start == 0 and not ch.remote_resynchronizes(msg(6, 0))
+    assert ch.remote_resynchronizes(msg(6, 6)) and not ch.remote_resynchronizes(msg(4, 6))
+    for s in range(3):      # b sent messages 0, 1, 2
+        ch.record_sent(s, np.array([s], dtype=np.int64), full=s == 0)
+    ch.commit(msg(6, 6), None)
+    ch.follow_remote(True)                       # a forgot everything: floor at b's next number
+    assert ch.remote_start == 6 and ch.ack_floor == 3 and ch.next_is_full()
+    ch.acknowledged(2, 0b11)                     # a's previous channel had them: ignored
+    assert ch.acked == -1
+    ch.commit(msg(4, 0), None)                   # reordered, of a's previous channel
+    assert ch.remote_start == 6
+    fresh = ChannelFilter("a", "b", 2, start=40, epoch=2, last_seq=17)
+    assert (fresh.seq_out, fresh.seq_start, fresh.ack_floor, fresh.last_seq, fresh.applied_seq) == (40, 40, 40, 17, -1)
+    fresh.record_sent(40, np.array([1], dtype=np.int64), full=True)
+    fresh.acknowledged(39, 0)                    # of the channel before: ignored
+    assert fresh.acked == -1 and fresh.next_is_full() is False
+    fresh.acknowledged(40, 0)
+    assert fresh.acked == 40

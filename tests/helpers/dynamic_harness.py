@@ -292,3 +292,18 @@ def run_dynamic(s: DynamicSchedule, reference_every_step: bool = True) -> Dynami
     rounds += settle(live, links)
     epochs = sum(x.stats.new_epochs for x in nodes.values())
     return DynamicRun(nodes, present, measurements, t_end, worst, worst_block, changes, epochs, rounds, flickers)
+
+
+def rel(a, b) -> float:
+    """Largest entry of ``a - b`` relative to the largest of ``b``."""
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-12))
+
+
+def assert_exact(run: DynamicRun) -> None:
+    """Every node still present equals the Kalman filter on every measurement of those nodes (1e-9)."""
+    meas = [(t, z, std) for t, z, std, node in run.measurements if node in run.present]
+    mean, cov = central_kalman(meas, run.t_end)
+    for name in sorted(run.present):
+        m, P = run.nodes[name].estimate()
+        assert rel(m, mean) < 1e-9, (name, rel(m, mean))
+        assert rel(P, cov) < 1e-9, (name, rel(P, cov))
