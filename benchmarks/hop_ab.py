@@ -20,13 +20,15 @@ import re
 import shutil
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-STAGES = ("a.predict", "a.update", "a.message_to", "b.predict", "b.receive", "b.estimate")
-DT = 0.1
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import hop_cpu as H  # the hop itself: the same stages, timed the same way
+import transport as T  # the measurements (Track), the time step
+
+STAGES = H.STAGES[:-1]
 
 
 def renamed_copy(base: Path, into: Path) -> None:
@@ -39,58 +41,31 @@ def renamed_copy(base: Path, into: Path) -> None:
 
 
 class Lane:
-    """One checkout's hop: node ``a`` (a full window, one measurement per state) sends to ``b``."""
+    """One checkout's hop (``hop_cpu.hop``): node ``a`` (a full window, one measurement per state)
+    sends to ``b``; measurements from ``transport.Track`` (seeded: both lanes get the same)."""
 
     def __init__(self, pkg: str, W: int, guard: bool, seed: int = 1) -> None:
         fusion = importlib.import_module(pkg + ".fusion")
         models = importlib.import_module(pkg + ".models")
-        self.motion, self.sensor = models.ConstantVelocity(2, 0.1), models.PositionSensor(2, 0.5)
+        motion, self.sensor = models.ConstantVelocity(2, 0.1), models.PositionSensor(2, 0.5)
         prior = (0.0, np.zeros(4), np.eye(4))
-        cfg = fusion.GuardConfig() if guard else None
-        self.rng = np.random.default_rng(seed)
-        self.x, self.tx = self.rng.multivariate_normal(prior[1], prior[2]), 0.0
-        self.a = fusion.FusionNode("a", ["b"], self.motion, window=W, prior=prior, epoch=3, guard=cfg)
-        self.b = fusion.FusionNode("b", ["a"], self.motion, window=W, prior=prior, epoch=7,
+        self.track = T.Track(seed)
+        self.a = fusion.FusionNode("a", ["b"], motion, window=W, prior=prior, epoch=3,
+                                   guard=fusion.GuardConfig() if guard else None)
+        self.b = fusion.FusionNode("b", ["a"], motion, window=W, prior=prior, epoch=7,
                                    guard=fusion.GuardConfig() if guard else None)
         for k in range(1, W + 1):
-            self.a.predict(k * DT)
-            self.a.update(k * DT, self.z(k * DT), self.sensor)
+            self.a.predict(k * T.DT)
+            self.a.update(k * T.DT, self.track.z(k * T.DT), self.sensor)
         self.k = W
         self.times: dict[str, list[float]] = {s: [] for s in STAGES}
 
-    def z(self, t: float) -> np.ndarray:
-        dt = t - self.tx
-        if dt > 0:
-            self.x = self.motion.F(dt) @ self.x + self.rng.multivariate_normal(np.zeros(4), self.motion.Q(dt))
-            self.tx = t
-        return self.x[:2] + self.sensor.std * self.rng.normal(size=2)
-
     def hop(self, record: bool) -> None:
-        a, b, pc = self.a, self.b, time.perf_counter
         self.k += 1
-        t = round(self.k * DT, 9)
-        z = self.z(t)
-        t0 = pc()
-        a.predict(t)
-        t1 = pc()
-        a.update(t, z, self.sensor)
-        t2 = pc()
-        data = a.message_to("b", sent_at=t)
-        t3 = pc()
-        a.settle()
-        t4 = pc()
-        if t > b.latest_time + 1e-9:
-            b.predict(t)
-        t5 = pc()
-        b.receive(data)
-        t6 = pc()
-        b.estimate()
-        t7 = pc()
-        a.receive(b.message_to("a", sent_at=t))   # the acknowledgement, outside the timing
-        b.settle()
-        a.settle()
+        t = round(self.k * T.DT, 9)
+        stages = H.hop(self.a, self.b, t, self.track.z(t), self.sensor)
         if record:
-            for s, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t5 - t4, t6 - t5, t7 - t6)):
+            for s, dt in zip(STAGES, stages):
                 self.times[s].append(dt)
 
 
