@@ -35,9 +35,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from dfusion.errors import OutsideWindowError
+from dfusion.estimation.delayed_state import DelayedStateEIF
 from dfusion.fusion.channel import any_of, nonzero_blocks, ChannelFilter, time_key
 from dfusion.fusion.stats import node_log as log
-from dfusion.fusion.stores import clean_difference
+from dfusion.fusion.stores import InformationBlocks, clean_difference
 from dfusion.linalg import Array, as_matrix, as_time, as_vector, check_psd, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 
@@ -46,6 +47,16 @@ __all__ = ["TargetFusion"]
 
 class TargetFusion:
     """The fusion state of one target (see the module docstring); a part of :class:`FusionNode`."""
+
+    # the target's state (set by the node; declared here so that it is read in one place)
+    filter: DelayedStateEIF
+    channels: dict[str, ChannelFilter]
+    _own: InformationBlocks
+    _total: InformationBlocks
+    _held: InformationBlocks
+    _tree_held: dict[int, tuple[float, Array, Array, float]]
+    _pruned_at: float
+    _naive_sent: dict[str, dict[int, tuple[Array, Array]]]
     @property
     def motion(self) -> MotionModel:
         return self.filter.motion
