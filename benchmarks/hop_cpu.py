@@ -48,6 +48,39 @@ def settle(node: FusionNode) -> None:
     getattr(node, "settle", lambda: None)()
 
 
+def hop(a, b, t: float, z, sensor, profile=None) -> tuple[float, ...]:
+    """One hop at ``t`` with measurement ``z`` (a node of any checkout: ``hop_ab.py`` runs two):
+    the seconds of each stage of :data:`STAGES` but the minimal hop; then, outside the timing,
+    ``b``'s acknowledgement and both nodes' deferred bookkeeping. ``profile``: a cProfile
+    profile enabled around ``b.receive``."""
+    pc = time.perf_counter
+    t0 = pc()
+    a.predict(t)
+    t1 = pc()
+    a.update(t, z, sensor)
+    t2 = pc()
+    data = a.message_to("b", sent_at=t)
+    t3 = pc()
+    settle(a)   # idle after the send (transport.py does the same)
+    t4 = pc()
+    if t > b.latest_time + 1e-9:
+        b.predict(t)
+    t5 = pc()
+    if profile is not None:
+        profile.enable()
+        b.receive(data)
+        profile.disable()
+    else:
+        b.receive(data)
+    t6 = pc()
+    b.estimate()
+    t7 = pc()
+    a.receive(b.message_to("a", sent_at=t))   # the acknowledgement, outside the timing
+    settle(b)
+    settle(a)
+    return t1 - t0, t2 - t1, t3 - t2, t5 - t4, t6 - t5, t7 - t6
+
+
 def run(W: int, hops: int, guard: bool = False, warm: int = 50, profile=None) -> tuple[dict[str, float], dict]:
     """Medians (us) per stage, and the receiver's guard summary (empty without a guard)."""
     track = T.Track(1)
@@ -59,35 +92,12 @@ def run(W: int, hops: int, guard: bool = False, warm: int = 50, profile=None) ->
     for i in range(hops + warm):
         t = round((W + 1 + i) * T.DT, 9)
         z = track.z(t)
-        t0 = pc()
-        a.predict(t)
-        t1 = pc()
-        a.update(t, z, T.SENSOR)
-        t2 = pc()
-        data = a.message_to("b", sent_at=t)
-        t3 = pc()
-        settle(a)   # idle after the send (transport.py does the same)
-        t4 = pc()
-        if t > b.latest_time + 1e-9:
-            b.predict(t)
-        t5 = pc()
-        if profile is not None and i >= warm:
-            profile.enable()
-            b.receive(data)
-            profile.disable()
-        else:
-            b.receive(data)
-        t6 = pc()
-        b.estimate()
-        t7 = pc()
-        a.receive(b.message_to("a", sent_at=t))   # the acknowledgement, outside the timing
-        settle(b)
-        settle(a)
+        stages = hop(a, b, t, z, T.SENSOR, profile if i >= warm else None)
         t8 = pc()
         mini.receive(mini.send(z))
         t9 = pc()
         if i >= warm:
-            for s, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t5 - t4, t6 - t5, t7 - t6, t9 - t8)):
+            for s, dt in zip(STAGES, stages + (t9 - t8,)):
                 times[s].append(dt)
     summary = b.guard.summary() if getattr(b, "guard", None) is not None else {}
     return {s: float(np.median(v)) * 1e6 for s, v in times.items()}, summary

@@ -8,7 +8,8 @@ from dfusion.lazy import lazy_exports
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.fusion.channel import ChannelFilter, Entry, Plan, find_keys, nonzero_blocks, time_key, time_keys
     from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
-    from dfusion.fusion.node import FusionNode, NodeStats
+    from dfusion.fusion.node import FusionNode
+    from dfusion.fusion.stats import NodeStats
     from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 
 __all__ = [
@@ -40,7 +41,7 @@ _WHERE = {
     "time_key": ("dfusion.fusion.channel", 'time_key'),
     "time_keys": ("dfusion.fusion.channel", 'time_keys'),
     "FusionNode": ("dfusion.fusion.node", 'FusionNode'),
-    "NodeStats": ("dfusion.fusion.node", 'NodeStats'),
+    "NodeStats": ("dfusion.fusion.stats", 'NodeStats'),
     "SpanningTree": ("dfusion.fusion.tree", 'SpanningTree'),
     "TreeEpoch": ("dfusion.fusion.tree", 'TreeEpoch'),
     "TreeChange": ("dfusion.fusion.tree", 'TreeChange'),

@@ -40,7 +40,7 @@ import numpy as np
 
 from dfusion.errors import MessageError
 from dfusion.fusion.channel import time_key
-from dfusion.fusion.node import RejectionLog
+from dfusion.fusion.stats import RejectionLog
 from dfusion.fusion.tree import NodeTreeState, TreeEpoch, forest_settled
 from dfusion.run.common import (Status, TreeStatus, add_tls_arguments, load_network_key, security_from_args,
                                 status_limit)
@@ -112,7 +112,7 @@ class Monitor:
     Every publication is validated (:meth:`Status.decode`: MAC, types, ranges, the state
     dimension) and must come from the node it names (its key expression
     ``dfusion/NET/monitor/NAME``); a bad one is counted by reason in :attr:`rejections`
-    (total :attr:`rejected`) and logged at most once per :data:`dfusion.fusion.node.LOG_INTERVAL`
+    (total :attr:`rejected`) and logged at most once per :data:`dfusion.fusion.stats.LOG_INTERVAL`
     seconds, never fatal. At most :data:`MAX_PENDING` publications and :data:`MAX_PENDING_BYTES`
     bytes wait between two polls (the oldest are dropped, counted in ``rejections["queue-full"]``
     and :attr:`queue`), and a publication longer than any node of the scenario can make
