@@ -79,6 +79,13 @@ class Incarnations:
         #: per neighbour, the incarnation its current one replaced
         self.replaced: dict[str, Replaced] = {}
 
+    def restore(self, src: str, record: Replaced | None) -> None:
+        """Put back ``src``'s record as it was before a :meth:`judge` whose message was then refused."""
+        if record is None:
+            self.replaced.pop(src, None)
+        else:
+            self.replaced[src] = record
+
     def judge(self, src: str, epoch: int, seq: int, sent_at: float, current: int | None, newest: int) -> tuple[str, int]:
         """The verdict on a message of incarnation ``epoch`` (sequence number ``seq``) from ``src``,
         whose current incarnation is ``current`` (``None``: none yet) with newest sequence number
@@ -88,8 +95,9 @@ class Incarnations:
         Verdicts: ``"same"``, ``"new"`` (a newer incarnation; ``"first"`` when none was known),
         ``"revert"`` (back to the incarnation the current one replaced), or a rejection reason:
         ``"implausible-incarnation"``, ``"previous-incarnation"``. A ``"new"`` or ``"revert"``
-        records the incarnation it replaces; a message of the replaced incarnation that continues
-        its stream advances its record, even when it is refused.
+        records the incarnation it replaces (the caller puts the record back with :meth:`restore`
+        when the message is refused later on); a message of the replaced incarnation that
+        continues its stream advances its record, even when it is refused.
         """
         if epoch == current:
             return "same", newest

@@ -277,6 +277,9 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         self.max_held = int(max_held if max_held is not None else (window or 100))
         self.rejection_log = RejectionLog(name, log_interval)
         self._tree_undo: tuple | None = None
+        # (src, its incarnation record before this message's verdict, whether it reverted): what a
+        # refusal of the message being received puts back (_reject); None outside receive
+        self._incarnation_undo: tuple | None = None
         self._sent_tree_changes = 0
         #: Held information ``{time key: (t, L, y, until)}``: what a change of the tree took from
         #: the channels, kept for this node's own estimate (``_tree_hold``).
@@ -364,6 +367,13 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         non-neighbour, addressed to another node, of another state dimension, of an earlier
         incarnation, too far ahead in its sequence numbers, or not fusable.
         """
+        try:
+            return self._receive(data)
+        finally:
+            self._incarnation_undo = None
+
+    def _receive(self, data: bytes) -> int:
+        """:meth:`receive`, whose verdict on a neighbour's incarnation :meth:`_reject` undoes."""
         self._settle()
         self._tree_undo = None
         try:
@@ -438,7 +448,10 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
     def _judge_incarnation(self, msg: InfoMessage, current: int | None, newest: int) -> tuple[str, int]:
         """:meth:`Incarnations.judge` of ``msg``: the verdict and the reference of the sequence-jump
         bound; a rejection is counted and raised."""
+        before = self._incarnation_judge.replaced.get(msg.src)
         verdict, last = self._incarnation_judge.judge(msg.src, msg.epoch, msg.seq, msg.sent_at, current, newest)
+        if verdict in ("new", "revert"):   # a refusal of this message later on puts the record back
+            self._incarnation_undo = (msg.src, before, verdict == "revert")
         if verdict == "previous-incarnation":
             raise self._reject(verdict, f"message of an earlier incarnation of {msg.src!r} ({msg.epoch} < {current})")
         if verdict == "implausible-incarnation":
@@ -454,6 +467,10 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         if self._tree_undo is not None:   # the tree rule took the message in before it was refused: undo that
             undo, self._tree_undo = self._tree_undo, None
             self._tree_restore(undo)
+        if self._incarnation_undo is not None:   # the verdict on its incarnation too
+            (src, record, reverted), self._incarnation_undo = self._incarnation_undo, None
+            self._incarnation_judge.restore(src, record)
+            self.stats.incarnations_reverted -= int(reverted)
         self.stats.messages_rejected += 1
         self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + 1
         self.rejection_log.add(reason, detail)

@@ -205,3 +205,32 @@ def test_links_that_change_recover_from_a_forged_incarnation_too():
     for x in nodes.values():
         m, P = x.estimate()
         assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9, x.name
+
+
+def test_a_switch_back_whose_message_is_refused_later_changes_nothing():
+    """A message of a's genuine incarnation that the judge takes as a switch back (``revert``) but
+    that is then refused (here its sequence number jumps too far) leaves b exactly as it was: the
+    judge's record of the replaced incarnation and the counter are put back, so a's next genuine
+    message still switches the link back and is fused (before, the record pointed at the forged
+    incarnation from then on, and a stayed locked out)."""
+    from dfusion.fusion.channel import MAX_SEQ_JUMP
+
+    p = Pair()
+    for _ in range(10):
+        p.step()
+    p.step(deliver_to_b=False)
+    frame = p.a.message_to("b")
+    p.b.receive(forge(frame, epoch=time.time_ns() + HOUR))          # the forgery, once
+    record = p.b._incarnation_judge.replaced["a"]
+    before = state_digest(p.b)
+    jumped = forge(p.a.message_to("b"), seq=decode(frame).seq + MAX_SEQ_JUMP + 5, sent_at=decode(frame).sent_at + 1.0)
+    with pytest.raises(MessageError) as err:
+        p.b.receive(jumped)
+    assert err.value.reason == "sequence-jump"
+    assert p.b._incarnation_judge.replaced["a"] == record and p.b.stats.incarnations_reverted == 0
+    assert state_digest(p.b) == before
+    fused = p.step()                                                 # a's next genuine message
+    assert fused > 0 and p.b.channels["a"].epoch == p.a.epoch and p.b.stats.incarnations_reverted == 1
+    for _ in range(3):
+        p.step()
+    p.assert_exact()
