@@ -206,6 +206,7 @@ class TreeFollowing:
             raise self._reject("sequence-jump", f"sequence number {msg.seq} from {src!r} jumps past {last}")
         if src not in self.tree.links:
             self.stats.not_linked += 1
+            self._undo_incarnation()   # the rule did not take src's incarnation (incarnations[src] unchanged)
             return False
         undo = None if msg.beacon else self._tree_checkpoint()
         self._tree_undo = undo     # a failure from here on undoes the rule's changes (_reject)

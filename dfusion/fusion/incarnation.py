@@ -43,6 +43,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
+from dfusion.fusion.channel import MAX_SEQ_JUMP
+
 __all__ = ["MAX_EPOCH_AHEAD_NS", "REVERT_STREAK", "Replaced", "Incarnations"]
 
 #: A new incarnation more than this far (ns) ahead of the receiver's wall clock is refused.
@@ -110,6 +112,8 @@ class Incarnations:
             return "new", -1
         rec = self.replaced.get(src)
         if self.keyed or rec is None or rec.epoch != epoch or seq <= rec.newest_seq:
+            return "previous-incarnation", -1
+        if seq > rec.newest_seq + MAX_SEQ_JUMP:   # no continuation: a forged number must not move the record
             return "previous-incarnation", -1
         streak = rec.streak + 1 if rec.mark == newest else 1
         if sent_at > rec.sent_at or streak >= REVERT_STREAK:

@@ -369,6 +369,9 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         """
         try:
             return self._receive(data)
+        except BaseException:   # (what did not go through _reject, an interrupt: its verdict undone too)
+            self._undo_incarnation()
+            raise
         finally:
             self._incarnation_undo = None
 
@@ -463,14 +466,19 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
                         msg.src, msg.epoch, current)
         return verdict, last
 
+    def _undo_incarnation(self) -> None:
+        """Put back the incarnation judge's verdict on the message being received (a ``new`` or
+        ``revert`` that the node did not take after all)."""
+        if self._incarnation_undo is not None:
+            (src, record, reverted), self._incarnation_undo = self._incarnation_undo, None
+            self._incarnation_judge.restore(src, record)
+            self.stats.incarnations_reverted -= int(reverted)
+
     def _reject(self, reason: str, detail: str) -> MessageError:
         if self._tree_undo is not None:   # the tree rule took the message in before it was refused: undo that
             undo, self._tree_undo = self._tree_undo, None
             self._tree_restore(undo)
-        if self._incarnation_undo is not None:   # the verdict on its incarnation too
-            (src, record, reverted), self._incarnation_undo = self._incarnation_undo, None
-            self._incarnation_judge.restore(src, record)
-            self.stats.incarnations_reverted -= int(reverted)
+        self._undo_incarnation()   # the verdict on its incarnation too
         self.stats.messages_rejected += 1
         self.stats.rejections[reason] = self.stats.rejections.get(reason, 0) + 1
         self.rejection_log.add(reason, detail)

@@ -207,13 +207,13 @@ def test_links_that_change_recover_from_a_forged_incarnation_too():
         assert rel(m, mean) < 1e-9 and rel(P, cov) < 1e-9, x.name
 
 
-def test_a_switch_back_whose_message_is_refused_later_changes_nothing():
+def test_a_switch_back_whose_message_is_refused_later_changes_nothing(monkeypatch):
     """A message of a's genuine incarnation that the judge takes as a switch back (``revert``) but
-    that is then refused (here its sequence number jumps too far) leaves b exactly as it was: the
-    judge's record of the replaced incarnation and the counter are put back, so a's next genuine
-    message still switches the link back and is fused (before, the record pointed at the forged
-    incarnation from then on, and a stayed locked out)."""
-    from dfusion.fusion.channel import MAX_SEQ_JUMP
+    that is then refused (here a failure injected after the checks, in the receive's planning)
+    leaves b exactly as it was: the judge's record of the replaced incarnation and the counter are
+    put back, so a's next genuine message still switches the link back and is fused (before, the
+    record pointed at the forged incarnation from then on, and a stayed locked out)."""
+    from dfusion.fusion.node import FusionNode
 
     p = Pair()
     for _ in range(10):
@@ -223,10 +223,16 @@ def test_a_switch_back_whose_message_is_refused_later_changes_nothing():
     p.b.receive(forge(frame, epoch=time.time_ns() + HOUR))          # the forgery, once
     record = p.b._incarnation_judge.replaced["a"]
     before = state_digest(p.b)
-    jumped = forge(p.a.message_to("b"), seq=decode(frame).seq + MAX_SEQ_JUMP + 5, sent_at=decode(frame).sent_at + 1.0)
-    with pytest.raises(MessageError) as err:
-        p.b.receive(jumped)
-    assert err.value.reason == "sequence-jump"
+    genuine = forge(p.a.message_to("b"), sent_at=decode(frame).sent_at + 1.0)
+
+    def fail(self, deltas):
+        raise RuntimeError("injected")
+
+    with monkeypatch.context() as m:
+        m.setattr(FusionNode, "_within_reach", fail)
+        with pytest.raises(MessageError) as err:
+            p.b.receive(genuine)
+    assert err.value.reason == "internal"
     assert p.b._incarnation_judge.replaced["a"] == record and p.b.stats.incarnations_reverted == 0
     assert state_digest(p.b) == before
     fused = p.step()                                                 # a's next genuine message
@@ -234,3 +240,19 @@ def test_a_switch_back_whose_message_is_refused_later_changes_nothing():
     for _ in range(3):
         p.step()
     p.assert_exact()
+
+
+def test_a_forged_jump_of_the_replaced_incarnation_does_not_move_its_record():
+    """Without a key, a forged frame of the replaced incarnation with a sequence number far
+    ahead (and an early ``sent_at``, so it does not switch back) is refused and leaves the record
+    as it was: the genuine sender's next messages still switch the link back (before, the record
+    jumped to the forged number and every genuine message was "previous-incarnation")."""
+    from dfusion.fusion.channel import MAX_SEQ_JUMP
+
+    judge = Incarnations(keyed=False, clock=lambda: 10**18)
+    judge.judge("a", 5, 0, 0.0, None, -1)
+    assert judge.judge("a", 9, 0, 1.0, 5, 7) == ("new", -1)                     # the forged incarnation
+    record = judge.replaced["a"]
+    assert judge.judge("a", 5, 7 + MAX_SEQ_JUMP + 1, 0.5, 9, 0)[0] == "previous-incarnation"
+    assert judge.replaced["a"] == record
+    assert judge.judge("a", 5, 8, 2.0, 9, 0) == ("revert", 7)                   # the genuine a, made after
