@@ -15,6 +15,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from dfusion.bags.convert import quaternion_of_yaw
 from dfusion.errors import ValidationError
 
 __all__ = ["typestore", "encode", "decode", "type_hash", "register_definition", "make", "time_msg", "header",
@@ -124,7 +125,7 @@ def estimate_messages(mean: np.ndarray, cov: np.ndarray, stamp_ns: int, frame: s
     Point, Quaternion = _cls("geometry_msgs/msg/Point"), _cls("geometry_msgs/msg/Quaternion")
     Pose, PoseCov = _cls("geometry_msgs/msg/Pose"), _cls("geometry_msgs/msg/PoseWithCovariance")
     pose = Pose(position=Point(x=float(mean[0]), y=float(mean[1]), z=0.0),
-                orientation=Quaternion(x=0.0, y=0.0, z=math.sin(0.5 * yaw), w=math.cos(0.5 * yaw)))
+                orientation=Quaternion(**dict(zip("xyzw", quaternion_of_yaw(yaw)))))
     pwc = PoseCov(pose=pose, covariance=C6.reshape(-1).copy())
     Vector3, Twist = _cls("geometry_msgs/msg/Vector3"), _cls("geometry_msgs/msg/Twist")
     T6 = np.zeros(36)

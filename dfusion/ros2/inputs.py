@@ -31,12 +31,11 @@ from typing import Any
 import numpy as np
 
 from dfusion.bags.convert import PoseReading, PositionFix, RangeReading, ScanReading, convert
-from dfusion.errors import ValidationError
 from dfusion.bags.tf import StaticTransforms, rotate_covariance
+from dfusion.errors import ValidationError
+from dfusion.geometry import transform_points
 
 __all__ = ["Reading", "SUPPORTED_INPUTS", "Z_SIZE", "reading_of"]
-
-#: The input message types a live node takes.
 
 
 #: The size of ``z`` each input type gives (``None``: the message says, e.g. a scan's beams).
@@ -103,7 +102,6 @@ def reading_of(msgtype: str, msg: Any, frame: str, tf: StaticTransforms) -> Read
     T = tf.lookup(frame, src)
     if T is None:
         raise ValidationError(f"frame {src!r} of a {msgtype} is not connected to {frame!r} by /tf_static")
-    c, s = np.cos(T[2]), np.sin(T[2])
-    z = np.array([T[0] + c * z[0] - s * z[1], T[1] + s * z[0] + c * z[1]])
+    z = transform_points(np.asarray(z, dtype=float)[None], T)[0]
     R = _known_cov(C)
     return Reading(z, rotate_covariance(R, float(T[2])) if R is not None else None, src)

@@ -37,11 +37,12 @@ import numpy as np
 import zenoh
 import zenoh.ext
 
+from dfusion.bags.reader import stamp_ns
+from dfusion.bags.tf import StaticTransforms
 from dfusion.errors import ValidationError
 from dfusion.ros2.codec import decode, encode
 from dfusion.ros2.inputs import Reading, reading_of
 from dfusion.ros2.keys import RMW_ZENOH, Convention, rmw_attachment
-from dfusion.bags.tf import StaticTransforms
 
 log = logging.getLogger(__name__)
 
@@ -173,8 +174,9 @@ class Ros2Link:
             msgtype = self.inputs[topic]
             try:
                 msg = decode(data, msgtype)
-                stamp = msg.header.stamp
-                ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+                ns = stamp_ns(msg)
+                if ns is None:
+                    raise ValidationError(f"a {msgtype} on {topic} has no header stamp")
             except (ValidationError, AttributeError) as exc:
                 self._refused("decode_errors", exc)
                 continue
