@@ -419,3 +419,32 @@ def test_wifi_node_fed_by_the_magnetic_filter_is_not_over_confident():
     assert phone.stats.contributed > 0
     # chi-square with 2 * 15 degrees of freedom, 95 % upper bound 43.8, divided by 15
     assert np.mean(nees) < 43.8 / 15, nees
+
+
+def test_a_contribution_older_than_the_window_is_refused_before_anything_moves():
+    """``MagneticFrontEnd.process`` at a time older than the node's window raises
+    ``OutsideWindowError`` before the localizer's reference moves: the magnetic information since
+    the last contribution is still there for the next call (compared with an untouched twin)."""
+    import copy
+
+    from dfusion.errors import OutsideWindowError
+
+    mp, truth = synthetic_map()
+    motion = ConstantVelocity(2, 0.5)
+    prior = (0.0, np.array([5.0, 5.0, 0, 0]), np.diag([4.0, 4.0, 4, 4]))
+    node = FusionNode("phone", ["wifi"], motion, window=5, prior=prior)
+    loc = MagneticLocalizer(mp, 0.7, 0.0, MagneticPFSettings(n_particles=300), seed=2)
+    loc.initialize(0.0, [5.0, 5.0], 4 * np.eye(2))
+    phone = MagneticFrontEnd(loc, radio_weight=1.0)
+    p = np.array([5.0, 5.0])
+    for k in range(1, 9):
+        p = p + [0.7, 0.0]
+        phone.step(0.5 * k, 1.0, 0.0, truth(p[None])[0])
+        node.predict(0.5 * k)
+    twin = copy.deepcopy(phone.localizer)
+    with pytest.raises(OutsideWindowError):
+        phone.process(node, 0.0)                       # older than the window of 5 states
+    assert phone.stats.processed == 0 and phone.stats.contributed == 0
+    got, want = phone.localizer.information_contribution(50.0), twin.information_contribution(50.0)
+    assert np.array_equal(got.Omega, want.Omega) and np.array_equal(got.eta, want.eta)
+    assert np.any(got.Omega)

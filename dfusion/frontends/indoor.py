@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dfusion.errors import OutsideWindowError
 from dfusion.frontends.base import FrontEnd, FrontEndStats, embed_position_information, position_information
 from dfusion.fusion.node import FusionNode
 from dfusion.linalg import Array
@@ -89,6 +90,9 @@ class MagneticFrontEnd(FrontEnd):
 
     def process(self, node: FusionNode, t: float, z: None = None) -> bool:
         """Contribute the magnetic information since the last call at ``t``; True if some was fused."""
+        f = node.filter
+        if t < f.oldest_time - f.time_tol:   # refused before the localizer's reference moves (nothing lost)
+            raise OutsideWindowError(f"magnetic contribution at t={t} is older than the window start {f.oldest_time}")
         self.stats.processed += 1
         info = self.localizer.information_contribution(self.max_std)
         if not np.any(info.Omega):
@@ -103,15 +107,17 @@ class MagneticFrontEnd(FrontEnd):
         """Re-weight the particles by the neighbours' information at states after the last absorption, up to ``t``."""
         got = [(tt, L, y) for tt, L, y in node.received_information(self._absorbed_until, t)
                if tt > self._absorbed_until + node.filter.time_tol]
-        self._absorbed_until = max(self._absorbed_until, float(t))
         if not got:
+            self._absorbed_until = max(self._absorbed_until, float(t))
             return False
         Om = sum(L[:2, :2] for _, L, _ in got)
         eta = sum(y[:2] for _, _, y in got)
+        if np.any(Om):   # (moved past only once the re-weighting went through: a raise loses nothing)
+            self.localizer.reweight_information(self.radio_weight * eta, self.radio_weight * Om, self.inject,
+                                                 self.floor)
+        self._absorbed_until = max(self._absorbed_until, float(t))
         if not np.any(Om):
             return False
-        self.localizer.reweight_information(self.radio_weight * eta, self.radio_weight * Om, self.inject,
-                                             self.floor)
         self.stats.absorbed += 1
         return True
 
