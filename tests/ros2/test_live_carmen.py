@@ -180,10 +180,16 @@ def test_live_node_follows_a_carmen_log_like_the_offline_run(tmp_path, conventio
                                     ("pose", "/dfusion/robot/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"),
                                     ("diag", "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
                                     ("base", "/dfusion/base/odom", "nav_msgs/msg/Odometry"))]
-        # the node's liveliness tokens: its subscription of /odom must be seen before playing
+        # the node's liveliness tokens: its subscription of /odom must be seen before playing; the node
+        # declares its entities one after another, so wait for every token this test checks
         pattern = "@ros2_lv/0/**" if convention == "rmw_zenoh" else "@/*/@ros2_lv/**"
+
+        def all_declared(tokens: list[str]) -> bool:
+            return (any("/MS/" in t and "odom" in t for t in tokens) and any("/MP/" in t and "diagnostics" in t for t in tokens)
+                    and (convention != "rmw_zenoh" or any("/NN/%/%/dfusion_robot" in t for t in tokens)))
+
         deadline, tokens = time.time() + 20, []
-        while time.time() < deadline and node.poll() is None and not any("odom" in t and "MS" in t for t in tokens):
+        while time.time() < deadline and node.poll() is None and not all_declared(tokens):
             tokens = [str(r.ok.key_expr) for r in s.liveliness().get(pattern, timeout=1.0) if r.ok is not None]
             time.sleep(0.1)
         assert any("/MS/" in t and "odom" in t for t in tokens), (tokens, node.poll() is None or node.stderr.read())
