@@ -17,6 +17,11 @@ probability that the track is in the scan's view (:meth:`~dfusion.tracking.track
 a track with ``P_D,t = 0`` takes no part). These are the single-target
 PDA's terms (:mod:`dfusion.estimation.pda`: ``b / e_i`` is ``g_t0 / g_tj``). ``lambda = 0``
 is floored at ``1e-300`` (then a gated detection is always taken).
+
+**Per-detection noise.** When the scan gives each detection its own covariance ``R_j``
+(:attr:`~dfusion.tracking.track.Scan.noise`), the innovation covariance is per pair,
+``S_tj = H_t P^_t H_t^T + R_j``, and ``d_tj^2`` and ``g_tj`` use it (the same Gaussian
+likelihood, with the pair's own ``S``); :attr:`Hypotheses.pair_S` holds them.
 """
 from __future__ import annotations
 
@@ -52,6 +57,9 @@ class Hypotheses:
     detection : (T,) ``P_D,t`` (0 for a track out of view).
     visibility : (T,) probability that each track is in the scan's view.
     gamma : the gate.
+    pair_S : (T, k, m, m) ``S_tj = H_t P^_t H_t^T + R_j`` when the scan gives per-detection noise
+             (``S`` then holds ``H_t P^_t H_t^T + sensor.R``, unused); ``None`` otherwise.
+    noise : (k, m, m) the scan's per-detection ``R_j``, or ``None``.
     """
 
     means: list[Array]
@@ -66,6 +74,8 @@ class Hypotheses:
     detection: Array
     visibility: Array
     gamma: float
+    pair_S: Array | None = None
+    noise: Array | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -102,6 +112,7 @@ class GaussianHypothesiser(Hypothesiser):
         log_miss = np.zeros(T)
         pd = np.zeros(T)
         vis = np.zeros(T)
+        pair_S = None if scan.noise is None else np.zeros((T, k, m, m))
         for t, track in enumerate(tracks):
             x, P = track.estimate()
             H = np.asarray(sensor.H(x), dtype=float)
@@ -118,12 +129,24 @@ class GaussianHypothesiser(Hypothesiser):
                 continue
             hx = np.asarray(sensor.h(x), dtype=float)
             nu = np.array([sensor.residual(z, hx) for z in Z]).reshape(k, m)
-            C = cholesky(S, "innovation covariance S")
-            w = np.linalg.solve(C, nu.T).T
-            d2[t] = np.einsum("ij,ij->i", w, w)
             nus[t] = nu
+            if pair_S is None:
+                C = cholesky(S, "innovation covariance S")
+                w = np.linalg.solve(C, nu.T).T
+                d2[t] = np.einsum("ij,ij->i", w, w)
+                log_det = np.full(k, float(np.sum(np.log(np.diag(C)))))
+            else:
+                HPH = S - R
+                log_det = np.empty(k)
+                for j in range(k):
+                    Sj = symmetrize(HPH + scan.noise[j])
+                    pair_S[t, j] = Sj
+                    C = cholesky(Sj, "innovation covariance S")
+                    w = np.linalg.solve(C, nu[j])
+                    d2[t, j] = float(w @ w)
+                    log_det[j] = float(np.sum(np.log(np.diag(C))))
             if pd[t] > 0:
-                log_norm = math.log(pd[t]) - 0.5 * m * math.log(2.0 * math.pi) - float(np.sum(np.log(np.diag(C))))
+                log_norm = math.log(pd[t]) - 0.5 * m * math.log(2.0 * math.pi) - log_det
                 logw[t] = np.where(d2[t] <= gamma, log_norm - 0.5 * d2[t], -np.inf)
         gated = np.isfinite(logw)
-        return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, vis, gamma)
+        return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, vis, gamma, pair_S, scan.noise)
