@@ -11,7 +11,7 @@ network label agreement (:func:`label_agreement`); see ``docs/multi-target.md``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Hashable, Sequence
 
 import numpy as np
@@ -133,7 +133,8 @@ class IdentityMetrics:
       the number of frames in which they are within the threshold;
       ``IDF1 = 2 IDTP / (truth count + track count)``.
 
-    Counts are over (object, frame) pairs.
+    Counts are over (object, frame) pairs; ``switches_by_truth`` gives the switches of each
+    truth identity (those with none are absent).
     """
 
     mota: float
@@ -145,6 +146,7 @@ class IdentityMetrics:
     matches: int
     truth_count: int
     track_count: int
+    switches_by_truth: dict = field(default_factory=dict)
 
 
 def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) -> IdentityMetrics:
@@ -152,6 +154,7 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
     if not (np.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be positive, got {threshold!r}")
     last: dict[Hashable, Hashable] = {}
+    by_truth: dict[Hashable, int] = {}
     switches = misses = fps = matches = n_truth = n_tracks = 0
     dist_sum = 0.0
     co: dict[tuple[Hashable, Hashable], int] = {}
@@ -194,6 +197,8 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
                         pairs.append((gi[a], hj[b], g in last and last[g] != hids[hj[b]]))
         for i, j, switched in pairs:
             switches += switched
+            if switched:
+                by_truth[gids[i]] = by_truth.get(gids[i], 0) + 1
             last[gids[i]] = hids[j]
             dist_sum += float(D[i, j])
         matches += len(pairs)
@@ -216,7 +221,7 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
         motp=dist_sum / matches if matches else float("nan"),
         idf1=2.0 * idtp / total if total else 1.0,
         switches=int(switches), misses=int(misses), false_positives=int(fps), matches=int(matches),
-        truth_count=int(n_truth), track_count=int(n_tracks))
+        truth_count=int(n_truth), track_count=int(n_tracks), switches_by_truth=by_truth)
 
 
 _NONE = object()
