@@ -1,0 +1,332 @@
+#!/usr/bin/env python
+r"""MRCLAM as a multi-target problem: every robot tracks every other robot from its own ANONYMOUS sightings.
+
+Usage::
+
+    python examples/mrclam_anonymous.py DATASET_DIR [--duration S] [--associator gnn|jpda] [--json OUT]
+
+``DATASET_DIR`` is an MRCLAM dataset directory (``MRCLAM_Dataset6``; where to get it:
+``tests/data/mrclam/README.md``; the 180 s slice ``tests/data/mrclam`` runs as is).
+
+Each of the five robots (the observer):
+
+1. **localizes itself** exactly as in ``examples/mrclam_tracking.py``: a
+   :class:`~dfusion.localization.LandmarkEKF` on its velocity odometry and its
+   range-bearing sightings of the 15 landmarks (landmarks keep their barcodes: they are
+   the map), robust updates ``POSE_MONITOR``, started at its true pose with 5 cm / 0.05 rad;
+2. **tracks the four other robots** with a :class:`~dfusion.tracking.MultiTargetTracker`
+   from its sightings of robots **with the barcode removed**: each camera frame's robot
+   sightings become one scan of world-frame position detections
+   (:func:`dfusion.tracking.sightings_scan`: ``p = s_xy + r (cos, sin)(theta_s + b)`` with
+   the covariance ``G R G^T + J P_s J^T`` of the sighting noise and of the observer's pose
+   covariance ``P_s``, by linearization), which the tracker associates with its tracks
+   (GNN by default, or JPDA) within a 0.999 chi-square gate. The team is known: four
+   tracks start at time 0 from the other robots' true start positions with 0.3 m per
+   axis and zero velocity with 0.1 m/s (the prior of the single-target run), are never
+   deleted, and no track is started from the sightings
+   (:class:`~dfusion.tracking.NoInitiator`, :class:`~dfusion.tracking.NoDeleter`). The
+   start positions are the only identity information: after time 0 nothing says which
+   sighting is which robot. Constant-velocity tracks, ``q = 1e-4 m^2/s^3`` (the
+   single-target cv model's), detection probability 0.4 for a robot in the camera's view
+   (bearing within 0.6 rad, range 0.9-8.7 m; the view probability integrates the track's
+   position uncertainty), 1e-3 false sightings per m^2 per frame.
+
+The **identities-known** run is the same tracker with the identity given: one tracker per
+(observer, tracked robot) with that robot's track only, fed only the sightings of that
+robot (the same gate, ``P_D``, clutter density, motion model and prior).
+
+Evaluation every 0.5 s while the tracked robot's ground truth exists. Identities known:
+the track of robot ``j`` is the one started for it. Anonymous: the start positions are the
+only identity information and the first sighting of a robot may come minutes later, by
+when it may be anywhere; so each observer's tracks are mapped to the robots once for the
+whole run (IDF1's mapping: the one-to-one assignment maximizing the time each track is
+within 1 m of its robot), and the track of robot ``j`` is the one mapped to it (the JSON
+also gives ``rmse_start_label``, the RMSE of the track started at ``j``'s position):
+
+* **RMSE** of that track against robot ``j``'s true position (a track that swapped onto
+  another robot for a while is measured against ``j``: swaps cost accuracy);
+* **identity switches** (CLEAR MOT, :func:`dfusion.metrics.identity_metrics`, 1 m
+  threshold, per observer and tracked robot);
+* **label agreement** of each robot over the four observers that track it
+  (:func:`dfusion.metrics.label_agreement`, 1 m, each track labelled with the robot it is
+  mapped to): of the times at which every observer has a track within 1 m of the robot, the
+  share at which all these tracks carry the same label;
+* **on target**: the share of the time the track of ``j`` is within 1 m of ``j``.
+
+Results on dataset 6 and how to reproduce them: ``docs/multi-target.md``, section "MRCLAM
+with anonymous sightings"; ``benchmarks/mrclam_anonymous.py`` runs both modes, prints the
+table and checks the goals of issue 24.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import mrclam_tracking as single  # noqa: E402  (the single-target example: its self-localization settings)
+
+from dfusion.datasets import read_mrclam  # noqa: E402
+from dfusion.errors import DfusionError  # noqa: E402
+from dfusion.estimation.innovation import InnovationMonitor  # noqa: E402
+from dfusion.localization import LandmarkEKF  # noqa: E402
+from dfusion.metrics import TrackingFrame, identity_metrics, label_agreement  # noqa: E402
+from dfusion.models import ConstantVelocity, LandmarkRangeBearing, Unicycle, VelocityOdometry  # noqa: E402
+from dfusion.tracking import (GNN, JPDA, CameraView, GaussianHypothesiser, MultiTargetTracker, NoDeleter,  # noqa: E402
+                              NoInitiator, TrackId, sightings_scan)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """One set of settings for the MRCLAM family (module docstring)."""
+
+    q: float = 1e-4                 # m^2/s^3, constant-velocity process noise (single-target cv model)
+    prior_std: float = 0.3          # m, start position per axis
+    prior_velocity_std: float = 0.1  # m/s
+    range_std: float = 0.15         # m   (dataset README residual level; single-target run)
+    bearing_std: float = 0.02       # rad
+    gate: float = 0.999             # chi-square gate probability (13.8 for 2 dof)
+    detection_probability: float = 0.4
+    clutter_density: float = 2e-5   # false robot sightings per m^2 per frame (measured: 7 of 3906, 10580 frames, ~45 m^2 view)
+    half_angle: float = 0.6         # rad  (bearings -0.592..0.572 in dataset 6)
+    min_range: float = 0.9          # m    (ranges 0.94..8.63)
+    max_range: float = 8.7
+    eval_dt: float = 0.5            # s
+    match_threshold: float = 1.0    # m, CLEAR MOT / label agreement / on-target
+    associator: str = "gnn"
+
+
+def _tracker(s: Settings, origin: str) -> MultiTargetTracker:
+    motion = ConstantVelocity(2, s.q)
+    assoc = JPDA() if s.associator == "jpda" else GNN()
+    return MultiTargetTracker(motion, assoc, NoInitiator(), NoDeleter(), origin=origin,
+                              hypothesiser=GaussianHypothesiser(s.gate, detections_in_view=True))
+
+
+def run_observer(ds, observer: int, s: Settings, known: bool, duration: float) -> dict:
+    """One observer's run: self-localization and the tracks of the other robots at the evaluation times.
+
+    Returns ``{"t": (E,), "tracks": {label: (E, 2) positions}, "frames": ..., "sightings": ...}``.
+    """
+    log = ds.robots[observer]
+    others = [r for r in sorted(ds.robots) if r != observer]
+    lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
+    odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
+    ekf = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
+                      monitor=InnovationMonitor(f"robot{observer}/pose", 2, single.POSE_MONITOR))
+    P0 = np.diag([s.prior_std**2] * 2 + [s.prior_velocity_std**2] * 2)
+    starts = {j: np.r_[ds.robots[j].truth_at(0.0)[:2], 0.0, 0.0] for j in others}
+    if known:
+        trackers = {j: _tracker(s, f"robot{observer}-{j}") for j in others}
+        for j in others:
+            trackers[j].add_track(starts[j], P0, 0.0, TrackId("start", j))
+    else:
+        trackers = {0: _tracker(s, f"robot{observer}")}
+        for j in others:
+            trackers[0].add_track(starts[j], P0, 0.0, TrackId("start", j))
+    view = CameraView(s.half_angle, s.min_range, s.max_range)
+    eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
+    out = {j: np.empty((eval_t.size, 2)) for j in others}
+    frame_t, first = np.unique(log.meas_t, return_index=True)
+    bounds = list(first[1:]) + [log.meas_t.size]
+    ie = 0
+    n_frames = n_sightings = 0
+
+    def record(upto: float) -> None:
+        nonlocal ie
+        while ie < eval_t.size and eval_t[ie] <= upto + 1e-9:
+            for trk in trackers.values():
+                for track in trk.tracks:
+                    track.predict(float(eval_t[ie]))
+                    out[track.id.serial][ie] = track.estimate()[0][:2]
+            ie += 1
+
+    for t, a, b in zip(frame_t, first, bounds):
+        t = float(t)
+        if t > duration:
+            break
+        record(t - 1e-6)          # evaluation times before this frame
+        ekf.predict(t)
+        rows = np.arange(a, b)
+        subj = log.meas_subject[rows]
+        for i in rows[subj > 5]:   # landmarks: the robot's own localization
+            sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
+            ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
+        seen = rows[subj <= 5]
+        if not seen.size:
+            continue
+        n_frames += 1
+        n_sightings += seen.size
+        groups = {j: seen[log.meas_subject[seen] == j] for j in others} if known else {0: seen}
+        for key, idx in groups.items():
+            if not idx.size:
+                continue
+            scan = sightings_scan(t, log.meas_range[idx], log.meas_bearing[idx], ekf.x, ekf.P, s.range_std,
+                                  s.bearing_std, view=view, detection_probability=s.detection_probability,
+                                  clutter_density=s.clutter_density, source=f"robot{observer}")
+            trackers[key].step(scan)
+    record(math.inf)
+    return {"t": eval_t, "tracks": out, "frames": n_frames, "sightings": n_sightings}
+
+
+def track_mapping(ds, res: dict, truth: dict[int, np.ndarray], threshold: float) -> dict[int, int]:
+    """Each track (by its start label) -> the robot it followed: the one-to-one assignment of
+    tracks to robots maximizing the number of evaluation times at which they are within
+    ``threshold`` (IDF1's identity mapping, Ristani et al. 2016), ties broken by the smaller
+    mean squared distance."""
+    t = res["t"]
+    labels = list(res["tracks"])
+    C = np.zeros((len(labels), len(labels)))
+    for a, lab in enumerate(labels):
+        for b, j in enumerate(labels):
+            ok = t <= ds.robots[j].gt_t[-1]
+            d = np.linalg.norm(res["tracks"][lab][ok] - truth[j][ok], axis=1)
+            C[a, b] = np.count_nonzero(d <= threshold) - 1e-6 * float(np.mean(np.minimum(d, 100.0) ** 2))
+    r, c = linear_sum_assignment(C, maximize=True)
+    return {labels[a]: labels[b] for a, b in zip(r, c)}
+
+
+def evaluate(ds, runs: dict[int, dict], s: Settings, known: bool) -> dict:
+    """RMSE, on-target share and identity switches per (observer, tracked robot); label agreement per robot.
+
+    Identities known: the track of robot ``j`` is the one started for it. Anonymous: each
+    observer's tracks are mapped to the robots once for the whole run (:func:`track_mapping`);
+    the track of robot ``j`` is the one mapped to it, and its label in the label agreement is
+    that robot (so all observers agree on a robot when each follows it with the track it
+    followed it with most of the run).
+    """
+    pairs: dict[str, dict] = {}
+    by_robot: dict[int, dict[int, np.ndarray]] = {}
+    mappings = {}
+    t_all = next(iter(runs.values()))["t"]
+    truth = {j: ds.robots[j].truth_at(t_all)[:, :2] for j in ds.robots}
+    for o, res in runs.items():
+        t = res["t"]
+        mapping = {j: j for j in res["tracks"]} if known else track_mapping(ds, res, truth, s.match_threshold)
+        mappings[str(o)] = {str(k): v for k, v in mapping.items()}
+        tracks = {mapping[lab]: est for lab, est in res["tracks"].items()}
+        by_robot[o] = tracks
+        frames = []
+        for k in range(t.size):
+            gids = [j for j in tracks if t[k] <= ds.robots[j].gt_t[-1]]
+            X = np.array([truth[j][k] for j in gids]).reshape(-1, 2)
+            hids = list(tracks)
+            Y = np.array([tracks[j][k] for j in hids]).reshape(-1, 2)
+            frames.append(TrackingFrame(gids, X, hids, Y))
+        im = identity_metrics(frames, s.match_threshold)
+        for j, est in tracks.items():
+            ok = t <= ds.robots[j].gt_t[-1]
+            err = np.linalg.norm(est[ok] - truth[j][ok], axis=1)
+            start = res["tracks"][j][ok]       # the track started at robot j's start position
+            err_start = np.linalg.norm(start - truth[j][ok], axis=1)
+            pairs[f"{o}-{j}"] = {
+                "observer": o, "target": j, "rmse": float(np.sqrt(np.mean(err**2))),
+                "rmse_start_label": float(np.sqrt(np.mean(err_start**2))),
+                "on_target": float(np.mean(err <= s.match_threshold)),
+                "switches": int(im.switches_by_truth.get(j, 0)),
+                "sightings": int(np.count_nonzero(ds.robots[o].meas_subject == j)),
+            }
+    agreement = {}
+    for j in sorted(ds.robots):
+        obs = [o for o in runs if j in by_robot[o]]
+        t = runs[obs[0]]["t"]
+        ok = t <= ds.robots[j].gt_t[-1]
+        X = truth[j][ok]
+        nodes = []
+        for o in obs:
+            ids = list(by_robot[o])
+            Y = np.stack([by_robot[o][r][ok] for r in ids], axis=1)
+            nodes.append([(ids, Y[k]) for k in range(Y.shape[0])])
+        la = label_agreement([[j]] * X.shape[0], [X[k:k + 1] for k in range(X.shape[0])], nodes, s.match_threshold)
+        agreement[str(j)] = {"agreement": la.agreement, "agreeing": la.agreeing, "compared": la.compared,
+                             "seen": la.seen, "frames": int(X.shape[0])}
+    return {"pairs": pairs, "label_agreement": agreement, "mapping": mappings}
+
+
+def run(dataset: Path, s: Settings, *, known: bool, duration: float | None = None, progress=None) -> dict:
+    """Every robot as an observer (anonymous sightings, or identities known); the evaluation."""
+    t_wall = time.perf_counter()
+    ds = read_mrclam(dataset, duration=duration)
+    end = ds.duration if duration is None else min(duration, ds.duration)
+    runs = {}
+    for o in sorted(ds.robots):
+        t0 = time.perf_counter()
+        runs[o] = run_observer(ds, o, s, known, end)
+        if progress:
+            progress(f"{'known' if known else 'anonymous'}: observer robot {o}: {runs[o]['frames']} frames with "
+                     f"{runs[o]['sightings']} robot sightings, {time.perf_counter() - t0:.1f} s")
+    res = evaluate(ds, runs, s, known)
+    res.update({"mode": "identities known" if known else "anonymous", "duration": end,
+                "runtime_s": time.perf_counter() - t_wall})
+    return res
+
+
+def combine(anon: dict, known: dict) -> list[dict]:
+    """One row per (observer, tracked robot): both runs side by side."""
+    rows = []
+    for key, a in anon["pairs"].items():
+        k = known["pairs"][key]
+        la, lk = anon["label_agreement"][str(a["target"])], known["label_agreement"][str(a["target"])]
+        rows.append({"observer": a["observer"], "target": a["target"], "sightings": a["sightings"],
+                     "rmse_known": k["rmse"], "rmse_anonymous": a["rmse"], "ratio": a["rmse"] / k["rmse"],
+                     "on_target_known": k["on_target"], "on_target_anonymous": a["on_target"],
+                     "switches_known": k["switches"], "switches_anonymous": a["switches"],
+                     "agreement_known": lk["agreement"], "agreement_anonymous": la["agreement"],
+                     "compared_known": lk["compared"], "compared_anonymous": la["compared"]})
+    return rows
+
+
+def print_table(rows: list[dict], anon: dict, known: dict) -> None:
+    print(f"\nMRCLAM, anonymous robot sightings against identities known ({anon['duration']:.1f} s; every robot "
+          f"tracks the four others from its own sightings; evaluation every 0.5 s)")
+    print(f"{'obs':>4}{'target':>7}{'sightings':>10}{'RMSE known':>12}{'RMSE anon':>11}{'ratio':>7}"
+          f"{'on target k/a':>15}{'switches k/a':>14}{'label agreement k/a (compared)':>33}")
+    for r in rows:
+        print(f"{r['observer']:>4}{r['target']:>7}{r['sightings']:>10}{r['rmse_known']:>12.3f}{r['rmse_anonymous']:>11.3f}"
+              f"{r['ratio']:>7.3f}{r['on_target_known']:>8.2f}/{r['on_target_anonymous']:<6.2f}"
+              f"{r['switches_known']:>8}/{r['switches_anonymous']:<5}"
+              f"{r['agreement_known']:>12.3f}/{r['agreement_anonymous']:.3f} ({r['compared_known']}/{r['compared_anonymous']})")
+    print(f"run time {known['runtime_s']:.1f} s (known) + {anon['runtime_s']:.1f} s (anonymous)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("dataset", type=Path, help="MRCLAM dataset directory")
+    ap.add_argument("--duration", type=float, default=None, help="use the first S seconds")
+    ap.add_argument("--associator", choices=("gnn", "jpda"), default="gnn")
+    ap.add_argument("--json", type=Path, default=None, help="write both runs and the table as JSON")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    s = Settings(associator=args.associator)
+
+    def progress(msg: str) -> None:
+        print(msg, flush=True)
+
+    try:
+        known = run(args.dataset, s, known=True, duration=args.duration, progress=progress)
+        anon = run(args.dataset, s, known=False, duration=args.duration, progress=progress)
+    except (DfusionError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    rows = combine(anon, known)
+    print_table(rows, anon, known)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"dataset": str(args.dataset), "settings": asdict(s), "rows": rows,
+                                         "anonymous": anon, "known": known}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
