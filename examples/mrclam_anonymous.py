@@ -31,6 +31,12 @@ Each of the five robots (the observer):
    (bearing within 0.6 rad, range 0.9-8.7 m; the view probability integrates the track's
    position uncertainty), 1e-3 false sightings per m^2 per frame.
 
+**The team** (rows ``team``): one tracker of all five robots given every robot's sightings
+in time order (each converted from its own robot's estimated pose; a robot's own track is not
+in its camera's view, being closer than the minimum range): the centralized reference that a
+network of robots fusing their tracks would approach, and the like-for-like comparison with
+the single-target result of ``examples/mrclam_tracking.py``, which fuses four observers.
+
 The **identities-known** run is the same tracker with the identity given: one tracker per
 (observer, tracked robot) with that robot's track only, fed only the sightings of that
 robot (the same gate, ``P_D``, clutter density, motion model and prior).
@@ -123,31 +129,47 @@ def _tracker(s: Settings, origin: str) -> MultiTargetTracker:
 
 
 def run_observer(ds, observer: int, s: Settings, known: bool, duration: float) -> dict:
-    """One observer's run: self-localization and the tracks of the other robots at the evaluation times.
+    """One robot tracking the four others from its own sightings (:func:`run_tracker`)."""
+    return run_tracker(ds, [observer], [r for r in sorted(ds.robots) if r != observer], s, known, duration,
+                       f"robot{observer}")
 
-    Returns ``{"t": (E,), "tracks": {label: (E, 2) positions}, "frames": ..., "sightings": ...}``.
+
+def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known: bool, duration: float,
+                name: str) -> dict:
+    """A tracker of the robots ``tracked`` fed the sightings of the robots ``observers`` (each localizing
+    itself), frame by frame in time order; the tracks at the evaluation times.
+
+    One observer: the per-robot run. All five observing and tracked (``--team``): one tracker given
+    every robot's sightings (a robot's own track is not in its camera's view: closer than
+    ``min_range``). Returns ``{"t": (E,), "tracks": {label: (E, 2) positions}, "frames", "sightings",
+    "taken": [(robot sighted, track label or None) per lone sighting], "observers"}``.
     """
-    log = ds.robots[observer]
-    others = [r for r in sorted(ds.robots) if r != observer]
     lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
-    odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
-    ekf = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
-                      monitor=InnovationMonitor(f"robot{observer}/pose", 2, single.POSE_MONITOR))
+    ekfs = {}
+    for o in observers:
+        log = ds.robots[o]
+        odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
+        ekfs[o] = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
+                              monitor=InnovationMonitor(f"robot{o}/pose", 2, single.POSE_MONITOR))
     P0 = np.diag([s.prior_std**2] * 2 + [s.prior_velocity_std**2] * 2)
-    starts = {j: np.r_[ds.robots[j].truth_at(0.0)[:2], 0.0, 0.0] for j in others}
+    starts = {j: np.r_[ds.robots[j].truth_at(0.0)[:2], 0.0, 0.0] for j in tracked}
     if known:
-        trackers = {j: _tracker(s, f"robot{observer}-{j}") for j in others}
-        for j in others:
+        trackers = {j: _tracker(s, f"{name}-{j}") for j in tracked}
+        for j in tracked:
             trackers[j].add_track(starts[j], P0, 0.0, TrackId("start", j))
     else:
-        trackers = {0: _tracker(s, f"robot{observer}")}
-        for j in others:
+        trackers = {0: _tracker(s, name)}
+        for j in tracked:
             trackers[0].add_track(starts[j], P0, 0.0, TrackId("start", j))
     view = CameraView(s.half_angle, s.min_range, s.max_range)
     eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
-    out = {j: np.empty((eval_t.size, 2)) for j in others}
-    frame_t, first = np.unique(log.meas_t, return_index=True)
-    bounds = list(first[1:]) + [log.meas_t.size]
+    out = {j: np.empty((eval_t.size, 2)) for j in tracked}
+    frames = []                                  # (time, observer, first row, end row)
+    for o in observers:
+        log = ds.robots[o]
+        frame_t, first = np.unique(log.meas_t, return_index=True)
+        frames += [(float(t), o, int(a), int(b)) for t, a, b in zip(frame_t, first, list(first[1:]) + [log.meas_t.size])]
+    frames.sort()
     ie = 0
     n_frames = n_sightings = 0
     taken: list[tuple[int, int | None]] = []
@@ -161,36 +183,37 @@ def run_observer(ds, observer: int, s: Settings, known: bool, duration: float) -
                     out[track.id.serial][ie] = track.estimate()[0][:2]
             ie += 1
 
-    for t, a, b in zip(frame_t, first, bounds):
-        t = float(t)
+    for t, o, a, b in frames:
         if t > duration:
             break
         record(t - 1e-6)          # evaluation times before this frame
+        log, ekf = ds.robots[o], ekfs[o]
         ekf.predict(t)
         rows = np.arange(a, b)
         subj = log.meas_subject[rows]
         for i in rows[subj > 5]:   # landmarks: the robot's own localization
             sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
             ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
-        seen = rows[subj <= 5]
+        seen = rows[np.isin(subj, tracked)]
         if not seen.size:
             continue
         n_frames += 1
         n_sightings += seen.size
-        groups = {j: seen[log.meas_subject[seen] == j] for j in others} if known else {0: seen}
+        groups = {j: seen[log.meas_subject[seen] == j] for j in tracked} if known else {0: seen}
         for key, idx in groups.items():
             if not idx.size:
                 continue
             hits = {tr.id: tr.hits for tr in trackers[key].tracks}
             scan = sightings_scan(t, log.meas_range[idx], log.meas_bearing[idx], ekf.x, ekf.P, s.range_std,
                                   s.bearing_std, view=view, detection_probability=s.detection_probability,
-                                  clutter_density=s.clutter_density, source=f"robot{observer}")
+                                  clutter_density=s.clutter_density, source=f"robot{o}")
             trackers[key].step(scan)
             if idx.size == 1:     # which track took a lone sighting (None: none), and whose sighting it was
                 took = [tr.id.serial for tr in trackers[key].tracks if tr.hits > hits[tr.id]]
                 taken.append((int(log.meas_subject[idx[0]]), took[0] if took else None))
     record(math.inf)
-    return {"t": eval_t, "tracks": out, "frames": n_frames, "sightings": n_sightings, "taken": taken}
+    return {"t": eval_t, "tracks": out, "frames": n_frames, "sightings": n_sightings, "taken": taken,
+            "observers": list(observers)}
 
 
 def track_mapping(res: dict) -> dict[int, int]:
@@ -249,11 +272,13 @@ def evaluate(ds, runs: dict[int, dict], s: Settings, known: bool) -> dict:
                 "rmse_start_label": float(np.sqrt(np.mean(err_start**2))),
                 "on_target": float(np.mean(err <= s.match_threshold)),
                 "switches": int(im.switches_by_truth.get(j, 0)),
-                "sightings": int(np.count_nonzero(ds.robots[o].meas_subject == j)),
+                "sightings": int(sum(np.count_nonzero(ds.robots[r].meas_subject == j) for r in res["observers"])),
             }
     agreement = {}
     for j in sorted(ds.robots):
-        obs = [o for o in runs if j in by_robot[o]]
+        obs = [o for o in runs if j in by_robot[o] and o != "team"]
+        if not obs:
+            continue
         t = runs[obs[0]]["t"]
         ok = t <= ds.robots[j].gt_t[-1]
         X = truth[j][ok]
@@ -280,6 +305,12 @@ def run(dataset: Path, s: Settings, *, known: bool, duration: float | None = Non
         if progress:
             progress(f"{'known' if known else 'anonymous'}: observer robot {o}: {runs[o]['frames']} frames with "
                      f"{runs[o]['sightings']} robot sightings, {time.perf_counter() - t0:.1f} s")
+    t0 = time.perf_counter()
+    robots = sorted(ds.robots)
+    runs["team"] = run_tracker(ds, robots, robots, s, known, end, "team")
+    if progress:
+        progress(f"{'known' if known else 'anonymous'}: the team (one tracker, every robot's sightings): "
+                 f"{runs['team']['frames']} frames, {time.perf_counter() - t0:.1f} s")
     res = evaluate(ds, runs, s, known)
     res.update({"mode": "identities known" if known else "anonymous", "duration": end,
                 "runtime_s": time.perf_counter() - t_wall})
@@ -289,9 +320,12 @@ def run(dataset: Path, s: Settings, *, known: bool, duration: float | None = Non
 def combine(anon: dict, known: dict) -> list[dict]:
     """One row per (observer, tracked robot): both runs side by side."""
     rows = []
-    for key, a in sorted(anon["pairs"].items(), key=lambda kv: (kv[1]["observer"], kv[1]["target"])):
+    for key, a in sorted(anon["pairs"].items(), key=lambda kv: (str(kv[1]["observer"]), kv[1]["target"])):
         k = known["pairs"][key]
-        la, lk = anon["label_agreement"][str(a["target"])], known["label_agreement"][str(a["target"])]
+        team = a["observer"] == "team"
+        none = {"agreement": None, "compared": None}
+        la = none if team else anon["label_agreement"][str(a["target"])]
+        lk = none if team else known["label_agreement"][str(a["target"])]
         rows.append({"observer": a["observer"], "target": a["target"], "sightings": a["sightings"],
                      "rmse_known": k["rmse"], "rmse_anonymous": a["rmse"], "ratio": a["rmse"] / k["rmse"],
                      "rmse_anonymous_start_label": a["rmse_start_label"],
@@ -307,15 +341,16 @@ def combine(anon: dict, known: dict) -> list[dict]:
 def print_table(rows: list[dict], anon: dict, known: dict) -> None:
     print(f"\nMRCLAM, anonymous robot sightings against identities known ({anon['duration']:.1f} s; every robot "
           f"tracks the four others from its own sightings; evaluation every 0.5 s)")
-    print(f"{'obs':>4}{'target':>7}{'sightings':>10}{'RMSE known':>12}{'RMSE anon':>11}{'ratio':>7}{'(start label)':>14}"
+    print(f"{'obs':>5}{'target':>7}{'sightings':>10}{'RMSE known':>12}{'RMSE anon':>11}{'ratio':>7}{'(start label)':>14}"
           f"{'on target k/a':>15}{'switches k/a':>14}{'assoc. right':>13}{'label agreement k/a (compared)':>33}")
     for r in rows:
-        print(f"{r['observer']:>4}{r['target']:>7}{r['sightings']:>10}{r['rmse_known']:>12.3f}{r['rmse_anonymous']:>11.3f}"
+        print(f"{r['observer']:>5}{r['target']:>7}{r['sightings']:>10}{r['rmse_known']:>12.3f}{r['rmse_anonymous']:>11.3f}"
               f"{r['ratio']:>7.3f}{r['rmse_anonymous_start_label']:>14.3f}"
               f"{r['on_target_known']:>8.2f}/{r['on_target_anonymous']:<6.2f}"
               f"{r['switches_known']:>8}/{r['switches_anonymous']:<5}"
               f"{'-' if r['associated_right'] is None else format(r['associated_right'], '.2f'):>13}"
-              f"{r['agreement_known']:>12.3f}/{r['agreement_anonymous']:.3f} ({r['compared_known']}/{r['compared_anonymous']})")
+              + ("" if r["agreement_known"] is None else
+                 f"{r['agreement_known']:>12.3f}/{r['agreement_anonymous']:.3f} ({r['compared_known']}/{r['compared_anonymous']})"))
     print(f"run time {known['runtime_s']:.1f} s (known) + {anon['runtime_s']:.1f} s (anonymous)")
 
 

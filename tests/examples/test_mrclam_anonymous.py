@@ -68,11 +68,12 @@ def test_identities_known_tracks_a_well_observed_robot(ds):
 
 def test_command_prints_the_table_and_writes_json(tmp_path, capsys):
     out = tmp_path / "mt.json"
-    assert ma.main([str(DATA), "--duration", "60", "--json", str(out)]) == 0
+    assert ma.main([str(DATA), "--duration", "30", "--json", str(out)]) == 0
     text = capsys.readouterr().out
     assert "RMSE known" in text and "label agreement" in text
     res = json.loads(out.read_text())
-    assert len(res["rows"]) == 20 and {r["observer"] for r in res["rows"]} == {1, 2, 3, 4, 5}
+    assert len(res["rows"]) == 25 and {r["observer"] for r in res["rows"]} == {1, 2, 3, 4, 5, "team"}
     for r in res["rows"]:
         assert r["rmse_known"] > 0 and r["rmse_anonymous"] > 0 and r["observer"] != r["target"]
+    assert sorted(r["target"] for r in res["rows"] if r["observer"] == "team") == [1, 2, 3, 4, 5]
     assert ma.main([str(tmp_path / "missing")]) == 1
