@@ -261,7 +261,11 @@ def load_function(path: str, name: str) -> Callable:
         raise ValidationError(f"converter file {path} does not exist")
     spec = importlib.util.spec_from_file_location(f"dfusion_user_{p.stem}", p)
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    try:
+        spec.loader.exec_module(mod)
+    except Exception as exc:   # the user's file: a syntax error, a failing import, ...
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        raise ValidationError(f"converter file {path} does not load: {type(exc).__name__}: {first}") from None
     fn = getattr(mod, name, None)
     if not callable(fn):
         raise ValidationError(f"{path} has no function {name!r}")
