@@ -18,6 +18,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
+from dfusion.assignment import gated_assignment
 from dfusion.linalg import Array
 
 __all__ = ["rmse", "nees", "chi2_interval", "error_stats", "GOSPA", "gospa", "TrackingFrame", "IdentityMetrics",
@@ -184,14 +185,9 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
         gi, hj = sorted(free_g), sorted(free_h)
         if gi and hj:
             sub = D[np.ix_(gi, hj)]
-            valid = sub <= threshold
-            if valid.any():
-                big = float(sub[valid].sum()) + 1.0 + threshold * sub.size
-                r, k = linear_sum_assignment(np.where(valid, sub, big))
-                for a, b in zip(r, k):
-                    if valid[a, b]:
-                        g = gids[gi[a]]
-                        pairs.append((gi[a], hj[b], g in last and last[g] != hids[hj[b]]))
+            for a, b in zip(*gated_assignment(sub, sub <= threshold)):
+                g = gids[gi[a]]
+                pairs.append((gi[a], hj[b], g in last and last[g] != hids[hj[b]]))
         for i, j, switched in pairs:
             switches += switched
             last[gids[i]] = hids[j]
@@ -261,10 +257,7 @@ def label_agreement(truth_ids: Sequence[Sequence[Hashable]], truth: Sequence[Arr
             got: dict[int, Hashable] = {}
             if len(gids) and len(hids):
                 D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=2)
-                valid = D <= threshold
-                if valid.any():
-                    r, c = linear_sum_assignment(np.where(valid, D, threshold * D.size + 1.0 + D[valid].sum()))
-                    got = {int(i): hids[j] for i, j in zip(r, c) if valid[i, j]}
+                got = {int(i): hids[j] for i, j in zip(*gated_assignment(D, D <= threshold))}
             labels.append(got)
         for i in range(len(gids)):
             have = [lab[i] for lab in labels if i in lab]

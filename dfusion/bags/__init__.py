@@ -16,9 +16,11 @@ from dfusion.bags.convert import (
     ScanReading,
     Velocity,
     POSE_TYPES,
+    POSITION_READINGS,
     convert,
     quaternion_of_yaw,
     read_pose,
+    standard_z,
     yaw_of,
 )
 from dfusion.bags.datasets import (
@@ -36,6 +38,6 @@ from dfusion.bags.tf import TF_STATIC, StaticTransforms, rotate_covariance
 __all__ = [
     "Bag", "BagMessage", "read_bag", "stamp_ns", "msgdefs_from_files", "TF_STATIC", "StaticTransforms", "rotate_covariance",
     "CONVERTERS", "Converter", "PoseReading", "PositionFix", "RangeReading", "ScanReading", "Velocity",
-    "convert", "quaternion_of_yaw", "yaw_of", "read_pose", "POSE_TYPES",
+    "convert", "standard_z", "POSITION_READINGS", "quaternion_of_yaw", "yaw_of", "read_pose", "POSE_TYPES",
     "MRCLAM_TOPICS", "POSE_TOLERANCE", "SIGHTINGS_MSGDEF", "SIGHTINGS_TYPE", "carmen_from_bag", "mrclam_from_bag", "sightings",
 ]

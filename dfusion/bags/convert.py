@@ -47,6 +47,8 @@ __all__ = [
     "Converter",
     "CONVERTERS",
     "convert",
+    "standard_z",
+    "POSITION_READINGS",
     "read_pose",
     "POSE_TYPES",
     "yaw_of",
@@ -236,3 +238,38 @@ def convert(msgtype: str, msg: Any, t: float, converters: dict[str, Converter] |
         raise ValidationError(f"no converter for message type {msgtype!r}: pass a function msg, t -> measurement "
                               f"(standard types: {sorted(CONVERTERS)})")
     return fn(msg, t)
+
+
+#: Converted readings whose ``z`` is a position in the message's frame (:func:`standard_z`): a node in
+#: another frame expresses it in its own through the static transforms (:mod:`dfusion.bags.tf`).
+POSITION_READINGS = (PoseReading, PositionFix)
+
+
+def standard_z(reading: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """The measurement ``z`` of a converted standard message and the covariance of ``z`` the message
+    states (``None``: none): the one mapping ``dfusion replay`` and a live node's inputs share.
+
+    =========================  ===================  ==================================
+    reading                    ``z``                covariance
+    =========================  ===================  ==================================
+    :class:`PositionFix`       ``(x, y)``           its ``R``
+    :class:`PoseReading`       ``(x, y)`` of pose   the ``(x, y)`` block of its ``cov``
+    :class:`RangeReading`      ``(r,)``             none
+    :class:`ScanReading`       the ranges           none
+    =========================  ===================  ==================================
+
+    Raises
+    ------
+    ValidationError
+        For any other reading (a :class:`Velocity`, a user type): no measurement of a node.
+    """
+    if isinstance(reading, PositionFix):
+        return np.asarray(reading.z, float), reading.R
+    if isinstance(reading, PoseReading):
+        return np.asarray(reading.pose[:2], float), (reading.cov[:2, :2] if reading.cov is not None else None)
+    if isinstance(reading, RangeReading):
+        return np.array([float(reading.r)]), None
+    if isinstance(reading, ScanReading):
+        return np.asarray(reading.ranges, float), None
+    raise ValidationError(f"a {type(reading).__name__} is no measurement of a scenario node: map the topic with a "
+                          f"function msg, t -> z")
