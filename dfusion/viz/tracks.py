@@ -268,7 +268,8 @@ def tracks_topdown_figure(history: TrackHistory, truth: TruthPaths | None, *, no
         raise ValidationError("the top-down view needs at least one node with tracks")
     ncol = min(len(names), 3)
     nrow = math.ceil(len(names) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(6.2 * ncol, 5.0 * nrow + 0.8), squeeze=False)
+    w, h = (9.5, 7.6) if len(names) == 1 else (6.2, 5.0)          # inches per panel
+    fig, axes = plt.subplots(nrow, ncol, figsize=(w * ncol, h * nrow + 0.8), squeeze=False)
     for i, node in enumerate(names):
         ax = axes[i // ncol][i % ncol]
         if region is not None:
