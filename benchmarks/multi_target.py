@@ -140,8 +140,8 @@ def run_stonesoup(world: PlazaWorld, association: str) -> tuple[TrackHistory, np
             _, tracks = next(it)
         cpu[k] = time.process_time() - t0
         history.record(NODE, float(world.times[k]),
-                       [(x.id, np.asarray(x.state_vector, float).ravel()[order], np.asarray(x.covar, float)[np.ix_(order, order)])
-                        for x in sorted(tracks, key=lambda x: x.id)])
+                       [(x.id, np.asarray(x.state_vector, float).ravel()[order],
+                         np.asarray(x.covar, float)[np.ix_(order, order)]) for x in sorted(tracks, key=lambda x: x.id)])
     return history, cpu
 
 

@@ -90,7 +90,8 @@ class TrackHistory:
             tid, mean, cov = (tr.id, *tr.estimate()) if hasattr(tr, "estimate") else tr
             mean, cov = np.array(mean, float).ravel(), np.array(cov, float)
             if mean.size < 2 or cov.shape != (mean.size, mean.size):
-                raise ShapeError(f"track {tid}: need a mean (n >= 2) and an (n, n) covariance, got {mean.shape}, {cov.shape}")
+                raise ShapeError(f"track {tid}: need a mean (n >= 2) and an (n, n) covariance, "
+                                 f"got {mean.shape}, {cov.shape}")
             rows.append((tid, mean, cov))
         if len({tid for tid, _, _ in rows}) != len(rows):
             raise ValidationError(f"{node} at t={t}: one identity recorded twice")

@@ -606,7 +606,8 @@ def messages_of_tracks(history, truth=None, *, start_ns: int = 0, views: Iterabl
             for tid, m, P in rows:
                 rgb = identity_color(tid)
                 eid = f"track/{node}/{tid}"
-                ents.append(_entity(ns, eid, lines=[_line(ellipse_points(m[:2], P[:2, :2], 3.0, 48), rgb, thickness=2.0)],
+                ellipse = ellipse_points(m[:2], P[:2, :2], 3.0, 48)
+                ents.append(_entity(ns, eid, lines=[_line(ellipse, rgb, thickness=2.0)],
                                     spheres=[_sphere(m[:2], rgb, 0.35)],
                                     texts=[_text(m[:2] + np.array([0.4, 0.4]), str(tid), rgb, 12.0)],
                                     metadata={"node": node, "track_id": str(tid),

@@ -300,7 +300,8 @@ def tracks_topdown_figure(history: TrackHistory, truth: TruthPaths | None, *, no
         ax.set_title(f"{node}: {len(paths)} tracks", fontsize=9)
     for j in range(len(names), nrow * ncol):
         axes[j // ncol][j % ncol].axis("off")
-    handles = [Line2D([], [], color=TRUTH_PATH_COLOR, lw=0.7, marker="o", ms=2.5, label="true path (o start, name at the end)"),
+    handles = [Line2D([], [], color=TRUTH_PATH_COLOR, lw=0.7, marker="o", ms=2.5,
+                      label="true path (o start, name at the end)"),
                Line2D([], [], color=identity_color(TrackId("node", 0)), lw=1.2,
                       label="track (colour: its identity, the same in every panel)"),
                Line2D([], [], color=identity_color(TrackId("node", 1)), lw=1.0, marker="+", ms=6,
