@@ -1,4 +1,4 @@
-"""Multi-target tracking: tracks with network-unique identities, gating, GNN and JPDA (EHM) association, M-of-N initiation, deletion, the multi-target tracker."""
+"""Multi-target tracking: tracks with network-unique identities, gating, GNN and JPDA (EHM) association, M-of-N initiation, deletion, the multi-target tracker, and the history of a run (tracks per node over time, the truth)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -9,6 +9,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.tracking.association import GNN, JPDA, Association, DataAssociator, ehm_marginals, gated_clusters
     from dfusion.tracking.deletion import AnyDeleter, CovarianceDeleter, Deleter, MissDeleter, RegionDeleter, StaleDeleter
     from dfusion.tracking.gating import GaussianHypothesiser, Hypotheses, Hypothesiser
+    from dfusion.tracking.history import TrackHistory, TruthPaths
     from dfusion.tracking.initiation import Initiator, MofNInitiator, two_point_state
     from dfusion.tracking.track import IdentityIssuer, Scan, Track, TrackId
     from dfusion.tracking.tracker import MultiTargetTracker, track_update_information
@@ -37,6 +38,8 @@ _WHERE = {
     "Track": ("dfusion.tracking.track", "Track"),
     "Scan": ("dfusion.tracking.track", "Scan"),
     "MultiTargetTracker": ("dfusion.tracking.tracker", "MultiTargetTracker"),
+    "TrackHistory": ("dfusion.tracking.history", "TrackHistory"),
+    "TruthPaths": ("dfusion.tracking.history", "TruthPaths"),
     "track_update_information": ("dfusion.tracking.tracker", "track_update_information"),
 }
 
