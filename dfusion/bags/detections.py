@@ -38,7 +38,7 @@ from dfusion.bags.tf import StaticTransforms, rotate_covariance
 from dfusion.errors import ValidationError
 from dfusion.geometry import transform_points
 
-__all__ = ["DetectionTopic", "WorldDetections", "world_detections", "read_homography"]
+__all__ = ["DetectionTopic", "WorldDetections", "world_detections", "read_homography", "require_homography"]
 
 
 @dataclass(frozen=True)
@@ -117,12 +117,17 @@ def read_homography(path: str | Path) -> np.ndarray:
     return H.reshape(3, 3)
 
 
-def _to_ground(opts: DetectionTopic, msgtype: str, pix: np.ndarray, rejected: dict[str, int]) -> np.ndarray:
+def require_homography(opts: DetectionTopic, msgtype: str) -> None:
+    """Refuse, in one line that says what is needed, a topic of pixel detections without a homography."""
     if opts.homography is None:
         raise ValidationError(f"topic {opts.topic}: a {msgtype} gives pixel boxes, which need a camera model to be "
                               f"ground positions: give the topic a homography from pixels to the ground "
                               f"(--detections {opts.topic}={opts.sensor},homography=H.txt; docs/ros.md), or map it "
                               f"with a function TOPIC=SENSOR:FILE.py:FUNCTION")
+
+
+def _to_ground(opts: DetectionTopic, msgtype: str, pix: np.ndarray, rejected: dict[str, int]) -> np.ndarray:
+    require_homography(opts, msgtype)
     hom = np.c_[pix, np.ones(len(pix))] @ opts.homography.T
     w = hom[:, 2]
     ahead = w > 1e-12 * np.abs(hom[:, :2]).max(axis=1, initial=1.0)

@@ -37,7 +37,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from dfusion.bags.convert import DETECTION_TYPES, Detections, convert
-from dfusion.bags.detections import DetectionTopic, world_detections
+from dfusion.bags.detections import DetectionTopic, require_homography, world_detections
 from dfusion.bags.reader import Bag
 from dfusion.bags.tf import TF_STATIC, StaticTransforms
 from dfusion.errors import ValidationError
@@ -101,7 +101,7 @@ def check_detection_topics(bag: Bag, topics: Sequence[DetectionTopic]) -> None:
                                   f"{', '.join(sorted(DETECTION_TYPES))}); map it with a function "
                                   f"{opts.topic}={opts.sensor}:FILE.py:FUNCTION returning (k, 2) positions")
         if opts.convert is None and msgtype == "vision_msgs/msg/Detection2DArray" and opts.homography is None:
-            world_detections(Detections(0.0, np.zeros((0, 2)), None, "", True), opts, StaticTransforms(), "", msgtype)
+            require_homography(opts, msgtype)
 
 
 def _reading(opts: DetectionTopic, msgtype: str, msg, t: float, frame: str) -> Detections | None:

@@ -60,7 +60,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from dfusion.bags.convert import Converter, PoseReading, PositionFix, RangeReading, ScanReading, convert
+from dfusion.bags.convert import Converter, Detections, PoseReading, PositionFix, RangeReading, ScanReading, convert
 from dfusion.bags.reader import Bag, read_bag
 from dfusion.errors import ValidationError
 from dfusion.scenario.spec import Scenario
@@ -95,6 +95,10 @@ def standard_z(reading: Any) -> np.ndarray:
         return np.array([reading.r])
     if isinstance(reading, ScanReading):
         return np.asarray(reading.ranges, float)
+    if isinstance(reading, Detections):
+        raise ValidationError("a detection array is many targets' detections: track it with dfusion replay BAG "
+                              "--detections TOPIC=SENSOR (docs/ros.md), or map the topic to a node with a function "
+                              "msg, t -> z")
     raise ValidationError(f"a {type(reading).__name__} is no measurement of a scenario node: map the topic with a "
                           f"function msg, t -> z")
 
