@@ -272,19 +272,13 @@ def parse_detection_topic(text: str, *, std: float = 0.3, detection_probability:
     :data:`TOPIC_KEYS` (``homography`` a file, :func:`~dfusion.bags.detections.read_homography`);
     the keyword arguments are the values of the keys not given."""
     from dfusion.bags.detections import read_homography
-    from dfusion.sim.replay import load_function
+    from dfusion.sim.replay import split_converter
 
     topic, sep, rest = text.partition("=")
     head, *pairs = rest.split(",")
     if not sep or not topic or not head:
         raise ValidationError(f"--detections wants TOPIC=SENSOR[:FILE.py:FUNCTION][,KEY=VALUE...], got {text!r}")
-    sensor, _, func = head.partition(":")
-    fn = None
-    if func:
-        path, sep2, name = func.rpartition(":")
-        if not sep2 or not path or not name:
-            raise ValidationError(f"--detections {text!r}: the converter is FILE.py:FUNCTION")
-        fn = load_function(path, name)
+    sensor, fn = split_converter(head, f"--detections {text!r}")
     values: dict[str, str] = {}
     for pair in pairs:
         key, sep3, value = pair.partition("=")

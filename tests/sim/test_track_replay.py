@@ -231,3 +231,36 @@ def test_one_covariance_per_scan_covers_every_detection():
     assert np.allclose(R / M, (R / M)[0, 0])                          # a multiple of the mean
     same, widened = scan_covariance(np.array([covs[0]] * 3), np.eye(2))
     assert not widened and np.allclose(same, covs[0])
+
+
+def test_any_other_type_through_a_user_function(tmp_path):
+    """The converter hook of --detections: TOPIC=SENSOR:FILE.py:FUNCTION with per-topic keys after it."""
+    from dfusion.sim.track_replay import parse_detection_topic
+
+    conv = tmp_path / "conv.py"
+    conv.write_text("import numpy as np\n\n"
+                    "def people(msg, t):\n"
+                    "    return np.array([[p.x, p.y] for p in msg.polygon.points]).reshape(-1, 2)\n\n"
+                    "def broken(msg, t):\n"
+                    "    return np.zeros(3)\n")
+    pts = [np.array([[1.5, 2.25], [3.0, -4.5]]), np.zeros((0, 2))]
+
+    def polygon(p):
+        def build(T, h):
+            return T.geometry_msgs__msg__PolygonStamped(header=h, polygon=T.geometry_msgs__msg__Polygon(
+                points=[T.geometry_msgs__msg__Point32(x=float(x), y=float(y), z=0.0) for x, y in p]))
+        return build
+
+    bag = write_bag(tmp_path / "poly", "mcap", [("/poly", "geometry_msgs/msg/PolygonStamped", ORIGIN + k * 10**8,
+                                                 polygon(p)) for k, p in enumerate(pts)])
+    b = read_bag(bag, ["/poly"])
+    opts = parse_detection_topic(f"/poly=cam:{conv}:people,std=0.5,pd=0.8,clutter=0.01")
+    assert (opts.sensor, opts.std, opts.detection_probability, opts.clutter_density) == ("cam", 0.5, 0.8, 0.01)
+    scans = [s for _, s in scans_from_bag(b, [opts])]
+    assert [s.time for s in scans] == [0.0, 0.1]
+    assert np.array_equal(scans[0].detections, pts[0]) and scans[1].detections.shape == (0, 2)
+    assert np.allclose(scans[0].sensor.R, 0.25 * np.eye(2)) and scans[0].detection_probability == 0.8
+    with pytest.raises(ValidationError, match=r"returned shape \(3,\)"):
+        list(scans_from_bag(b, [parse_detection_topic(f"/poly=cam:{conv}:broken")]))
+    with pytest.raises(ValidationError, match="is no KEY=VALUE"):
+        parse_detection_topic("/poly=cam,speed=3")
