@@ -206,6 +206,35 @@ def test_detection2d_boxes_become_ground_positions_through_a_homography(tmp_path
     assert dict(counts.rejected) == {"above_horizon": 1}
 
 
+def test_two_cameras_seeing_everyone_one_frame_per_stamp(tmp_path):
+    """Two PoseArray topics with the same stamps: one scan per message, both in one tracker, metrics once per
+    stamp; the second camera's independent detections make the tracks more accurate than the first alone."""
+    t, truth, dets_a, oracle = _walk(60, seed=3, clutter_mean=1.0)
+    _, truth_b, dets_b, _ = _walk(60, seed=11, clutter_mean=1.0)
+    assert np.array_equal(truth, truth_b)
+    recs = [("/a", "geometry_msgs/msg/PoseArray", ns(tk, ORIGIN), _pose_array(z)) for tk, z in zip(t, dets_a)]
+    recs += [("/b", "geometry_msgs/msg/PoseArray", ns(tk, ORIGIN), _pose_array(z)) for tk, z in zip(t, dets_b)]
+    for i in range(len(PEOPLE)):
+        recs += [(f"/person{i}/pose", "geometry_msgs/msg/PoseStamped", ns(tk, ORIGIN), _pose_stamped(*truth[k, i]))
+                 for k, tk in enumerate(t)]
+    bag = write_bag(tmp_path / "two", "mcap", recs)
+    truth_args = [a for i in range(len(PEOPLE)) for a in ("--truth", f"/person{i}/pose")]
+    density = 1.0 / (AREA[0] * AREA[1])
+    res = {}
+    for name, topics in (("one", ["/a=a"]), ("two", ["/a=a", "/b=b"])):
+        out = tmp_path / f"{name}.json"
+        argv = ["replay", str(bag), *[a for tp in topics for a in ("--detections", f"{tp},clutter={density}")],
+                *truth_args, "--json", str(out)]
+        assert main(argv) == 0
+        res[name] = json.loads(out.read_text())
+    two = res["two"]
+    assert two["counts"]["scans"] == 2 * len(t) and two["metrics"]["frames"] == len(t)
+    assert [s["sensor"] for s in two["scans"][:4]] == ["a", "b", "a", "b"]
+    assert two["metrics"]["localization"] < res["one"]["metrics"]["localization"]
+    g = np.array([(s["t"], s["gospa"]) for s in two["gospa"]])
+    assert g[g[:, 0] >= 1.0 - 1e-9, 1].mean() < oracle[t >= 1.0 - 1e-9].mean()
+
+
 def test_a_topic_of_another_type_is_refused_in_one_line(tmp_path, capsys):
     bag = write_bag(tmp_path / "poses", "mcap", [("/robot/pose", "geometry_msgs/msg/PoseStamped", ORIGIN,
                                                   _pose_stamped(1.0, 2.0))])
@@ -214,6 +243,10 @@ def test_a_topic_of_another_type_is_refused_in_one_line(tmp_path, capsys):
     assert len(err.splitlines()) == 1
     assert "topic /robot/pose: a geometry_msgs/msg/PoseStamped is no detection array" in err
     assert "/robot/pose=cam:FILE.py:FUNCTION" in err
+    # options of the scenario replay do not apply: refused in one line too
+    assert main(["replay", str(bag), "--detections", "/robot/pose=cam", "--mcap", str(tmp_path / "o.mcap")]) == 2
+    assert capsys.readouterr().err.strip() == ("dfusion: error: --mcap does not apply to --detections (the tracker "
+                                               "takes the scans in stamp order; its output is --json)")
 
 
 def test_one_covariance_per_scan_covers_every_detection():
