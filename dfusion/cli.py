@@ -142,8 +142,8 @@ def _replay_detections(args: argparse.Namespace) -> int:
         return 2
     topics = [parse_detection_topic(t, std=args.std, detection_probability=args.detection_probability,
                                     clutter_density=args.clutter_density) for t in args.detections]
-    settings = TrackerSettings(association=args.association, q=args.process_noise, velocity_std=args.velocity_std or None,
-                               confirm=confirm, max_age=args.max_age, max_misses=args.max_misses or None)
+    settings = TrackerSettings(association=args.association, q=args.process_noise,
+                               velocity_std=args.velocity_std or None, confirm=confirm, max_age=args.max_age, max_misses=args.max_misses or None)
     result = replay_tracks(args.paths[0], topics, settings=settings, frame=args.frame, truth_topics=args.truth,
                            origin_ns=args.origin_ns, duration=args.duration, msgdefs=msgdefs_from_files(args.msg))
     print(result.table())

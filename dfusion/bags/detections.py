@@ -70,7 +70,8 @@ class DetectionTopic:
 
     def __post_init__(self) -> None:
         if not self.topic or not self.sensor:
-            raise ValidationError(f"a detection topic needs a topic and a sensor name, got {self.topic!r}={self.sensor!r}")
+            raise ValidationError(f"a detection topic needs a topic and a sensor name, "
+                                  f"got {self.topic!r}={self.sensor!r}")
         if not (math.isfinite(self.std) and self.std > 0):
             raise ValidationError(f"topic {self.topic}: std must be positive and finite, got {self.std!r}")
         if not 0.0 < self.detection_probability <= 1.0:
@@ -151,7 +152,8 @@ def world_detections(reading: Detections, opts: DetectionTopic, tf: StaticTransf
     rejected: dict[str, int] = {}
     pts = np.asarray(reading.points, dtype=float).reshape(-1, 2)
     k = len(pts)
-    covs = np.full((k, 2, 2), np.nan) if reading.covs is None else np.asarray(reading.covs, dtype=float).reshape(k, 2, 2)
+    covs = (np.full((k, 2, 2), np.nan) if reading.covs is None
+            else np.asarray(reading.covs, dtype=float).reshape(k, 2, 2))
     if reading.pixels:
         pts = _to_ground(opts, msgtype, pts, rejected)
         covs = np.full((k, 2, 2), np.nan)

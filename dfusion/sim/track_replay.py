@@ -50,8 +50,8 @@ from dfusion.tracking.tracker import MultiTargetTracker
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ASSOCIATIONS", "TOPIC_KEYS", "TrackerSettings", "TrackReplay", "build_tracker", "replay_tracks", "truth_tracks",
-           "parse_detection_topic"]
+__all__ = ["ASSOCIATIONS", "TOPIC_KEYS", "TrackerSettings", "TrackReplay", "build_tracker", "replay_tracks",
+           "truth_tracks", "parse_detection_topic"]
 
 #: Values of ``association``.
 ASSOCIATIONS = ("jpda", "gnn")
@@ -139,7 +139,8 @@ def truth_tracks(bag: Bag, topics: Sequence[str], frame: str, origin_ns: int,
     return out
 
 
-def _truth_at(truth: dict[str, tuple[np.ndarray, np.ndarray]], t: float, max_gap: float) -> tuple[list[str], np.ndarray]:
+def _truth_at(truth: dict[str, tuple[np.ndarray, np.ndarray]], t: float,
+              max_gap: float) -> tuple[list[str], np.ndarray]:
     ids, pts = [], []
     for name, (ts, xy) in truth.items():
         k = int(np.searchsorted(ts, t - 1e-9))
@@ -227,7 +228,8 @@ def replay_tracks(bag: str | Path | Bag, topics: Sequence[DetectionTopic], *, se
         tracker.step(scan)
         est = tracker.estimates()
         out.scans.append({"t": round(scan.time, 9), "sensor": sensor, "detections": len(scan.detections),
-                          "tracks": [{"id": str(i), "mean": mean.tolist(), "cov": cov.tolist()} for i, mean, cov in est]})
+                          "tracks": [{"id": str(i), "mean": mean.tolist(), "cov": cov.tolist()}
+                                     for i, mean, cov in est]})
         row = (scan.time, [str(i) for i, _, _ in est], np.array([m[:2] for _, m, _ in est]).reshape(-1, 2))
         if frames and abs(frames[-1][0] - scan.time) <= 1e-9:
             frames[-1] = row                     # the last scan of a stamp stands for the frame
