@@ -57,6 +57,8 @@ class DetectionTopic:
     clutter_density : false detections per m^2 per message.
     homography : 3x3 pixels -> ground (module docstring); needed for pixel detections.
     ground_frame : frame of the homography's ground coordinates (default: the fixed frame).
+    view : optional ``(x0, x1, y0, y1)``: the rectangle of the fixed frame the sensor sees (m);
+        ``None``: every target is in view of every message.
     """
 
     topic: str
@@ -67,6 +69,7 @@ class DetectionTopic:
     clutter_density: float = 0.0025
     homography: np.ndarray | None = None
     ground_frame: str | None = None
+    view: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if not self.topic or not self.sensor:
@@ -79,6 +82,12 @@ class DetectionTopic:
                                   f"got {self.detection_probability!r}")
         if not (math.isfinite(self.clutter_density) and self.clutter_density >= 0):
             raise ValidationError(f"topic {self.topic}: clutter density must be >= 0, got {self.clutter_density!r}")
+        if self.view is not None:
+            v = tuple(float(a) for a in self.view)
+            if len(v) != 4 or not all(math.isfinite(a) for a in v) or not (v[1] > v[0] and v[3] > v[2]):
+                raise ValidationError(f"topic {self.topic}: a view is x0, x1, y0, y1 with x1 > x0 and y1 > y0, "
+                                      f"got {self.view!r}")
+            object.__setattr__(self, "view", v)
         if self.homography is not None:
             H = np.asarray(self.homography, dtype=float)
             if H.shape != (3, 3) or not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-300:

@@ -5,7 +5,10 @@ r"""Scans of recorded detections: a bag's detection topics as the multi-target t
 ``(sensor name, Scan)`` per message: the message's detections as world-frame positions
 (:func:`dfusion.bags.detections.world_detections`: homography for pixels, ``/tf_static``
 into the fixed frame, the message's covariance or the topic's ``std``), the topic's
-detection probability and clutter density. The centralized tracker of ``dfusion replay
+detection probability and clutter density, and, when the topic has a ``view`` rectangle,
+the probability that a track is in it (:meth:`dfusion.sim.plaza.CameraView.probability_inside`:
+the track's ``P_D`` in the scan is the topic's times it, and a track that is probably out of
+view is not missed). The centralized tracker of ``dfusion replay
 --detections`` (:mod:`dfusion.sim.track_replay`) consumes them, and so can any other
 consumer of :class:`~dfusion.tracking.Scan` (a decentralized network of tracking nodes, one
 per sensor).
@@ -43,6 +46,7 @@ from dfusion.bags.tf import TF_STATIC, StaticTransforms
 from dfusion.errors import ValidationError
 from dfusion.linalg import Array, cholesky, symmetrize
 from dfusion.models.measurement import PositionFix
+from dfusion.sim.plaza import CameraView
 from dfusion.tracking.track import Scan
 
 log = logging.getLogger(__name__)
@@ -133,6 +137,7 @@ def scans_from_bag(bag: Bag, topics: Sequence[DetectionTopic], *, frame: str = "
     if origin_ns is None:
         origin_ns = min((m.stamp_ns for m in bag.messages if m.topic in by_topic), default=bag.origin_ns)
     tf = StaticTransforms.from_bag(bag, tf_topic)
+    views = {o.topic: CameraView(o.sensor, *o.view).probability_inside for o in topics if o.view is not None}
     for m in bag.messages:
         opts = by_topic.get(m.topic)
         if opts is None:
@@ -155,4 +160,4 @@ def scans_from_bag(bag: Bag, topics: Sequence[DetectionTopic], *, frame: str = "
         counts.covariance_stated += int(wd.stated.sum())
         counts.scans_covariance_widened += int(widened)
         yield opts.sensor, Scan(t, wd.points, PositionFix(np.zeros(2), R), opts.clutter_density,
-                                opts.detection_probability, source=opts.sensor)
+                                opts.detection_probability, source=opts.sensor, view_probability=views.get(m.topic))

@@ -265,13 +265,14 @@ def _metrics(frames, truth, span, c: float, match: float, max_gap: float) -> tup
 
 
 #: Per-topic keys of ``--detections TOPIC=SENSOR[:FILE.py:FUNC][,KEY=VALUE...]``.
-TOPIC_KEYS = ("std", "pd", "clutter", "homography", "ground_frame")
+TOPIC_KEYS = ("std", "pd", "clutter", "homography", "ground_frame", "view")
 
 
 def parse_detection_topic(text: str, *, std: float = 0.3, detection_probability: float = 0.9,
                           clutter_density: float = 0.0025) -> DetectionTopic:
     """``TOPIC=SENSOR[:FILE.py:FUNCTION][,KEY=VALUE...]`` -> :class:`DetectionTopic`; keys
-    :data:`TOPIC_KEYS` (``homography`` a file, :func:`~dfusion.bags.detections.read_homography`);
+    :data:`TOPIC_KEYS` (``homography`` a file, :func:`~dfusion.bags.detections.read_homography`;
+    ``view`` ``X0:X1:Y0:Y1``);
     the keyword arguments are the values of the keys not given."""
     from dfusion.bags.detections import read_homography
     from dfusion.sim.replay import split_converter
@@ -300,4 +301,13 @@ def parse_detection_topic(text: str, *, std: float = 0.3, detection_probability:
                           detection_probability=number("pd", detection_probability),
                           clutter_density=number("clutter", clutter_density),
                           homography=read_homography(values["homography"]) if "homography" in values else None,
-                          ground_frame=values.get("ground_frame"))
+                          ground_frame=values.get("ground_frame"), view=_view(values.get("view"), text))
+
+
+def _view(value: str | None, text: str) -> tuple[float, ...] | None:
+    if value is None:
+        return None
+    try:
+        return tuple(float(v) for v in value.split(":"))
+    except ValueError:
+        raise ValidationError(f"--detections {text!r}: view is X0:X1:Y0:Y1 in metres, got {value!r}") from None

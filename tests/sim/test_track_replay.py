@@ -296,3 +296,9 @@ def test_any_other_type_through_a_user_function(tmp_path):
         list(scans_from_bag(b, [parse_detection_topic(f"/poly=cam:{conv}:broken")]))
     with pytest.raises(ValidationError, match="is no KEY=VALUE"):
         parse_detection_topic("/poly=cam,speed=3")
+    # a view: the scan knows where its sensor sees (P_D follows it, a track out of view is not missed)
+    [(_, s)] = list(scans_from_bag(b, [parse_detection_topic(f"/poly=cam:{conv}:people,view=0:10:-5:5")]))[:1]
+    P = 0.01 * np.eye(4)
+    assert s.visibility(np.array([5.0, 0.0, 0, 0]), P) > 0.999 and s.visibility(np.array([12.0, 0.0, 0, 0]), P) < 1e-6
+    with pytest.raises(ValidationError, match="x1 > x0"):
+        parse_detection_topic("/poly=cam,view=3:1:0:5")
