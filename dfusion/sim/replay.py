@@ -228,14 +228,19 @@ def parse_topic_input(text: str) -> TopicInput:
     topic, sep, rest = text.partition("=")
     if not sep or not topic or not rest:
         raise ValidationError(f"--topic wants TOPIC=NODE or TOPIC=NODE:FILE.py:FUNCTION, got {text!r}")
-    node, _, func = rest.partition(":")
-    fn = None
-    if func:
-        path, sep2, name = func.rpartition(":")
-        if not sep2 or not path or not name:
-            raise ValidationError(f"--topic {text!r}: the converter is FILE.py:FUNCTION")
-        fn = load_function(path, name)
+    node, fn = split_converter(rest, f"--topic {text!r}")
     return TopicInput(topic, node, fn)
+
+
+def split_converter(text: str, where: str) -> tuple[str, Callable | None]:
+    """``NAME`` or ``NAME:FILE.py:FUNCTION`` -> ``(NAME, the function or None)`` (:func:`load_function`)."""
+    name, _, func = text.partition(":")
+    if not func:
+        return name, None
+    path, sep, fname = func.rpartition(":")
+    if not sep or not path or not fname:
+        raise ValidationError(f"{where}: the converter is FILE.py:FUNCTION")
+    return name, load_function(path, fname)
 
 
 def load_function(path: str, name: str) -> Callable:
