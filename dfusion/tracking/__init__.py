@@ -12,6 +12,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.tracking.history import TrackHistory, TruthPaths
     from dfusion.tracking.initiation import Initiator, MofNInitiator, two_point_state
     from dfusion.tracking.track import IdentityIssuer, Scan, Track, TrackId
+    from dfusion.tracking.track_to_track import TrackToTrackAssociator
     from dfusion.tracking.tracker import MultiTargetTracker, track_update_information
 
 _WHERE = {
@@ -38,6 +39,7 @@ _WHERE = {
     "Track": ("dfusion.tracking.track", "Track"),
     "Scan": ("dfusion.tracking.track", "Scan"),
     "MultiTargetTracker": ("dfusion.tracking.tracker", "MultiTargetTracker"),
+    "TrackToTrackAssociator": ("dfusion.tracking.track_to_track", "TrackToTrackAssociator"),
     "TrackHistory": ("dfusion.tracking.history", "TrackHistory"),
     "TruthPaths": ("dfusion.tracking.history", "TruthPaths"),
     "track_update_information": ("dfusion.tracking.tracker", "track_update_information"),
