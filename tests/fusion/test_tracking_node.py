@@ -172,3 +172,16 @@ def test_bundles_split_under_the_size_limit():
     assert len(b.estimates()) == 40
     for (tid, m1, P1), (_, m2, P2) in zip(a.estimates(), b.estimates()):
         np.testing.assert_allclose(m1, m2, rtol=1e-12, atol=1e-12)
+
+
+def test_a_flood_of_ends_is_bounded():
+    m = ConstantVelocity(2, 0.3)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, merger=False, epoch=2, max_tracks=4)
+    s = PositionSensor(2, 0.5)
+    b.observe(TrackId("b", 0), 0.0, [0.0, 0.0], s)
+    for k in range(10):
+        ends = tuple(TrackEnd(TrackId("x", 1000 * k + i)) for i in range(50))
+        b.receive(encode_bundle(TrackBundle("a", "b", 1, 0.0, (), ends)))
+    assert len(b.ended) == b.max_ended == 64 and b.stats.ends_forgotten == 500 - 64
+    assert sum(len(p) for p in b._announce.values()) <= 64
+    assert [str(t) for t, _, _ in b.estimates()] == ["b#0"]
