@@ -31,6 +31,19 @@ def test_gate_is_the_mahalanobis_distance_of_the_difference_against_the_chi_squa
         assert (found == [(A, B)]) == (d2 <= chi2.ppf(0.99, 2)), d2
 
 
+def test_the_windowed_test_sums_the_statistics_of_consecutive_checks():
+    """Over N checks: sum d_k^2 <= chi2_gate(2N) (scipy's quantile); one large d^2 among small
+    ones passes where a test of each check alone would fail, a steady offset does not."""
+    tta = TrackToTrackAssociator(gate=0.99, confirm=4, max_distance=10.0)
+    assert tta.threshold == pytest.approx(chi2.ppf(0.99, 8), rel=1e-6)
+    v = 0.1                                     # d^2 = dx^2 / (2 v)
+    spike = [0.1, 0.1, np.sqrt(2 * v * 12.0), 0.1]   # d^2 of 12 > chi2_0.99(2) = 9.2 at one check
+    assert [tta.check({A: est(0, 0, v), B: est(dx, 0, v)}, k) for k, dx in enumerate(spike)][-1] == [(A, B)]
+    steady = TrackToTrackAssociator(gate=0.99, confirm=4, max_distance=10.0)
+    dx = np.sqrt(2 * v * 6.0)                   # d^2 = 6 each time: 24 > chi2_0.99(8) = 20.1
+    assert all(steady.check({A: est(0, 0, v), B: est(dx, 0, v)}, k) == [] for k in range(10))
+
+
 def test_confirmed_after_consecutive_close_checks_and_never_when_seen_distinct():
     tta = TrackToTrackAssociator(confirm=3, max_distance=1.0, distinct_for=2.0)
     close = {A: est(0, 0), B: est(0.1, 0), C: est(10, 0)}
