@@ -30,13 +30,16 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from dfusion.metrics import TrackingFrame, gospa, identity_metrics
+from dfusion.metrics import gospa, identity_metrics
 from dfusion.models import ConstantVelocity
 from dfusion.sim.plaza import CameraView, PlazaConfig, PlazaWorld, plaza_cameras, simulate_plaza
-from dfusion.tracking import GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, RegionDeleter, StaleDeleter
+from dfusion.tracking import (GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, RegionDeleter,
+                              StaleDeleter, TrackHistory)
+from dfusion.viz import plot_identity_timeline, plot_tracks_topdown, record_tracks_mcap
 
 #: One setting for the family (chosen once on seed 0 of the one-view layout, never per seed).
 Q = 0.05                # acceleration noise spectral density of every tracker's motion model (m^2/s^3)
@@ -44,6 +47,7 @@ GATE = 0.99
 VELOCITY_STD = 1.5      # prior std of a person's velocity per axis (m/s), for both libraries' initiators
 C, P_ORDER, MATCH = 2.0, 1.0, 1.0
 STONESOUP = "stonesoup==1.9.1"
+NODE = "central"        # the one (centralized) node of every tracker's history
 
 
 def ensure_stonesoup() -> None:
@@ -55,10 +59,10 @@ def ensure_stonesoup() -> None:
         importlib.invalidate_caches()
 
 
-# --- trackers: each maps a world to per-frame (ids, positions) and CPU seconds per frame ----------------------
+# --- trackers: each maps a world to its tracks over time (a TrackHistory) and CPU seconds per frame ------------
 
 
-def run_dfusion(world: PlazaWorld, association: str) -> tuple[list[tuple[list, np.ndarray]], np.ndarray]:
+def run_dfusion(world: PlazaWorld, association: str) -> tuple[TrackHistory, np.ndarray]:
     motion = ConstantVelocity(2, Q)
     c = world.config
     whole = CameraView("plaza", 0.0, c.width, 0.0, c.height)
@@ -69,19 +73,18 @@ def run_dfusion(world: PlazaWorld, association: str) -> tuple[list[tuple[list, n
     tracker = MultiTargetTracker(motion, JPDA() if association == "jpda" else GNN(),
                                  MofNInitiator(motion, m=3, n=5, gate=GATE, velocity_std=VELOCITY_STD),
                                  AnyDeleter(MissDeleter(5), StaleDeleter(0.45), RegionDeleter(plaza)), origin="central")
-    out, cpu = [], np.zeros(len(world.times))
+    history, cpu = TrackHistory(), np.zeros(len(world.times))
     for k in range(len(world.times)):
         scans = world.scans(k)
         t0 = time.process_time()
         for scan in scans:
             tracker.step(scan)
         cpu[k] = time.process_time() - t0
-        est = tracker.estimates()
-        out.append(([str(i) for i, _, _ in est], np.array([m[:2] for _, m, _ in est]).reshape(-1, 2)))
-    return out, cpu
+        history.record(NODE, float(world.times[k]), tracker.estimates())
+    return history, cpu
 
 
-def run_stonesoup(world: PlazaWorld, association: str) -> tuple[list[tuple[list, np.ndarray]], np.ndarray]:
+def run_stonesoup(world: PlazaWorld, association: str) -> tuple[TrackHistory, np.ndarray]:
     from stonesoup.dataassociator.neighbour import GNNWith2DAssignment
     from stonesoup.dataassociator.probability import JPDAwithEHM
     from stonesoup.deleter.error import CovarianceBasedDeleter
@@ -129,15 +132,17 @@ def run_stonesoup(world: PlazaWorld, association: str) -> tuple[list[tuple[list,
                                        data_associator=GNNWith2DAssignment(hyp), updater=updater)
     it = iter(tracker)
     per_frame = len(c.cameras)
-    out, cpu = [], np.zeros(len(world.times))
+    history, cpu = TrackHistory(), np.zeros(len(world.times))
+    order = [0, 2, 1, 3]      # Stone Soup's [x, vx, y, vy] -> [x, y, vx, vy]
     for k in range(len(world.times)):
         t0 = time.process_time()
         for _ in range(per_frame):
             _, tracks = next(it)
         cpu[k] = time.process_time() - t0
-        tr = sorted(tracks, key=lambda x: x.id)
-        out.append(([x.id for x in tr], np.array([[x.state_vector[0, 0], x.state_vector[2, 0]] for x in tr]).reshape(-1, 2)))
-    return out, cpu
+        history.record(NODE, float(world.times[k]),
+                       [(x.id, np.asarray(x.state_vector, float).ravel()[order],
+                         np.asarray(x.covar, float)[np.ix_(order, order)]) for x in sorted(tracks, key=lambda x: x.id)])
+    return history, cpu
 
 
 TRACKERS = {
@@ -164,16 +169,31 @@ class Row:
     targets: float
 
 
-def evaluate(layout: str, seed: int, name: str, world: PlazaWorld) -> Row:
+def evaluate(layout: str, seed: int, name: str, world: PlazaWorld) -> tuple[Row, TrackHistory]:
     gc.collect()
-    est, cpu = TRACKERS[name](world)
+    history, cpu = TRACKERS[name](world)
+    frames = history.frames(NODE, world.truth_paths(), world.times)
     parts = np.array([[g.distance, g.localization, g.missed, g.false] for g in
-                      (gospa(world.truth_positions(k)[1], est[k][1], C, P_ORDER) for k in range(len(world.times)))])
-    frames = [TrackingFrame(*world.truth_positions(k), est[k][0], est[k][1]) for k in range(len(world.times))]
+                      (gospa(f.truth, f.tracks, C, P_ORDER) for f in frames)])
     ids = identity_metrics(frames, MATCH)
     mean = parts.mean(axis=0)
     return Row(layout, seed, name, *mean, ids.idf1, ids.mota, ids.switches, 1e3 * float(np.mean(cpu)),
-               float(np.mean([len(t) for t in world.truth])))
+               float(np.mean([len(t) for t in world.truth]))), history
+
+
+def save_figures(directory: Path, layout: str, name: str, world: PlazaWorld, history: TrackHistory) -> None:
+    """The top-down view, the identity timeline and the MCAP recording of one run (``--figures``)."""
+    c = world.config
+    stem = f"{name.split(' (')[0].replace(' ', '-').lower()}_{layout.replace(' ', '-')}_seed{c.seed}"
+    truth = world.truth_paths()
+    what = f"{name}, {layout}, seed {c.seed}, {c.duration:.0f} s"
+    views = c.cameras if len(c.cameras) > 1 else ()          # one view is the whole plaza: its outline
+    paths = [plot_tracks_topdown(history, truth, directory / f"topdown_{stem}.png", views=views,
+                                 region=(0.0, c.width, 0.0, c.height), title=f"{what}: tracks and truth, top-down"),
+             plot_identity_timeline(history, truth, directory / f"timeline_{stem}.png", threshold=MATCH,
+                                    title=f"{what}: identity timeline (a track is on a person within {MATCH:g} m)")[0],
+             record_tracks_mcap(history, directory / f"tracks_{stem}.mcap", truth, views=views)]
+    print("wrote " + ", ".join(str(p) for p in paths))
 
 
 def accuracy_table(rows: list[Row]) -> None:
@@ -244,6 +264,9 @@ def main() -> int:
     ap.add_argument("--cameras", type=int, nargs="+", default=[1, 3], help="camera layouts (1, 3 or 6 views)")
     ap.add_argument("--no-stonesoup", action="store_true", help="dfusion only")
     ap.add_argument("--strict", action="store_true", help="exit status 1 when a goal is not met")
+    ap.add_argument("--figures", type=Path, metavar="DIR",
+                    help="save the top-down view, the identity timeline (PNG) and the tracks (MCAP) of every "
+                         "dfusion tracker on seed 0 of each layout to DIR")
     args = ap.parse_args()
     seeds = 1 if args.quick else args.seeds
     duration = 10.0 if args.quick else args.duration
@@ -262,7 +285,10 @@ def main() -> int:
             world = simulate_plaza(PlazaConfig(n_people=args.people, duration=duration, seed=seed,
                                                cameras=plaza_cameras(ncam)))
             for name in TRACKERS:
-                rows.append(evaluate(layout, seed, name, world))
+                row, history = evaluate(layout, seed, name, world)
+                rows.append(row)
+                if args.figures is not None and seed == 0 and name.startswith("dfusion"):
+                    save_figures(args.figures, layout, name, world, history)
     print(f"\n{args.people} people set, {duration:.0f} s, 10 Hz, std 0.3 m, P_D 0.9, 3 false per frame per plaza area; "
           f"mean targets present {np.mean([r.targets for r in rows]):.1f}; GOSPA c = {C} m, p = {P_ORDER:g}, "
           f"alpha = 2; match within {MATCH} m\n")

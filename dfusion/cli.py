@@ -10,7 +10,9 @@ and prints the same table (``docs/processes.md``).
 
 ``dfusion replay SCENARIO BAG --topic TOPIC=NODE ... [--truth TOPIC] [--arrival stamp|record]``
 runs the scenario's nodes on the measurements of a ROS 1 or ROS 2 bag instead of the
-simulated world (``docs/ros.md``).
+simulated world (``docs/ros.md``). ``dfusion replay BAG --detections TOPIC=SENSOR ... [--truth
+TOPIC ...] [--association jpda|gnn]`` tracks the bag's detection arrays with the multi-target
+tracker instead (``docs/multi-target.md``).
 
 Outputs of all three: ``--json`` (the figures and the per-step series), ``--csv``
 (the series), ``--plot`` (error plots), ``--topdown`` (the top-down figure),
@@ -80,13 +82,24 @@ def _outputs(result, args: argparse.Namespace, *, title: str | None = None) -> N
 
 
 def _replay(args: argparse.Namespace) -> int:
+    if args.detections:
+        return _replay_detections(args)
     from dfusion.scenario.loader import load_scenario
     from dfusion.sim.replay import parse_topic_input, replay_scenario
 
+    if len(args.paths) != 2:
+        print("dfusion: error: replay takes SCENARIO BAG with --topic TOPIC=NODE, or BAG with --detections "
+              "TOPIC=SENSOR", file=sys.stderr)
+        return 2
+    args.scenario, args.bag = args.paths
     if not args.topic:
         print("dfusion: error: map at least one bag topic to a node with --topic TOPIC=NODE", file=sys.stderr)
         return 2
-    if args.plot and args.truth is None:
+    if len(args.truth) > 1:
+        print("dfusion: error: a scenario replay takes one --truth topic (the target's)", file=sys.stderr)
+        return 2
+    truth = args.truth[0] if args.truth else None
+    if args.plot and truth is None:
         print("dfusion: error: --plot draws errors against the truth: give --truth TOPIC (or leave --plot out)",
               file=sys.stderr)
         return 2
@@ -94,15 +107,50 @@ def _replay(args: argparse.Namespace) -> int:
 
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
     inputs = [parse_topic_input(t) for t in args.topic]
-    bag = read_bag(args.bag, [i.topic for i in inputs] + ([args.truth] if args.truth else []),
+    bag = read_bag(args.bag, [i.topic for i in inputs] + ([truth] if truth else []),
                    msgdefs=msgdefs_from_files(args.msg))
-    result = replay_scenario(sc, bag, inputs, truth_topic=args.truth, arrival=args.arrival,
+    result = replay_scenario(sc, bag, inputs, truth_topic=truth, arrival=args.arrival,
                              origin_ns=args.origin_ns, progress=not args.quiet)
     print(result.table())
-    if args.truth is None:
+    if truth is None:
         print("(no --truth topic: RMSE and ANEES are unknown)")
     args.start_ns = result.world.origin_ns   # the recording in the bag's time (overlays the source bag)
     _outputs(result, args)
+    return 0
+
+
+def _replay_detections(args: argparse.Namespace) -> int:
+    """``dfusion replay BAG --detections ...``: the multi-target tracker on recorded detections (docs/ros.md)."""
+    from dfusion.bags import msgdefs_from_files
+    from dfusion.sim.track_replay import TrackerSettings, parse_detection_topic, replay_tracks
+
+    if len(args.paths) != 1:
+        print("dfusion: error: with --detections, replay takes the BAG only (the tracker's settings are options), "
+              f"got {len(args.paths)} paths", file=sys.stderr)
+        return 2
+    refused = [o for o in ("topic", "plot", "csv", "topdown", "mcap", "plugin", "fusion", "seed") if getattr(args, o)]
+    if refused or args.arrival != "stamp":
+        what = f"--{refused[0]}" if refused else "--arrival record"
+        print(f"dfusion: error: {what} does not apply to --detections (the tracker takes the scans in stamp order; "
+              f"its output is --json)", file=sys.stderr)
+        return 2
+    m, _, n = args.confirm.partition("/")
+    try:
+        confirm = (int(m), int(n))
+    except ValueError:
+        print(f"dfusion: error: --confirm wants M/N (e.g. 3/5), got {args.confirm!r}", file=sys.stderr)
+        return 2
+    topics = [parse_detection_topic(t, std=args.std, detection_probability=args.detection_probability,
+                                    clutter_density=args.clutter_density) for t in args.detections]
+    settings = TrackerSettings(association=args.association, q=args.process_noise,
+                               velocity_std=args.velocity_std or None, confirm=confirm, max_age=args.max_age, max_misses=args.max_misses or None)
+    result = replay_tracks(args.paths[0], topics, settings=settings, frame=args.frame, truth_topics=args.truth,
+                           origin_ns=args.origin_ns, duration=args.duration, msgdefs=msgdefs_from_files(args.msg))
+    print(result.table())
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(result.to_json())
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -242,12 +290,21 @@ def build_parser() -> argparse.ArgumentParser:
     add_tls_arguments(r)
     r.set_defaults(func=_run)
 
-    b = sub.add_parser("replay", help="run a scenario's nodes on the measurements of a ROS bag (docs/ros.md)")
-    b.add_argument("scenario", help="scenario TOML file: the nodes, their sensor kinds, the tree")
-    b.add_argument("bag", help="ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP)")
+    b = sub.add_parser("replay", help="run a scenario's nodes on the measurements of a ROS bag, or track the "
+                                      "detections of a bag (docs/ros.md)")
+    b.add_argument("paths", nargs="+", metavar="PATH",
+                   help="SCENARIO BAG with --topic: a scenario TOML file (the nodes, their sensor kinds, the tree) and "
+                        "a ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP); BAG alone with --detections")
     b.add_argument("--topic", action="append", default=[], metavar="TOPIC=NODE[:FILE.py:FUNC]",
                    help="feed NODE from TOPIC (standard message types, or a function f(msg, t) -> z); repeatable")
-    b.add_argument("--truth", default=None, metavar="TOPIC", help="ground truth (Odometry, PoseStamped, ...)")
+    b.add_argument("--detections", action="append", default=[], metavar="TOPIC=SENSOR[:FILE.py:FUNC][,KEY=VALUE]",
+                   help="track the detection arrays of TOPIC (PoseArray, vision_msgs Detection3DArray, "
+                        "Detection2DArray with homography=FILE, or a function f(msg, t) -> (k, 2) positions) with the "
+                        "multi-target tracker; keys std, pd, clutter, homography, ground_frame; repeatable "
+                        "(docs/ros.md, docs/multi-target.md)")
+    b.add_argument("--truth", action="append", default=[], metavar="TOPIC",
+                   help="ground truth (Odometry, PoseStamped, ...); with --detections one topic per target, or a "
+                        "Detection3DArray of every target named by its id (repeatable)")
     b.add_argument("--arrival", choices=("stamp", "record"), default="stamp",
                    help="when a message reaches its node: at its header stamp (default) or at its record time "
                         "(late messages are then late measurements)")
@@ -259,6 +316,24 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=None, help="override the scenario's seed (particle filters)")
     b.add_argument("--fusion", choices=("channel", "naive"), default=None, help="override the fusion mode")
     b.add_argument("--duration", type=float, default=None, help="override the scenario's duration (seconds)")
+    t = b.add_argument_group("the tracker of --detections (docs/multi-target.md; defaults: benchmarks/multi_target.py)")
+    t.add_argument("--frame", default="map", help="fixed frame of the tracks; detections in other frames are moved "
+                                                  "into it with /tf_static (default map)")
+    t.add_argument("--association", choices=("jpda", "gnn"), default="jpda", help="data association (default jpda)")
+    t.add_argument("--std", type=float, default=0.3,
+                   help="noise std (m) of a detection whose message states no covariance (default 0.3)")
+    t.add_argument("--detection-probability", type=float, default=0.9, help="P_D of a target in view (default 0.9)")
+    t.add_argument("--clutter-density", type=float, default=0.0025,
+                   help="false detections per m^2 per message (default 0.0025: 3 per frame on 40 x 30 m)")
+    t.add_argument("--process-noise", type=float, default=0.05,
+                   help="acceleration noise spectral density q of the tracks (m^2/s^3, default 0.05)")
+    t.add_argument("--velocity-std", type=float, default=1.5,
+                   help="prior std (m/s) of a new track's velocity; 0: none (default 1.5)")
+    t.add_argument("--confirm", default="3/5", metavar="M/N", help="confirm a track after M hits in N scans (3/5)")
+    t.add_argument("--max-age", type=float, default=0.45, help="delete a track without a hit for this long (s, 0.45)")
+    t.add_argument("--max-misses", type=int, default=0,
+                   help="also delete after this many consecutive misses in view (0: off; only when every sensor "
+                        "sees the whole area)")
     _output_options(b)
     b.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable)")

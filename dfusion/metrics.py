@@ -18,10 +18,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.stats import chi2
 
+from dfusion.assignment import gated_assignment
 from dfusion.linalg import Array
 
 __all__ = ["rmse", "nees", "chi2_interval", "error_stats", "GOSPA", "gospa", "TrackingFrame", "IdentityMetrics",
-           "identity_metrics", "LabelAgreement", "label_agreement"]
+           "identity_metrics", "FrameMatch", "clear_mot_matches", "LabelAgreement", "label_agreement"]
 
 
 def rmse(est: Array, truth: Array, axes: int) -> float:
@@ -149,32 +150,33 @@ class IdentityMetrics:
     switches_by_truth: dict = field(default_factory=dict)
 
 
-def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) -> IdentityMetrics:
-    """CLEAR MOT (MOTA, MOTP, switches) and IDF1 of ``frames``; pairs match within ``threshold`` (see :class:`IdentityMetrics`)."""
+@dataclass(frozen=True)
+class FrameMatch:
+    """One (truth, track) pair matched in a frame by the CLEAR MOT rule (:func:`clear_mot_matches`)."""
+
+    truth_id: Hashable
+    track_id: Hashable
+    distance: float
+    switched: bool
+
+
+def clear_mot_matches(frames: Sequence[TrackingFrame], threshold: float = 1.0) -> list[list[FrameMatch]]:
+    """The CLEAR MOT matching of every frame (see :class:`IdentityMetrics`): per frame, a truth
+    keeps its previous match while they are within ``threshold``; the other truths and tracks
+    are paired by a minimum-distance assignment among pairs within ``threshold``. A truth
+    matched to another track than its previous match is a switch (``FrameMatch.switched``).
+    The one home of this rule: :func:`identity_metrics` counts from it, the identity timeline
+    (``dfusion.viz.tracks``) draws it."""
     if not (np.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be positive, got {threshold!r}")
     last: dict[Hashable, Hashable] = {}
-    by_truth: dict[Hashable, int] = {}
-    switches = misses = fps = matches = n_truth = n_tracks = 0
-    dist_sum = 0.0
-    co: dict[tuple[Hashable, Hashable], int] = {}
-    truth_frames: dict[Hashable, int] = {}
-    track_frames: dict[Hashable, int] = {}
+    out: list[list[FrameMatch]] = []
     for f in frames:
         gids, hids = list(f.truth_ids), list(f.track_ids)
         X, Y = _points(f.truth, len(gids)), _points(f.tracks, len(hids))
-        n_truth += len(gids)
-        n_tracks += len(hids)
-        for g in gids:
-            truth_frames[g] = truth_frames.get(g, 0) + 1
-        for h in hids:
-            track_frames[h] = track_frames.get(h, 0) + 1
         D = (np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=2) if len(gids) and len(hids)
              else np.zeros((len(gids), len(hids))))
         ok = D <= threshold
-        for i, j in zip(*np.nonzero(ok)):
-            key = (gids[i], hids[j])
-            co[key] = co.get(key, 0) + 1
         pairs = []
         free_g, free_h = set(range(len(gids))), set(range(len(hids)))
         hindex = {h: j for j, h in enumerate(hids)}
@@ -187,20 +189,43 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
         gi, hj = sorted(free_g), sorted(free_h)
         if gi and hj:
             sub = D[np.ix_(gi, hj)]
-            valid = sub <= threshold
-            if valid.any():
-                big = float(sub[valid].sum()) + 1.0 + threshold * sub.size
-                r, k = linear_sum_assignment(np.where(valid, sub, big))
-                for a, b in zip(r, k):
-                    if valid[a, b]:
-                        g = gids[gi[a]]
-                        pairs.append((gi[a], hj[b], g in last and last[g] != hids[hj[b]]))
-        for i, j, switched in pairs:
-            switches += switched
-            if switched:
-                by_truth[gids[i]] = by_truth.get(gids[i], 0) + 1
+            for a, b in zip(*gated_assignment(sub, sub <= threshold)):
+                g = gids[gi[a]]
+                pairs.append((gi[a], hj[b], g in last and last[g] != hids[hj[b]]))
+        for i, j, _ in pairs:
             last[gids[i]] = hids[j]
-            dist_sum += float(D[i, j])
+        out.append([FrameMatch(gids[i], hids[j], float(D[i, j]), bool(sw)) for i, j, sw in pairs])
+    return out
+
+
+def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) -> IdentityMetrics:
+    """CLEAR MOT (MOTA, MOTP, switches) and IDF1 of ``frames``; pairs match within ``threshold`` (see :class:`IdentityMetrics`)."""
+    matched = clear_mot_matches(frames, threshold)
+    by_truth: dict[Hashable, int] = {}
+    switches = misses = fps = matches = n_truth = n_tracks = 0
+    dist_sum = 0.0
+    co: dict[tuple[Hashable, Hashable], int] = {}
+    truth_frames: dict[Hashable, int] = {}
+    track_frames: dict[Hashable, int] = {}
+    for f, pairs in zip(frames, matched):
+        gids, hids = list(f.truth_ids), list(f.track_ids)
+        X, Y = _points(f.truth, len(gids)), _points(f.tracks, len(hids))
+        n_truth += len(gids)
+        n_tracks += len(hids)
+        for g in gids:
+            truth_frames[g] = truth_frames.get(g, 0) + 1
+        for h in hids:
+            track_frames[h] = track_frames.get(h, 0) + 1
+        if len(gids) and len(hids):
+            D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=2)
+            for i, j in zip(*np.nonzero(D <= threshold)):
+                key = (gids[i], hids[j])
+                co[key] = co.get(key, 0) + 1
+        switches += sum(p.switched for p in pairs)
+        for p in pairs:
+            if p.switched:
+                by_truth[p.truth_id] = by_truth.get(p.truth_id, 0) + 1
+        dist_sum += sum(p.distance for p in pairs)
         matches += len(pairs)
         misses += len(gids) - len(pairs)
         fps += len(hids) - len(pairs)
@@ -241,6 +266,8 @@ class LabelAgreement:
     agreeing: int
     compared: int
     seen: int
+    #: per frame: (agreeing, compared) (the agreement over time: ``agreeing / compared`` where ``compared > 0``)
+    per_frame: tuple[tuple[int, int], ...] = ()
 
 
 def label_agreement(truth_ids: Sequence[Sequence[Hashable]], truth: Sequence[Array],
@@ -257,7 +284,9 @@ def label_agreement(truth_ids: Sequence[Sequence[Hashable]], truth: Sequence[Arr
     if not nodes:
         raise ValueError("label_agreement needs at least one node")
     agreeing = compared = seen = 0
+    per_frame = []
     for k, (gids, X) in enumerate(zip(truth_ids, truth)):
+        agreeing_k = compared_k = 0
         X = _points(X, len(gids))
         labels: list[dict[int, Hashable]] = []
         for node in nodes:
@@ -266,15 +295,15 @@ def label_agreement(truth_ids: Sequence[Sequence[Hashable]], truth: Sequence[Arr
             got: dict[int, Hashable] = {}
             if len(gids) and len(hids):
                 D = np.linalg.norm(X[:, None, :] - Y[None, :, :], axis=2)
-                valid = D <= threshold
-                if valid.any():
-                    r, c = linear_sum_assignment(np.where(valid, D, threshold * D.size + 1.0 + D[valid].sum()))
-                    got = {int(i): hids[j] for i, j in zip(r, c) if valid[i, j]}
+                got = {int(i): hids[j] for i, j in zip(*gated_assignment(D, D <= threshold))}
             labels.append(got)
         for i in range(len(gids)):
             have = [lab[i] for lab in labels if i in lab]
             seen += bool(have)
             if len(have) == len(nodes):
-                compared += 1
-                agreeing += all(h == have[0] for h in have)
-    return LabelAgreement(agreeing / compared if compared else 1.0, agreeing, compared, seen)
+                compared_k += 1
+                agreeing_k += all(h == have[0] for h in have)
+        per_frame.append((agreeing_k, compared_k))
+        agreeing += agreeing_k
+        compared += compared_k
+    return LabelAgreement(agreeing / compared if compared else 1.0, agreeing, compared, seen, tuple(per_frame))

@@ -61,6 +61,8 @@ __all__ = [
     "encode",
     "decode",
     "check_frame",
+    "seal_frame",
+    "open_frame",
     "clear_caches",
     "LAYOUT_CACHE_ENTRIES",
     "time_keys",
@@ -359,13 +361,9 @@ def encode(msg: InfoMessage, key: FrameKey | None = None) -> bytes:
          int(msg.tree_term), msg.tree_root, msg.parent, int(msg.seq_start)],
         use_bin_type=True,
     )
-    flags = (KEYED if key is not None else 0) | (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) \
-        | (WIDE_TIMES if wide else 0) | (BEACON if msg.beacon else 0)
-    frame = MAGIC + bytes((VERSION, flags)) + body
-    frame += _CRC_STRUCT.pack(zlib.crc32(frame))
-    if key is not None:
-        frame += key.mac(frame)
-    return frame
+    flags = (FULL if msg.full else 0) | (NAIVE if msg.naive else 0) | (WIDE_TIMES if wide else 0) \
+        | (BEACON if msg.beacon else 0)
+    return seal_frame(body, key, magic=MAGIC, version=VERSION, flags=flags)
 
 
 def _reject(reason: str, detail: str) -> MessageError:
@@ -389,20 +387,41 @@ def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = Non
 def _check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None,
                  max_bytes: int) -> tuple[memoryview, int]:
     """:func:`check_frame`; returns the body and the flags."""
+    if isinstance(data, (bytes, bytearray, memoryview)) and 0 < len(data) <= max_bytes:
+        view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
+        if (len(data) < _HEAD + 1 + _CRC or bytes(view[:2]) != MAGIC) and (
+                view[0] in (0x80 | 3, 0xDE, 0xDF) or 0x80 <= view[0] <= 0x8F):
+            raise _reject("version", "a version-1 message (msgpack map): this node speaks version 2 only")
+    return open_frame(data, key, max_bytes, magic=MAGIC, version=VERSION, known_flags=_KNOWN_FLAGS)
+
+
+def seal_frame(body: bytes, key: FrameKey | None, *, magic: bytes, version: int, flags: int) -> bytes:
+    """``magic | version | flags | body | crc32 | mac``: the envelope every dfusion frame kind
+    shares (the fusion message here, the track bundle of :mod:`dfusion.fusion.bundle`); the
+    flag ``KEYED`` is set when ``key`` is given."""
+    frame = magic + bytes((version, flags | (KEYED if key is not None else 0))) + body
+    frame += _CRC_STRUCT.pack(zlib.crc32(frame))
+    if key is not None:
+        frame += key.mac(frame)
+    return frame
+
+
+def open_frame(data: bytes | bytearray | memoryview, key: FrameKey | None, max_bytes: int, *,
+               magic: bytes, version: int, known_flags: int) -> tuple[memoryview, int]:
+    """The checks of :func:`seal_frame`'s envelope (size, magic, version, flags, checksum, MAC);
+    returns the body (a view) and the flags, or raises :class:`MessageError` with ``reason``."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise _reject("malformed", f"message must be bytes, got {type(data).__name__}")
     size = len(data)
     if size > max_bytes:
         raise _reject("oversized", f"message of {size} bytes exceeds the limit of {max_bytes}")
     view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
-    if size < _HEAD + 1 + _CRC or bytes(view[:2]) != MAGIC:
-        if size and view[0] in (0x80 | 3, 0xDE, 0xDF) or (size and 0x80 <= view[0] <= 0x8F):
-            raise _reject("version", "a version-1 message (msgpack map): this node speaks version 2 only")
-        raise _reject("malformed", "not a dfusion message (no DF header)")
-    version, flags = view[2], view[3]
-    if version != VERSION:
-        raise _reject("version", f"message version {version}: this node speaks version {VERSION} only")
-    if flags & ~_KNOWN_FLAGS:
+    if size < _HEAD + 1 + _CRC or bytes(view[:2]) != magic:
+        raise _reject("malformed", f"not a dfusion message (no {magic.decode('ascii')} header)")
+    got, flags = view[2], view[3]
+    if got != version:
+        raise _reject("version", f"message version {got}: this node speaks version {version} only")
+    if flags & ~known_flags:
         raise _reject("malformed", f"unknown flags {flags:#04x}")
     keyed = bool(flags & KEYED)
     end = size - (MAC_BYTES if keyed else 0)

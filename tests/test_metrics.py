@@ -106,5 +106,6 @@ def test_label_agreement_of_a_hand_computed_example():
     node2 = [(["x"], at), (["y"], at), ([], np.zeros((0, 2)))]
     la = label_agreement(truth_ids, truth, [node1, node2], threshold=1.0)
     assert (la.agreeing, la.compared, la.seen) == (1, 2, 3)       # frame 3: node 2 has no track on A
+    assert la.per_frame == ((1, 1), (0, 1), (0, 0))               # the agreement over time
     assert la.agreement == pytest.approx(0.5)
     assert label_agreement(truth_ids, truth, [node1]).agreement == 1.0

@@ -17,7 +17,21 @@ message type                                     result
                                                  2x2 covariance)
 ``geometry_msgs/PointStamped``                   :class:`PositionFix` (no covariance)
 ``sensor_msgs/Range``                            :class:`RangeReading`
+``geometry_msgs/PoseArray``                      :class:`Detections` (positions, no
+                                                 covariance)
+``vision_msgs/Detection3DArray``                 :class:`Detections` (positions; the
+                                                 covariance of the best hypothesis's pose)
+``vision_msgs/Detection2DArray``                 :class:`Detections` of pixels (the
+                                                 bottom centre of each box)
 ===============================================  =========================================
+
+**Detection arrays.** A ``PoseArray`` gives the ``(x, y)`` of each pose. A ``Detection3D``
+gives the position of its best hypothesis (largest ``score``) with that pose's ``(x, y)``
+covariance when the hypothesis states one (:func:`known_covariance`), else the centre of its
+``bbox`` without a covariance. A ``Detection2D`` gives the pixel ``(u, v)`` of the middle of
+its box's lower edge, ``center + R(theta) (0, size_y / 2)`` (image ``v`` points down: where a
+standing person touches the ground); pixels become ground positions only through a camera
+model (``docs/ros.md``). Heights (``z``) are dropped: dfusion tracks in the plane.
 
 Where a **pose** is read (a scan's pose, ground truth), :func:`read_pose` takes
 ``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``, ``Pose`` and
@@ -44,9 +58,14 @@ __all__ = [
     "ScanReading",
     "PositionFix",
     "RangeReading",
+    "Detections",
+    "DETECTION_TYPES",
+    "known_covariance",
     "Converter",
     "CONVERTERS",
     "convert",
+    "standard_z",
+    "POSITION_READINGS",
     "read_pose",
     "POSE_TYPES",
     "yaw_of",
@@ -115,6 +134,41 @@ class RangeReading:
     @property
     def valid(self) -> bool:
         return math.isfinite(self.r) and self.min_range <= self.r <= self.max_range
+
+
+@dataclass(frozen=True)
+class Detections:
+    """What one detection array holds: ``points`` (k, 2), positions in ``frame`` (or image
+    pixels ``(u, v)`` when ``pixels``); ``covs`` (k, 2, 2) the covariance each detection states
+    (NaN where it states none; ``None``: none does); ``ids`` the detections' ids (may be empty)."""
+
+    t: float
+    points: np.ndarray
+    covs: np.ndarray | None = None
+    frame: str = ""
+    pixels: bool = False
+    ids: tuple[str, ...] = ()
+
+
+def known_covariance(C: Any) -> np.ndarray | None:
+    """The ``(x, y)`` block of a covariance when it states one (finite, symmetric, positive
+    definite), else ``None``: ROS's "unknown" (all zeros, or ``-1`` first) states none."""
+    if C is None:
+        return None
+    C = np.asarray(C, dtype=float)
+    if C.ndim == 1:
+        n = int(round(math.sqrt(C.size)))
+        if n * n != C.size or n < 2:
+            return None
+        C = C.reshape(n, n)
+    C = C[:2, :2]
+    if not np.all(np.isfinite(C)) or C[0, 0] <= 0 or not np.allclose(C, C.T, rtol=1e-9, atol=1e-12):
+        return None
+    try:
+        np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return None
+    return 0.5 * (C + C.T)
 
 
 def yaw_of(q: Any) -> float:
@@ -213,6 +267,61 @@ def range_msg(msg: Any, t: float) -> RangeReading:
     return RangeReading(t, float(msg.range), float(msg.min_range), float(msg.max_range), _frame(msg))
 
 
+def pose_array(msg: Any, t: float) -> Detections:
+    """``geometry_msgs/PoseArray``: the ``(x, y)`` of every pose, no covariance."""
+    pts = np.array([[float(p.position.x), float(p.position.y)] for p in msg.poses], dtype=float).reshape(-1, 2)
+    return Detections(t, pts, None, _frame(msg))
+
+
+def _best_hypothesis(results: Any) -> Any | None:
+    """The hypothesis of largest score (ROS 2 ``hypothesis.score``, ROS 1 ``score``), or ``None``."""
+    best, score = None, -math.inf
+    for r in results:
+        s = float(getattr(getattr(r, "hypothesis", r), "score", 0.0))
+        if best is None or s > score:
+            best, score = r, s
+    return best
+
+
+def detection3d_array(msg: Any, t: float) -> Detections:
+    """``vision_msgs/Detection3DArray`` (module docstring)."""
+    k = len(msg.detections)
+    pts = np.zeros((k, 2))
+    covs = np.full((k, 2, 2), np.nan)
+    ids = []
+    for i, d in enumerate(msg.detections):
+        best = _best_hypothesis(d.results)
+        C = known_covariance(best.pose.covariance) if best is not None else None
+        p = best.pose.pose.position if C is not None else d.bbox.center.position
+        pts[i] = float(p.x), float(p.y)
+        if C is not None:
+            covs[i] = C
+        ids.append(str(getattr(d, "id", "") or getattr(d, "tracking_id", "") or ""))
+    return Detections(t, pts, covs if np.isfinite(covs).any() else None, _frame(msg), False, tuple(ids))
+
+
+def detection2d_array(msg: Any, t: float) -> Detections:
+    """``vision_msgs/Detection2DArray``: the bottom centre of every box, in pixels (module docstring)."""
+    pts = np.zeros((len(msg.detections), 2))
+    ids = []
+    for i, d in enumerate(msg.detections):
+        c = d.bbox.center
+        pos = getattr(c, "position", c)            # vision_msgs 4.x: center.position; before: center.x
+        th = float(c.theta)
+        half = 0.5 * float(d.bbox.size_y)
+        pts[i] = float(pos.x) - math.sin(th) * half, float(pos.y) + math.cos(th) * half
+        ids.append(str(getattr(d, "id", "") or ""))
+    return Detections(t, pts, None, _frame(msg), True, tuple(ids))
+
+
+#: Detection array types and their converters (each gives :class:`Detections`).
+DETECTION_TYPES: dict[str, Converter] = {
+    "geometry_msgs/msg/PoseArray": pose_array,
+    "vision_msgs/msg/Detection3DArray": detection3d_array,
+    "vision_msgs/msg/Detection2DArray": detection2d_array,
+}
+
+
 #: Message type -> converter, for the standard types (ROS 2 names; ROS 1 bags read by
 #: rosbags use the same names).
 CONVERTERS: dict[str, Converter] = {
@@ -225,6 +334,7 @@ CONVERTERS: dict[str, Converter] = {
     "geometry_msgs/msg/PoseWithCovarianceStamped": pose_with_covariance,
     "geometry_msgs/msg/PointStamped": point_stamped,
     "sensor_msgs/msg/Range": range_msg,
+    **DETECTION_TYPES,
 }
 
 
@@ -236,3 +346,42 @@ def convert(msgtype: str, msg: Any, t: float, converters: dict[str, Converter] |
         raise ValidationError(f"no converter for message type {msgtype!r}: pass a function msg, t -> measurement "
                               f"(standard types: {sorted(CONVERTERS)})")
     return fn(msg, t)
+
+
+#: Converted readings whose ``z`` is a position in the message's frame (:func:`standard_z`): a node in
+#: another frame expresses it in its own through the static transforms (:mod:`dfusion.bags.tf`).
+POSITION_READINGS = (PoseReading, PositionFix)
+
+
+def standard_z(reading: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """The measurement ``z`` of a converted standard message and the covariance of ``z`` the message
+    states (``None``: none): the one mapping ``dfusion replay`` and a live node's inputs share.
+
+    =========================  ===================  ==================================
+    reading                    ``z``                covariance
+    =========================  ===================  ==================================
+    :class:`PositionFix`       ``(x, y)``           its ``R``
+    :class:`PoseReading`       ``(x, y)`` of pose   the ``(x, y)`` block of its ``cov``
+    :class:`RangeReading`      ``(r,)``             none
+    :class:`ScanReading`       the ranges           none
+    =========================  ===================  ==================================
+
+    Raises
+    ------
+    ValidationError
+        For any other reading (a :class:`Velocity`, a user type): no measurement of a node.
+    """
+    if isinstance(reading, PositionFix):
+        return np.asarray(reading.z, float), reading.R
+    if isinstance(reading, PoseReading):
+        return np.asarray(reading.pose[:2], float), (reading.cov[:2, :2] if reading.cov is not None else None)
+    if isinstance(reading, RangeReading):
+        return np.array([float(reading.r)]), None
+    if isinstance(reading, ScanReading):
+        return np.asarray(reading.ranges, float), None
+    if isinstance(reading, Detections):
+        raise ValidationError("a detection array is many targets' detections: track it with dfusion replay BAG "
+                              "--detections TOPIC=SENSOR (docs/ros.md), or map the topic to a node with a function "
+                              "msg, t -> z")
+    raise ValidationError(f"a {type(reading).__name__} is no measurement of a scenario node: map the topic with a "
+                          f"function msg, t -> z")

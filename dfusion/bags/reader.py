@@ -27,8 +27,9 @@ ROS 1 bags and sqlite3 bags from Iron on store them. A sqlite3 bag from Humble d
 its standard types are taken from rosbags' Humble type store, and a custom type's
 definition is given with ``msgdefs`` (``{type: definition text or .msg file}``, or
 :func:`msgdefs_from_files` for ``.../<pkg>/msg/<Type>.msg`` files; ``--msg FILE.msg`` on
-the command line), registered with rosbags' ``get_types_from_msg``. A needed type
-without a definition is refused in one line that says how to give it.
+the command line), registered with rosbags' ``get_types_from_msg``; ``vision_msgs`` (the
+detection arrays) needs none: dfusion ships its definitions (:mod:`dfusion.bags.msgdefs`). A
+needed type without a definition is refused in one line that says how to give it.
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
+from dfusion.bags.msgdefs import BUNDLED_MSGDEFS
 from dfusion.errors import ValidationError
 
 log = logging.getLogger(__name__)
@@ -198,6 +200,8 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None, *, optional:
             if msgdefs:
                 _register(reader, msgdefs)
             conns = [c for c in reader.connections if wanted is None or c.topic in wanted | optional]
+            if any(c.msgtype not in reader.typestore.fielddefs and c.msgtype in BUNDLED_MSGDEFS for c in conns):
+                _register(reader, BUNDLED_MSGDEFS)
             for c in conns:
                 if c.msgtype not in reader.typestore.fielddefs:
                     raise ValidationError(f"{path}: topic {c.topic}: the bag stores no definition of {c.msgtype}; "

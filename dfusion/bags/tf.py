@@ -26,7 +26,8 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from typing import Any
+from types import MappingProxyType
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -53,11 +54,20 @@ def rotate_covariance(C: np.ndarray, yaw: float) -> np.ndarray:
 
 
 class StaticTransforms:
-    """The planar static transforms seen so far (a tree of frames)."""
+    """The planar static transforms seen so far (a tree of frames).
+
+    The graph of frames :meth:`lookup` walks is built once and kept until :meth:`add` changes
+    a transform (a live input looks up the same frames for every message).
+    """
 
     def __init__(self) -> None:
-        #: child frame -> (parent frame, pose of the child in the parent)
-        self.parents: dict[str, tuple[str, np.ndarray]] = {}
+        self._parents: dict[str, tuple[str, np.ndarray]] = {}
+        self._graph: dict[str, list[tuple[str, np.ndarray]]] | None = None
+
+    @property
+    def parents(self) -> Mapping[str, tuple[str, np.ndarray]]:
+        """Child frame -> (parent frame, pose of the child in the parent); read-only (:meth:`add`)."""
+        return MappingProxyType(self._parents)
 
     @classmethod
     def from_bag(cls, bag: Bag, topic: str = TF_STATIC) -> StaticTransforms:
@@ -73,7 +83,8 @@ class StaticTransforms:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if not parent or not child or parent == child:
             raise ValidationError(f"a static transform needs two different frames, got {parent!r} -> {child!r}")
-        self.parents[child] = (parent, np.asarray(pose, dtype=float).copy())
+        self._parents[child] = (parent, np.asarray(pose, dtype=float).copy())
+        self._graph = None
 
     def add_message(self, msg: Any, topic: str = TF_STATIC) -> int:
         """Every transform of a ``tf2_msgs/TFMessage``; returns how many."""
@@ -88,7 +99,7 @@ class StaticTransforms:
     def _neighbours(self) -> dict[str, list[tuple[str, np.ndarray]]]:
         """Frame -> [(frame next to it, pose of that frame in this one)]."""
         out: dict[str, list[tuple[str, np.ndarray]]] = {}
-        for child, (parent, pose) in self.parents.items():
+        for child, (parent, pose) in self._parents.items():
             out.setdefault(parent, []).append((child, pose))
             out.setdefault(child, []).append((parent, se2_inverse(pose)))
         return out
@@ -98,7 +109,9 @@ class StaticTransforms:
         target, source = target.lstrip("/"), source.lstrip("/")
         if target == source:
             return np.zeros(3)
-        nb = self._neighbours()
+        if self._graph is None:
+            self._graph = self._neighbours()
+        nb = self._graph
         seen = {target: np.zeros(3)}
         todo = deque([target])
         while todo:
@@ -116,5 +129,5 @@ class StaticTransforms:
         m = self.lookup(base, frame)
         if m is None:
             raise ValidationError(f"{what}: no static transform from frame {frame!r} to {base!r} in {TF_STATIC} "
-                                  f"(frames: {sorted(self.parents)})")
+                                  f"(frames: {sorted(self._parents)})")
         return m

@@ -11,7 +11,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.estimation.eif import ExtendedInformationFilter
     from dfusion.estimation.estimate import Estimate, Estimator
     from dfusion.estimation.gaussian import InformationGaussian, project_psd_information
-    from dfusion.estimation.pda import ClutterModel, PDAInformation, PDAResult, gate_threshold, pda_information, pda_moments, pda_update, pda_weights
+    from dfusion.estimation.pda import ClutterModel, FrameInnovations, PDAInformation, PDAResult, frame_innovations, gate_threshold, pda_information, pda_moments, pda_update, pda_weights
     from dfusion.estimation.particle_filter import ParticleFilter, ParticleDepletionError, effective_sample_size, normalize_log_weights, systematic_counts, systematic_resample, stratified_resample, multinomial_resample, roughening_std, weighted_mean_cov, RESAMPLERS, gaussian_summary
     from dfusion.estimation.trajectory import MotionFactor, TrajectoryInformation
     from dfusion.estimation.innovation import (Assessment, DivergenceAlarm, InnovationMonitor, JumpEstimate, LockoutDetector,
@@ -53,6 +53,8 @@ __all__ = [
     "ClutterModel",
     "PDAResult",
     "PDAInformation",
+    "FrameInnovations",
+    "frame_innovations",
     "pda_weights",
     "pda_update",
     "pda_moments",
@@ -96,6 +98,8 @@ _WHERE = {
     "ClutterModel": ("dfusion.estimation.pda", 'ClutterModel'),
     "PDAResult": ("dfusion.estimation.pda", 'PDAResult'),
     "PDAInformation": ("dfusion.estimation.pda", 'PDAInformation'),
+    "FrameInnovations": ("dfusion.estimation.pda", 'FrameInnovations'),
+    "frame_innovations": ("dfusion.estimation.pda", 'frame_innovations'),
     "pda_weights": ("dfusion.estimation.pda", 'pda_weights'),
     "pda_update": ("dfusion.estimation.pda", 'pda_update'),
     "pda_moments": ("dfusion.estimation.pda", 'pda_moments'),

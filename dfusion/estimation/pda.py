@@ -76,8 +76,8 @@ import numpy as np
 from dfusion.errors import ValidationError
 from dfusion.linalg import Array, chi2_isf, cholesky, symmetrize
 
-__all__ = ["ClutterModel", "PDAResult", "PDAInformation", "pda_weights", "pda_update", "pda_moments", "pda_information",
-           "gate_threshold", "MU_TOL"]
+__all__ = ["ClutterModel", "PDAResult", "PDAInformation", "FrameInnovations", "frame_innovations", "pda_weights",
+           "pda_update", "pda_moments", "pda_information", "gate_threshold", "MU_TOL"]
 
 
 def _logsumexp(a: Array) -> float:
@@ -130,6 +130,54 @@ class ClutterModel:
     def threshold(self, dof: int) -> float:
         """The gate ``gamma`` for ``dof``-dimensional measurements."""
         return gate_threshold(self.gate, dof)
+
+
+@dataclass(frozen=True)
+class FrameInnovations:
+    """The detections of one frame against a prediction ``(x^, P^)``, linearized at ``x^`` (the first
+    line of the module docstring's equations): what the PDA and the multi-target hypothesiser
+    (:class:`dfusion.tracking.gating.GaussianHypothesiser`) both gate and weigh.
+
+    Attributes
+    ----------
+    H : the measurement Jacobian at ``x^``.
+    S : ``H P^ H^T + R``.
+    L : the lower Cholesky factor of ``S``.
+    innovations : (k, m) ``nu_i = z_i (-) h(x^)``.
+    d2 : (k,) ``nu_i^T S^-1 nu_i``.
+    """
+
+    H: Array
+    S: Array
+    L: Array
+    innovations: Array
+    d2: Array
+
+    @property
+    def log_norm(self) -> float:
+        """``log N(0; 0, S) = -log|2 pi S| / 2 = -(m / 2) log(2 pi) - sum_i log L_ii``: with ``-d2 / 2``
+        the log-likelihood of each detection."""
+        m = self.S.shape[0]
+        return -0.5 * m * math.log(2.0 * math.pi) - float(np.sum(np.log(np.diag(self.L))))
+
+
+def frame_innovations(mean: Array, cov: Array, detections: Array, sensor: Any) -> FrameInnovations:
+    """:class:`FrameInnovations` of ``detections`` ((k, m), k may be 0) against ``(mean, cov)``;
+    ``sensor`` has ``h``, ``H``, ``R``, ``residual`` and ``dim_z``."""
+    x = np.asarray(mean, dtype=float)
+    m = int(sensor.dim_z)
+    Z = np.asarray(detections, dtype=float).reshape(-1, m)
+    H = np.asarray(sensor.H(x), dtype=float)
+    S = symmetrize(H @ np.asarray(cov, dtype=float) @ H.T + np.asarray(sensor.R, dtype=float))
+    L = cholesky(S, "innovation covariance S")
+    if len(Z):
+        hx = np.asarray(sensor.h(x), dtype=float)
+        nus = np.array([sensor.residual(z, hx) for z in Z]).reshape(-1, m)
+        white = np.linalg.solve(L, nus.T).T
+        d2 = np.einsum("ij,ij->i", white, white)
+    else:
+        nus, d2 = np.zeros((0, m)), np.zeros(0)
+    return FrameInnovations(H, S, L, nus, d2)
 
 
 @dataclass(frozen=True)
@@ -208,16 +256,9 @@ def pda_update(
     """
     x = np.asarray(mean, dtype=float)
     P = symmetrize(np.asarray(cov, dtype=float))
-    m = int(sensor.dim_z)
-    Z = np.asarray(detections, dtype=float).reshape(-1, m)
-    H = np.asarray(sensor.H(x), dtype=float)
-    hx = np.asarray(sensor.h(x), dtype=float)
-    S = symmetrize(H @ P @ H.T + np.asarray(sensor.R, dtype=float))
-    C = cholesky(S, "innovation covariance S")
-    nus = np.array([sensor.residual(z, hx) for z in Z]).reshape(-1, m)
-    white = np.linalg.solve(C, nus.T).T if len(Z) else nus
-    d2 = np.einsum("ij,ij->i", white, white)
-    gamma = model.threshold(m)
+    fi = frame_innovations(x, P, detections, sensor)
+    H, S, nus, d2 = fi.H, fi.S, fi.innovations, fi.d2
+    gamma = model.threshold(int(sensor.dim_z))
     valid = d2 <= gamma
     pd = model.detection if detection is None else float(detection)
     beta0, beta = pda_weights(d2[valid], S, model.density, pd, model.gate)

@@ -239,6 +239,13 @@ class TargetFusion:
         held = self._held.values_at(keys)
         return keys, self._own.info - held[0], self._own.vec - held[1]
 
+    def newest_information_time(self) -> float | None:
+        """The newest state time in the window holding information (own, or received over a
+        link), or ``None``: the filter then holds the common prior and motion only."""
+        self._settle()
+        times = self._total.times
+        return float(times[-1]) if times.size else None
+
     def own_information(self) -> Sequence[tuple[float, Array, Array]]:
         """This node's own measurement information per state time, oldest first."""
         self._settle()

@@ -46,7 +46,11 @@ def _cls(msgtype: str) -> Any:
 def type_hash(msgtype: str) -> str:
     """``RIHS01_<sha256 hex>`` of ``msgtype`` (REP-2016), as rmw_zenoh puts it in keys."""
     _cls(msgtype)
-    return typestore().hash_rihs01(msgtype)
+    try:
+        return typestore().hash_rihs01(msgtype)
+    except KeyError as exc:   # a registered definition naming a type nobody defined
+        raise ValidationError(f"the definition of {msgtype} uses the unknown type {exc.args[0]!r} (give its .msg "
+                              "definition too)") from None
 
 
 def register_definition(msgtype: str, text: str) -> None:
@@ -55,8 +59,11 @@ def register_definition(msgtype: str, text: str) -> None:
 
     try:
         types = get_types_from_msg(text, msgtype)
-    except Exception as exc:   # rosbags' parser errors
-        raise ValidationError(f"the definition of {msgtype} does not parse: {exc}") from None
+    except Exception as exc:   # rosbags' parser errors: "Could not parse:", the text, the offset, the rest
+        lines = str(exc).splitlines()
+        where = (f"at {lines[3].strip()[:60]!r}" if len(lines) > 3 and lines[2].strip().isdigit()
+                 else " ".join(" ".join(lines).split())[:200])
+        raise ValidationError(f"the definition of {msgtype} does not parse: {where}") from None
     typestore().register(types)
     type_hash.cache_clear()
 

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from dfusion.bags.convert import PoseReading, PositionFix, RangeReading, ScanReading, convert
+from dfusion.bags.convert import POSITION_READINGS, convert, known_covariance, standard_z
 from dfusion.bags.tf import StaticTransforms, rotate_covariance
 from dfusion.errors import ValidationError
 from dfusion.geometry import transform_points
@@ -63,20 +63,6 @@ class Reading:
     frame: str
 
 
-def _known_cov(C: np.ndarray | None) -> np.ndarray | None:
-    """The 2x2 block when the message states one (finite, symmetric, positive definite), else None."""
-    if C is None:
-        return None
-    C = np.asarray(C, dtype=float)[:2, :2]
-    if not np.all(np.isfinite(C)) or C[0, 0] <= 0 or not np.allclose(C, C.T, rtol=1e-9, atol=1e-12):
-        return None
-    try:
-        np.linalg.cholesky(C)
-    except np.linalg.LinAlgError:
-        return None
-    return 0.5 * (C + C.T)
-
-
 def reading_of(msgtype: str, msg: Any, frame: str, tf: StaticTransforms) -> Reading:
     """``msg`` of ``msgtype`` as a :class:`Reading` in ``frame`` (see the module docstring).
 
@@ -88,20 +74,13 @@ def reading_of(msgtype: str, msg: Any, frame: str, tf: StaticTransforms) -> Read
     if msgtype not in SUPPORTED_INPUTS:
         raise ValidationError(f"input type {msgtype!r} is not supported (supported: {', '.join(SUPPORTED_INPUTS)})")
     r = convert(msgtype, msg, 0.0)
-    if isinstance(r, ScanReading):
-        return Reading(np.asarray(r.ranges, dtype=float), None, r.frame)
-    if isinstance(r, RangeReading):
-        return Reading(np.array([r.r]), None, r.frame)
-    if isinstance(r, PoseReading):
-        z, C = r.pose[:2], (r.cov[:2, :2] if r.cov is not None else None)
-    elif isinstance(r, PositionFix):
-        z, C = r.z[:2], r.R
-    else:   # pragma: no cover - SUPPORTED_INPUTS lists only the types above
-        raise ValidationError(f"input type {msgtype!r} gives no measurement")
+    z, C = standard_z(r)
+    if not isinstance(r, POSITION_READINGS):   # ranges and scans: as they are
+        return Reading(z, None, r.frame)
     src = r.frame.lstrip("/") or frame
     T = tf.lookup(frame, src)
     if T is None:
         raise ValidationError(f"frame {src!r} of a {msgtype} is not connected to {frame!r} by /tf_static")
     z = transform_points(np.asarray(z, dtype=float)[None], T)[0]
-    R = _known_cov(C)
+    R = known_covariance(C)
     return Reading(z, rotate_covariance(R, float(T[2])) if R is not None else None, src)

@@ -295,8 +295,15 @@ class Status:
             raise _status_reject("oversized" if isinstance(data, (bytes, bytearray)) else "malformed",
                                  f"monitor message of {len(data) if isinstance(data, (bytes, bytearray)) else '?'} "
                                  f"bytes exceeds {MAX_STATUS_BYTES}")
+        return cls.from_body(cls.authenticate(data, key), dim)
+
+    @classmethod
+    def from_body(cls, body: bytes, dim: int | None = None) -> Status:
+        """The publication whose envelope :meth:`authenticate` has checked and returned ``body`` of:
+        the rest of :meth:`decode` (fields, types, ranges), without a second HMAC. Raises
+        :class:`MessageError` with a ``reason`` (``malformed``, ``dimension``)."""
         try:
-            d = msgpack.unpackb(cls.authenticate(data, key), raw=False)
+            d = msgpack.unpackb(body, raw=False)
             mean = None if d["mean"] is None else np.frombuffer(d["mean"], "<f8").copy()
             cov = None
             if d["cov"] is not None:

@@ -40,19 +40,19 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import zenoh
 
-from dfusion.errors import DfusionError
+from dfusion.errors import DfusionError, ValidationError
 from dfusion.frontends.base import EIFFrontEnd
 from dfusion.models.base import MeasurementModel
 from dfusion.run.common import Status, load_network_key
 from dfusion.run.measurements import OwnMeasurement
 from dfusion.run.node_process import Host, NodeProcess
 from dfusion.run.nodefile import NodeFile, kind_of, load_node_file
-from dfusion.ros2.codec import diagnostics, estimate_messages, register_definition
+from dfusion.ros2.codec import diagnostics, estimate_messages, register_definition, type_hash
 from dfusion.ros2.inputs import Z_SIZE
 from dfusion.ros2.link import Ros2Link
 from dfusion.scenario.loader import load_scenario
@@ -98,6 +98,9 @@ class LiveNodeProcess(NodeProcess):
     """:class:`NodeProcess` fed from ROS 2 topics and publishing to them (module docstring)."""
 
     def __init__(self, sc: Scenario, name: str, nf: NodeFile, **kw: Any) -> None:
+        #: input topic -> user converter; loaded (and the .msg definitions registered) here, before
+        #: the node joins the network (:meth:`attach`), so a bad one stops it with one line first
+        self.converters = load_ros_types(nf)
         if kw.get("start") is not None:   # each step runs `latency` after its time (module docstring)
             kw["start"] = kw["start"] + nf.ros.latency
         super().__init__(sc, name, measurements=[], **kw)
@@ -120,14 +123,8 @@ class LiveNodeProcess(NodeProcess):
     def attach(self, tr: ZenohTransport) -> None:
         super().attach(tr)
         r = self.nf.ros
-        for msgtype, path in r.definitions.items():
-            register_definition(msgtype, Path(path).read_text())
-        converters = {}
-        if r.converters:
-            from dfusion.sim.replay import load_function   # noqa: PLC0415  (the one loader of user converters)
-
-            converters = {topic: load_function(path, func) for topic, (path, func) in r.converters.items()}
-        self.ros = Ros2Link(tr.session, r.convention, r.node_name, r.frame, r.inputs, r.output_types(), converters)
+        self.ros = Ros2Link(tr.session, r.convention, r.node_name, r.frame, r.inputs, r.output_types(),
+                            self.converters)
 
     def collect(self, t: float) -> None:
         if self.ros is None:
@@ -215,6 +212,26 @@ class LiveNodeProcess(NodeProcess):
             self.ros.close()
             self.ros = None
         super().close()
+
+
+def load_ros_types(nf: NodeFile) -> dict[str, Callable[[Any, float], Any]]:
+    """Register the node file's ``.msg`` definitions, check that every input and output type is
+    known (a custom type needs its definition), and load the user converters; returns input
+    topic -> converter. Runs before the node joins the network: a definition that does not parse, a
+    type nobody defined or a converter file that does not load is one line naming the node file."""
+    r = nf.ros
+    try:
+        for msgtype, path in r.definitions.items():
+            register_definition(msgtype, Path(path).read_text())
+        for msgtype in {*r.inputs.values(), *r.output_types().values()}:
+            type_hash(msgtype)   # raises for a type the type store does not know
+        if not r.converters:
+            return {}
+        from dfusion.sim.replay import load_function   # noqa: PLC0415  (the one loader of user converters)
+
+        return {topic: load_function(path, func) for topic, (path, func) in r.converters.items()}
+    except ValidationError as exc:
+        raise ValidationError(f"{nf.path}: {exc}") from None
 
 
 def check_inputs(nf: NodeFile, sc: Scenario) -> None:

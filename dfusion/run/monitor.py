@@ -118,8 +118,9 @@ class Monitor:
     and :attr:`queue`), and a publication longer than any node of the scenario can make
     (:func:`~dfusion.run.common.status_limit`) is dropped as it arrives, before its payload is
     copied (``rejections["oversized"]``): a flood of large publications costs a length check each;
-    the envelope and MAC are checked as a publication arrives too (:meth:`Status.authenticate`),
-    so forged publications never take queue space nor push genuine ones out.
+    the envelope and MAC are checked as a publication arrives too (:meth:`Status.authenticate`, the
+    only HMAC computed per publication; :meth:`poll` reads the authenticated body with
+    :meth:`Status.from_body`), so forged publications never take queue space nor push genuine ones out.
     The subscriber is a callback that only counts and appends (Zenoh's FIFO channel would block
     Zenoh's receiving thread when full, stalling the session; its ring channel bounds the count,
     not the bytes).
@@ -178,22 +179,22 @@ class Monitor:
                 q["oversized_bytes"] += size
                 self._oversized_detail = f"{size} bytes, more than any node's {self.max_status_bytes}"
             return
-        item = (str(sample.key_expr).rsplit("/", 1)[-1], sample.payload.to_bytes())
-        try:   # forged (or garbled) publications never take queue space
-            Status.authenticate(item[1], self.key)
+        try:   # forged (or garbled) publications never take queue space; the HMAC is computed here only
+            body = Status.authenticate(sample.payload.to_bytes(), self.key)
         except MessageError as exc:
             with self._queue_lock:
                 reason = getattr(exc, "reason", "malformed")
                 self._arrival_rejects[reason] = self._arrival_rejects.get(reason, 0) + 1
                 self._arrival_detail = str(exc)
             return
+        item = (str(sample.key_expr).rsplit("/", 1)[-1], body, size)
         with self._queue_lock:
             while self._queue and (len(self._queue) >= MAX_PENDING or self._queued_bytes + size > MAX_PENDING_BYTES):
-                _, old = self._queue.popleft()
-                self._queued_bytes -= len(old)
+                _, _, old = self._queue.popleft()
+                self._queued_bytes -= old
                 self._dropped += 1
                 q["shed"] += 1
-                q["shed_bytes"] += len(old)
+                q["shed_bytes"] += old
             self._queue.append(item)
             self._queued_bytes += size
             q["peak_bytes"] = max(q["peak_bytes"], self._queued_bytes)
@@ -251,9 +252,9 @@ class Monitor:
             self._reject("oversized", self._oversized_detail, oversized)
         dim = self.sc.target.motion.dim
         while batch:
-            chunk, data = batch.popleft()
-            try:
-                st = Status.decode(data, self.key, dim)
+            chunk, body, _ = batch.popleft()
+            try:   # authenticated on arrival (_on_sample): the fields are read and checked here
+                st = Status.from_body(body, dim)
             except MessageError as exc:
                 self._reject(getattr(exc, "reason", "malformed"), str(exc))
                 continue

@@ -52,8 +52,9 @@ A TOML file (``docs/ros.md``, "Live use", has a full example)::
     diagnostics = "/diagnostics"
 
 Relative paths are relative to the node file. The loader is strict: an unknown key (with the
-nearest known one suggested), a value of the wrong type, a missing required key, a missing file or an
-input type the node cannot take is one clear line (:class:`~dfusion.errors.ValidationError`).
+nearest known one suggested), a value of the wrong type, a number that is not finite or of the wrong sign
+(checked by the scenario's :func:`dfusion.scenario.values.number`), a missing required key, a missing file or
+an input type the node cannot take is one clear line (:class:`~dfusion.errors.ValidationError`).
 """
 from __future__ import annotations
 
@@ -66,6 +67,7 @@ from typing import Any
 from dfusion.errors import ValidationError
 from dfusion.ros2.inputs import SUPPORTED_INPUTS
 from dfusion.ros2.keys import Convention, check_topic
+from dfusion.scenario.values import number
 
 __all__ = ["NodeFile", "Ros2Settings", "load_node_file", "NODE_KINDS", "kind_of", "DEFAULT_DURATION"]
 
@@ -162,6 +164,15 @@ def _check(table: dict, schema: dict[str, type], where: str, src: Path) -> None:
                                   f"{value!r}")
 
 
+def _number(table: dict, key: str, default: float | None, where: str, src: Path, **sign: bool) -> float:
+    """``table[key]`` (or ``default``) through the scenario's checks (:func:`dfusion.scenario.values.number`:
+    finite, and the sign asked for), the error naming the file and the key."""
+    try:
+        return number(table, key, default, **sign)
+    except ValidationError as exc:
+        raise ValidationError(f"{src}: {where}{exc}") from None
+
+
 def _strings(values: list, what: str, src: Path) -> tuple[str, ...]:
     bad = [v for v in values if not isinstance(v, str)]
     if bad:
@@ -208,9 +219,8 @@ def load_node_file(path: str | Path) -> NodeFile:
     tls = [sec.get(k) for k in ("tls_ca", "tls_cert", "tls_key")]
     if any(tls) and not all(tls):
         raise ValidationError(f"{src}: mutual TLS needs all of security.tls_ca, tls_cert and tls_key")
-    duration = float(data.get("duration", DEFAULT_DURATION))
-    if not duration > 0:
-        raise ValidationError(f"{src}: duration must be positive, got {duration}")
+    duration = _number(data, "duration", DEFAULT_DURATION, "", src, positive=True)
+    start = _number(data, "start", None, "", src, positive=True) if "start" in data else None
     inputs: dict[str, str] = {}
     converters: dict[str, tuple[str, str]] = {}
     definitions: dict[str, str] = {}
@@ -248,18 +258,16 @@ def load_node_file(path: str | Path) -> NodeFile:
         convention = Convention(ros.get("convention", "rmw_zenoh"), ros.get("domain_id", 0), ros.get("namespace", ""))
     except ValidationError as exc:
         raise ValidationError(f"{src}: ros.{exc}") from None
-    periods = {k: float(ros.get(k, d)) for k, d in (("diagnostics_period", 1.0), ("stale_after", 2.0))}
-    for k, v in periods.items():
-        if not v > 0:
-            raise ValidationError(f"{src}: ros.{k} must be positive, got {v}")
-    latency = float(ros.get("latency", 0.2))
+    periods = {k: _number(ros, k, d, "ros.", src, positive=True)
+               for k, d in (("diagnostics_period", 1.0), ("stale_after", 2.0))}
+    latency = _number(ros, "latency", 0.2, "ros.", src)
     if not 0 <= latency <= 10:
         raise ValidationError(f"{src}: ros.latency must be in [0, 10] seconds, got {latency}")
     settings = Ros2Settings(convention, ros.get("node_name", f"dfusion_{data['name']}"), ros.get("frame", "map"),
                             ros.get("child_frame", "base_link"), periods["diagnostics_period"],
                             periods["stale_after"], latency, inputs, outputs, converters, definitions)
     return NodeFile(src, data["name"], data["kind"], Path(_path(base, data["scenario"])),
-                    data.get("network", "dfusion"), float(data["start"]) if "start" in data else None, duration,
+                    data.get("network", "dfusion"), start, duration,
                     tuple(_path(base, p) if p.endswith(".py") else p
                           for p in _strings(data.get("plugins", []), "plugins", src)),
                     mode, _strings(z.get("listen", []), "zenoh.listen", src),

@@ -24,7 +24,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from dfusion.errors import DfusionError, ScenarioError, TopologyError
+from dfusion.errors import DfusionError, ScenarioError, TopologyError, ValidationError
 from dfusion.policies.base import Policy
 from dfusion.scenario.kinds import builtin_kinds
 from dfusion.scenario.plugins import load_plugins
@@ -43,7 +43,7 @@ from dfusion.scenario.spec import (
     Scenario,
     TargetSpec,
 )
-from dfusion.scenario.values import intervals, suggest, vector, waypoint_path
+from dfusion.scenario.values import intervals, number, suggest, vector, waypoint_path
 from dfusion.topology import load_tree, minimum_window
 from dfusion.transport.simulated import LinkSpec
 
@@ -77,13 +77,11 @@ def _fail(src: str, where: str, msg: str) -> ScenarioError:
 
 
 def _num(src: str, where: str, v: Any, *, positive: bool = False, nonneg: bool = False) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise _fail(src, where, f"must be a finite number, got {v!r}")
-    if positive and v <= 0:
-        raise _fail(src, where, f"must be positive, got {v!r}")
-    if nonneg and v < 0:
-        raise _fail(src, where, f"must be non-negative, got {v!r}")
-    return float(v)
+    """``v`` through :func:`dfusion.scenario.values.number` (finite, the sign asked for), the error naming the file."""
+    try:
+        return number({where: v}, where, positive=positive, nonneg=nonneg)
+    except ValidationError as exc:
+        raise ScenarioError(f"{src}: {exc}") from None
 
 
 def _read(source: str | Path) -> dict[str, Any]:

@@ -2,7 +2,10 @@
 
 * :mod:`dfusion.sim.world` -- ground truth and sensor measurements, deterministic by seed;
 * :mod:`dfusion.sim.runner` -- every node on a :class:`~dfusion.transport.SimulatedNetwork`,
-  the centralized EKF beside them, metrics (``dfusion simulate``).
+  the centralized EKF beside them, metrics (``dfusion simulate``);
+* :mod:`dfusion.sim.replay` -- a scenario's nodes fed from a ROS bag (``dfusion replay SCENARIO BAG``);
+* :mod:`dfusion.sim.bag_scans` -- a bag's detection arrays as the multi-target tracker's scans, and
+  :mod:`dfusion.sim.track_replay` -- those scans tracked (``dfusion replay BAG --detections``).
 """
 from __future__ import annotations
 

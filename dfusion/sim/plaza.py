@@ -27,6 +27,7 @@ from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 from dfusion.models.measurement import PositionSensor
 from dfusion.models.motion import ConstantVelocity
+from dfusion.tracking.history import TruthPaths
 from dfusion.tracking.track import Scan
 
 __all__ = ["CameraView", "PlazaConfig", "CameraFrame", "PlazaWorld", "simulate_plaza", "plaza_cameras"]
@@ -173,6 +174,16 @@ class PlazaWorld:
         """Person ids and (n, 2) positions at frame ``k``."""
         ids = sorted(self.truth[k])
         return ids, np.array([self.truth[k][i][:2] for i in ids]).reshape(-1, 2)
+
+    def truth_paths(self) -> TruthPaths:
+        """Every person's path: ``"person <id>"`` -> (times, positions) of the frames where they are in the plaza."""
+        got: dict[int, tuple[list[float], list[Array]]] = {}
+        for t, people in zip(self.times, self.truth):
+            for pid, x in people.items():
+                ts, xy = got.setdefault(pid, ([], []))
+                ts.append(float(t))
+                xy.append(x[:2])
+        return TruthPaths({f"person {pid}": (np.array(ts), np.array(xy)) for pid, (ts, xy) in sorted(got.items())})
 
 
 def _border_point(rng: np.random.Generator, c: PlazaConfig, avoid_side: int | None = None) -> tuple[Array, int]:

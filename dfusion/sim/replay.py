@@ -60,7 +60,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from dfusion.bags.convert import Converter, PoseReading, PositionFix, RangeReading, ScanReading, convert
+from dfusion.bags.convert import Converter, PoseReading, PositionFix, convert, standard_z
 from dfusion.bags.reader import Bag, read_bag
 from dfusion.errors import ValidationError
 from dfusion.scenario.spec import Scenario
@@ -83,20 +83,6 @@ class TopicInput:
     topic: str
     node: str
     convert: Callable[[Any, float], Any] | None = None
-
-
-def standard_z(reading: Any) -> np.ndarray:
-    """The measurement vector of a converted standard message (module docstring)."""
-    if isinstance(reading, PositionFix):
-        return np.asarray(reading.z, float)
-    if isinstance(reading, PoseReading):
-        return np.asarray(reading.pose[:2], float)
-    if isinstance(reading, RangeReading):
-        return np.array([reading.r])
-    if isinstance(reading, ScanReading):
-        return np.asarray(reading.ranges, float)
-    raise ValidationError(f"a {type(reading).__name__} is no measurement of a scenario node: map the topic with a "
-                          f"function msg, t -> z")
 
 
 def _truth_samples(bag: Bag, topic: str, origin_ns: int, fn: Converter | None):
@@ -196,7 +182,7 @@ def world_from_bag(
         if not 0.0 < t <= sc.duration + 1e-9:
             skipped += 1
             continue
-        z = inp.convert(m.msg, t) if inp.convert is not None else standard_z(convert(m.msgtype, m.msg, t))
+        z = inp.convert(m.msg, t) if inp.convert is not None else standard_z(convert(m.msgtype, m.msg, t))[0]
         if z is None:
             skipped += 1
             continue
@@ -242,14 +228,19 @@ def parse_topic_input(text: str) -> TopicInput:
     topic, sep, rest = text.partition("=")
     if not sep or not topic or not rest:
         raise ValidationError(f"--topic wants TOPIC=NODE or TOPIC=NODE:FILE.py:FUNCTION, got {text!r}")
-    node, _, func = rest.partition(":")
-    fn = None
-    if func:
-        path, sep2, name = func.rpartition(":")
-        if not sep2 or not path or not name:
-            raise ValidationError(f"--topic {text!r}: the converter is FILE.py:FUNCTION")
-        fn = load_function(path, name)
+    node, fn = split_converter(rest, f"--topic {text!r}")
     return TopicInput(topic, node, fn)
+
+
+def split_converter(text: str, where: str) -> tuple[str, Callable | None]:
+    """``NAME`` or ``NAME:FILE.py:FUNCTION`` -> ``(NAME, the function or None)`` (:func:`load_function`)."""
+    name, _, func = text.partition(":")
+    if not func:
+        return name, None
+    path, sep, fname = func.rpartition(":")
+    if not sep or not path or not fname:
+        raise ValidationError(f"{where}: the converter is FILE.py:FUNCTION")
+    return name, load_function(path, fname)
 
 
 def load_function(path: str, name: str) -> Callable:
@@ -261,7 +252,11 @@ def load_function(path: str, name: str) -> Callable:
         raise ValidationError(f"converter file {path} does not exist")
     spec = importlib.util.spec_from_file_location(f"dfusion_user_{p.stem}", p)
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    try:
+        spec.loader.exec_module(mod)
+    except Exception as exc:   # the user's file: a syntax error, a failing import, ...
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        raise ValidationError(f"converter file {path} does not load: {type(exc).__name__}: {first}") from None
     fn = getattr(mod, name, None)
     if not callable(fn):
         raise ValidationError(f"{path} has no function {name!r}")

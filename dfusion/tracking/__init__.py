@@ -1,4 +1,4 @@
-"""Multi-target tracking: tracks with network-unique identities, gating, GNN and JPDA (EHM) association, M-of-N initiation, deletion, the multi-target tracker, scans from anonymous robot sightings."""
+"""Multi-target tracking: tracks with network-unique identities, gating, GNN and JPDA (EHM) association, M-of-N initiation, deletion, the multi-target tracker, scans from anonymous robot sightings, and the history of a run (tracks per node over time, the truth)."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -10,9 +10,11 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.tracking.deletion import (AnyDeleter, CovarianceDeleter, Deleter, MissDeleter, NoDeleter, RegionDeleter,
                                           StaleDeleter)
     from dfusion.tracking.gating import GaussianHypothesiser, Hypotheses, Hypothesiser
+    from dfusion.tracking.history import TrackHistory, TruthPaths
     from dfusion.tracking.initiation import Initiator, MofNInitiator, NoInitiator, two_point_state
     from dfusion.tracking.sightings import CameraView, sightings_scan
     from dfusion.tracking.track import IdentityIssuer, Scan, Track, TrackId
+    from dfusion.tracking.track_to_track import TrackToTrackAssociator
     from dfusion.tracking.tracker import MultiTargetTracker, track_update_information
 
 _WHERE = {
@@ -43,6 +45,9 @@ _WHERE = {
     "Track": ("dfusion.tracking.track", "Track"),
     "Scan": ("dfusion.tracking.track", "Scan"),
     "MultiTargetTracker": ("dfusion.tracking.tracker", "MultiTargetTracker"),
+    "TrackToTrackAssociator": ("dfusion.tracking.track_to_track", "TrackToTrackAssociator"),
+    "TrackHistory": ("dfusion.tracking.history", "TrackHistory"),
+    "TruthPaths": ("dfusion.tracking.history", "TruthPaths"),
     "track_update_information": ("dfusion.tracking.tracker", "track_update_information"),
 }
 

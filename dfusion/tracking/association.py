@@ -8,7 +8,8 @@ and ``beta_t0`` of none. The per-track update is then the PDA update with these 
 **GNN** (global nearest neighbour; Blackman & Popoli, *Design and Analysis of Modern
 Tracking Systems*, 1999, sec. 6.4): the single joint hypothesis of largest probability,
 ``max prod_t g_t a(t)``, i.e. the assignment minimizing ``sum_t -log g_t a(t)``, solved with
-``scipy.optimize.linear_sum_assignment`` on the ``T x (k + T)`` matrix whose first ``k``
+:func:`dfusion.assignment.gated_assignment` (``linear_sum_assignment`` through allowed pairs
+only) on the ``T x (k + T)`` matrix whose first ``k``
 columns are ``-log g_tj`` (``inf`` outside the gate) and whose last ``T`` columns hold
 ``-log g_t0`` on the diagonal (track ``t`` missed) and ``inf`` elsewhere.
 
@@ -36,7 +37,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+from dfusion.assignment import gated_assignment
 
 from dfusion.linalg import Array
 from dfusion.tracking.gating import Hypotheses
@@ -85,12 +86,8 @@ class GNN(DataAssociator):
             cost = np.full((rows.size, k + rows.size), np.inf)
             cost[:, :k] = -hyp.log_weight[rows]
             cost[np.arange(rows.size), k + np.arange(rows.size)] = -hyp.log_miss[rows]
-            finite = np.isfinite(cost)
-            # linear_sum_assignment wants finite entries: forbid with a cost no assignment can reach
-            big = (np.abs(cost[finite]).sum() + 1.0) * 2.0
-            r, c = linear_sum_assignment(np.where(finite, cost, big))
-            for i, j in zip(r, c):
-                if j < k and finite[i, j]:
+            for i, j in zip(*gated_assignment(cost)):   # gated pairs and misses only
+                if j < k:
                     W[rows[i], j] = 1.0
                     miss[rows[i]] = 0.0
         return out

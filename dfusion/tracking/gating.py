@@ -15,7 +15,8 @@ weights (the ``lambda`` of each clutter detection is common to all hypotheses of
 after dividing by ``lambda^k``). ``P_D,t`` is the scan's detection probability times the
 probability that the track is in the scan's view (:meth:`~dfusion.tracking.track.Scan.visibility`;
 a track with ``P_D,t = 0`` takes no part). These are the single-target
-PDA's terms (:mod:`dfusion.estimation.pda`: ``b / e_i`` is ``g_t0 / g_tj``). ``lambda = 0``
+PDA's terms (:mod:`dfusion.estimation.pda`: ``b / e_i`` is ``g_t0 / g_tj``), computed by the
+PDA's own :func:`~dfusion.estimation.pda.frame_innovations`. ``lambda = 0``
 is floored at ``1e-300`` (then a gated detection is always taken).
 
 **Per-detection noise.** When the scan gives each detection its own covariance ``R_j``
@@ -32,7 +33,7 @@ from typing import Sequence
 
 import numpy as np
 
-from dfusion.estimation.pda import gate_threshold
+from dfusion.estimation.pda import frame_innovations, gate_threshold
 from dfusion.linalg import Array, cholesky, symmetrize
 from dfusion.tracking.track import Scan, Track
 
@@ -115,7 +116,6 @@ class GaussianHypothesiser(Hypothesiser):
         Z = scan.detections
         k, T = Z.shape[0], len(tracks)
         gamma = gate_threshold(self.gate, m)
-        R = np.asarray(sensor.R, dtype=float)
         log_density = math.log(max(scan.clutter_density, _TINY_DENSITY))
         means, covs, Hs, Ss = [], [], [], []
         nus = np.zeros((T, k, m))
@@ -127,39 +127,33 @@ class GaussianHypothesiser(Hypothesiser):
         pair_S = None if scan.noise is None else np.zeros((T, k, m, m))
         for t, track in enumerate(tracks):
             x, P = track.estimate()
-            H = np.asarray(sensor.H(x), dtype=float)
-            S = symmetrize(H @ P @ H.T + R)
+            fi = frame_innovations(x, P, Z, sensor)   # H, S, nu_tj, d_tj^2: the PDA's
             means.append(x)
             covs.append(P)
-            Hs.append(H)
-            Ss.append(S)
+            Hs.append(fi.H)
+            Ss.append(fi.S)
             vis[t] = scan.visibility(x, P)
             pd[t] = scan.detection_probability * vis[t]
             miss = 1.0 - pd[t] * self.gate
             log_miss[t] = log_density + math.log(miss) if miss > 0 else -np.inf
             if k == 0:
                 continue
-            hx = np.asarray(sensor.h(x), dtype=float)
-            nu = np.array([sensor.residual(z, hx) for z in Z]).reshape(k, m)
-            nus[t] = nu
+            nus[t] = fi.innovations
             if pair_S is None:
-                C = cholesky(S, "innovation covariance S")
-                w = np.linalg.solve(C, nu.T).T
-                d2[t] = np.einsum("ij,ij->i", w, w)
-                log_det = np.full(k, float(np.sum(np.log(np.diag(C)))))
-            else:
-                HPH = S - R
-                log_det = np.empty(k)
+                d2[t] = fi.d2
+                log_norm = np.full(k, fi.log_norm)
+            else:                                      # S_tj = H P^ H^T + R_j per detection
+                HPH = fi.S - np.asarray(sensor.R, dtype=float)
+                log_norm = np.empty(k)
                 for j in range(k):
                     Sj = symmetrize(HPH + scan.noise[j])
                     pair_S[t, j] = Sj
                     C = cholesky(Sj, "innovation covariance S")
-                    w = np.linalg.solve(C, nu[j])
+                    w = np.linalg.solve(C, fi.innovations[j])
                     d2[t, j] = float(w @ w)
-                    log_det[j] = float(np.sum(np.log(np.diag(C))))
+                    log_norm[j] = -0.5 * m * math.log(2.0 * math.pi) - float(np.sum(np.log(np.diag(C))))
             if pd[t] > 0:
                 p_det = scan.detection_probability if self.detections_in_view else pd[t]
-                log_norm = math.log(p_det) - 0.5 * m * math.log(2.0 * math.pi) - log_det
-                logw[t] = np.where(d2[t] <= gamma, log_norm - 0.5 * d2[t], -np.inf)
+                logw[t] = np.where(d2[t] <= gamma, math.log(p_det) + log_norm - 0.5 * d2[t], -np.inf)
         gated = np.isfinite(logw)
         return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, vis, gamma, pair_S, scan.noise)

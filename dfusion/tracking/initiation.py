@@ -6,7 +6,7 @@ r"""Initiators: new tracks from detections that no confirmed track explains.
 2. **Two-point differencing** (Bar-Shalom, Li & Kirubarajan, *Estimation with
    Applications to Tracking and Navigation*, 2001, sec. 5.5.3). A later detection ``z_2``
    at ``t_2`` (``dt = t_2 - t_1 >= min_dt``) within ``v_max dt + k_sigma sqrt(2) sigma``
-   of the seed (assigned to seeds by ``linear_sum_assignment`` on the distances) starts a
+   of the seed (assigned to seeds by :func:`dfusion.assignment.gated_assignment` on the distances) starts a
    tentative track at ``t_2`` with, for a sensor measuring the position with noise ``R``::
 
        x = [z_2, (z_2 - z_1) / dt],   P = [[R, R / dt], [R / dt, 2 R / dt^2]]
@@ -32,7 +32,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+from dfusion.assignment import gated_assignment
 
 from dfusion.errors import ValidationError
 from dfusion.estimation.delayed_state import measurement_information
@@ -202,15 +202,9 @@ class MofNInitiator(Initiator):
             radius = self.max_speed * (scan.time - s.time) + self.k_sigma * math.sqrt(2.0) * sigma
             d = np.linalg.norm(Z[left] - s.z, axis=1)
             D[a] = np.where(d <= radius, d, np.inf)
-        finite = np.isfinite(D)
-        if not finite.any():
-            return left
-        r, c = linear_sum_assignment(np.where(finite, D, 2.0 * D[finite].max() * D.size + 1.0))
         used: set[int] = set()
         paired: set[int] = set()
-        for a, b in zip(r, c):
-            if not finite[a, b]:
-                continue
+        for a, b in zip(*gated_assignment(D)):   # pairs within their radius only
             s, j = seeds[a], left[b]
             dt = scan.time - s.time
             x, P = two_point_state(s.z, Z[j], dt, R)

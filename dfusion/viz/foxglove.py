@@ -45,6 +45,35 @@ topic                              schema                what
                                                          comes back)
 =================================  ====================  ===================================
 
+**Many targets** (:func:`record_tracks_mcap`, from a :class:`~dfusion.tracking.TrackHistory`
+and the truth's :class:`~dfusion.tracking.TruthPaths`): one message per node per recorded
+time on each of
+
+=================================  ====================  ===================================
+topic                              schema                what
+=================================  ====================  ===================================
+``/nodes/<name>/tracks``           foxglove.SceneUpdate  one entity per track, id
+                                                         ``track/<node>/<identity>``: a
+                                                         sphere at the estimate, the 3-sigma
+                                                         ellipse and the identity as text, in
+                                                         the identity's colour
+                                                         (:func:`dfusion.viz.tracks.identity_color`);
+                                                         a track gone since the node's last
+                                                         message is deleted by id
+``/nodes/<name>/track_estimates``  dfusion/Tracks        every track's identity (text, origin,
+                                                         serial), mean, covariance (row-major)
+                                                         and standard deviations
+``/truth/targets``                 foxglove.SceneUpdate  each target present (grey sphere,
+                                                         name), at every recorded time
+``/scene/static``                  foxglove.SceneUpdate  at 0: every true path (grey) and the
+                                                         camera views
+=================================  ====================  ===================================
+
+The 3D panel draws the SceneUpdates as they are (every track of every node, in its
+identity's colour, with the truth); toggling a node's ``/nodes/<name>/tracks`` topic shows
+one node's view. The Plot and Raw Message panels read the numbers of
+``/nodes/<name>/track_estimates`` by field path (e.g. ``.tracks[0].std[0]``).
+
 A node's *anchor* (where the tree draws it) is its camera's position, its receivers'
 centroid, its beacon; nodes without a place are put in a row above the scene.
 """
@@ -62,7 +91,7 @@ import numpy as np
 from dfusion.viz.topdown import camera_footprint, detection_point, ellipse_points, sensor_points
 
 __all__ = ["SCHEMAS", "DIAGNOSTICS", "FOXGLOVE_TYPES", "record_mcap", "messages_of_result", "LiveView",
-           "channel_schema", "encode"]
+           "channel_schema", "encode", "record_tracks_mcap", "messages_of_tracks", "write_mcap"]
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -104,6 +133,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                               "gap_position_m": _NUM_OR_NULL, "gap_velocity_mps": _NUM_OR_NULL}, "dfusion/Estimate"),
     "dfusion/Tree": _obj({"timestamp": _TIME, "nodes": _arr(_STR),
                           "links": _arr(_obj({"a": _STR, "b": _STR, "up": _BOOL}))}, "dfusion/Tree"),
+    "dfusion/Tracks": _obj({"timestamp": _TIME, "t": _NUM, "node": _STR,
+                            "tracks": _arr(_obj({"id": _STR, "origin": {"type": ["string", "null"]},
+                                                 "serial": {"type": ["integer", "null"]}, "mean": _arr(_NUM),
+                                                 "covariance": _arr(_NUM), "std": _arr(_NUM)}))}, "dfusion/Tracks"),
 }
 
 
@@ -514,9 +547,14 @@ def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:
     """Write the run ``result`` (:class:`~dfusion.sim.runner.SimulationResult`) as an MCAP
     file (module docstring for the topics); log times and stamps are ``start_ns`` plus
     the scenario time (``dfusion replay``: the bag's stamp of time 0)."""
+    return write_mcap(messages_of_result(result, start_ns=start_ns), path)
+
+
+def write_mcap(msgs: Iterable[Message], path: str | Path) -> Path:
+    """Write messages ``(topic, schema, log_time_ns, message)`` (in time order) as an MCAP file:
+    one channel per topic in its schema's encoding (:func:`channel_schema`, :func:`encode`)."""
     from mcap.writer import Writer
 
-    msgs = messages_of_result(result, start_ns=start_ns)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("wb") as fh:
@@ -536,3 +574,83 @@ def record_mcap(result, path: str | Path, *, start_ns: int = 0) -> Path:
             w.add_message(channels[topic], log_ns, encode(schema, msg), log_ns, seq[topic])
         w.finish()
     return path
+
+
+# --- many targets: every node's tracks ----------------------------------------------------------------------------
+
+_TRUTH_GREY = (0.55, 0.55, 0.55)
+_MATCHING_ID = 0   # foxglove.SceneEntityDeletion.Type.MATCHING_ID
+
+
+def _deletions(ns: int, ids: Iterable[str]) -> list[dict[str, Any]]:
+    return [{"timestamp": _stamp(ns), "type": _MATCHING_ID, "id": i} for i in sorted(ids)]
+
+
+def messages_of_tracks(history, truth=None, *, start_ns: int = 0, views: Iterable[Any] = ()) -> list[Message]:
+    """Every message of a many-target recording (:func:`record_tracks_mcap`), sorted by time.
+
+    ``history``: a :class:`~dfusion.tracking.TrackHistory`; ``truth``: a
+    :class:`~dfusion.tracking.TruthPaths` or None; ``views``: objects with ``name, x0, x1, y0, y1``
+    (:class:`~dfusion.sim.plaza.CameraView`), drawn at time 0.
+    """
+    from dfusion.tracking.track import TrackId
+    from dfusion.viz.tracks import identity_color
+
+    out: list[Message] = []
+    for node, series in history.nodes.items():
+        shown: set[str] = set()
+        for t, rows in series:
+            ns = start_ns + int(round(float(t) * 1e9))
+            stamp = _stamp(ns)
+            ents, data = [], []
+            for tid, m, P in rows:
+                rgb = identity_color(tid)
+                eid = f"track/{node}/{tid}"
+                ellipse = ellipse_points(m[:2], P[:2, :2], 3.0, 48)
+                ents.append(_entity(ns, eid, lines=[_line(ellipse, rgb, thickness=2.0)],
+                                    spheres=[_sphere(m[:2], rgb, 0.35)],
+                                    texts=[_text(m[:2] + np.array([0.4, 0.4]), str(tid), rgb, 12.0)],
+                                    metadata={"node": node, "track_id": str(tid),
+                                              "meaning": "track: estimate and its 3-sigma ellipse"}))
+                is_id = isinstance(tid, TrackId)
+                data.append({"id": str(tid), "origin": tid.origin if is_id else None,
+                             "serial": int(tid.serial) if is_id else None, "mean": m.tolist(),
+                             "covariance": P.ravel().tolist(), "std": np.sqrt(np.maximum(np.diag(P), 0.0)).tolist()})
+            now = {e["id"] for e in ents}
+            out.append((f"/nodes/{node}/tracks", "foxglove.SceneUpdate", ns,
+                        {"deletions": _deletions(ns, shown - now), "entities": ents}))
+            out.append((f"/nodes/{node}/track_estimates", "dfusion/Tracks", ns,
+                        {"timestamp": stamp, "t": float(t), "node": node, "tracks": data}))
+            shown = now
+    ents = []
+    for v in views:
+        rect = [(v.x0, v.y0), (v.x1, v.y0), (v.x1, v.y1), (v.x0, v.y1)]
+        ents.append(_entity(start_ns, f"view/{v.name}", lines=[_line(rect, (0.4, 0.4, 0.4), kind=_LINE_LOOP,
+                                                                      thickness=1.0)],
+                            texts=[_text((v.x0 + 0.5, v.y1 - 0.5), f"{v.name} view", (0.4, 0.4, 0.4), 11.0)],
+                            metadata={"view": v.name, "meaning": "the ground the camera sees"}))
+    if truth is not None:
+        for name, (_, xy) in truth.paths.items():
+            ents.append(_entity(start_ns, f"truth_path/{name}", lines=[_line(xy, _TRUTH_GREY, thickness=1.0, a=0.6)],
+                                metadata={"target": name, "meaning": "the whole true path"}))
+        shown = set()
+        for t in history.times():
+            ns = start_ns + int(round(float(t) * 1e9))
+            names, pos = truth.at(float(t))
+            tents = [_entity(ns, f"truth/{n}", spheres=[_sphere(p, _TRUTH_GREY, 0.25)],
+                             texts=[_text(p - np.array([0.0, 0.6]), n, _TRUTH_GREY, 10.0)],
+                             metadata={"target": n, "meaning": "true position"}) for n, p in zip(names, pos)]
+            now = {e["id"] for e in tents}
+            out.append(("/truth/targets", "foxglove.SceneUpdate", ns,
+                        {"deletions": _deletions(ns, shown - now), "entities": tents}))
+            shown = now
+    if ents:
+        out.append(("/scene/static", "foxglove.SceneUpdate", start_ns, {"deletions": [], "entities": ents}))
+    out.sort(key=lambda e: e[2])
+    return out
+
+
+def record_tracks_mcap(history, path: str | Path, truth=None, *, start_ns: int = 0, views: Iterable[Any] = ()) -> Path:
+    """Write every node's tracks (a :class:`~dfusion.tracking.TrackHistory`) and the truth as an
+    MCAP file for Foxglove (module docstring, "Many targets")."""
+    return write_mcap(messages_of_tracks(history, truth, start_ns=start_ns, views=views), path)

@@ -12,6 +12,7 @@ from scipy.stats import chi2, multivariate_normal
 
 from dfusion.estimation.pda import (
     ClutterModel,
+    frame_innovations,
     gate_threshold,
     pda_information,
     pda_update,
@@ -183,3 +184,21 @@ def test_weights_limits():
 def test_gate_threshold_is_scipys_chi_square_quantile(gate, dof):
     """The gate against scipy.stats.chi2.ppf (independent), for every dof, without scipy on the node's path."""
     assert gate_threshold(gate, dof) == pytest.approx(chi2.ppf(gate, dof), rel=1e-9)
+
+
+def test_frame_innovations_are_scipys_gaussian_log_likelihoods():
+    """nu_i, S and log N(nu_i; 0, S) = log_norm - d2 / 2 of a frame (what PDA and the multi-target
+    hypothesiser share) against scipy's multivariate normal; no detections: empty, S still given."""
+    rng = np.random.default_rng(5)
+    sensor = PositionSensor(dim=2, std=0.7)
+    A = rng.normal(size=(4, 4))
+    mean, cov = rng.normal(size=4), A @ A.T + 0.1 * np.eye(4)
+    Z = rng.normal(size=(3, 2)) * 2.0
+    fi = frame_innovations(mean, cov, Z, sensor)
+    S = cov[:2, :2] + 0.49 * np.eye(2)
+    np.testing.assert_allclose(fi.S, S, rtol=1e-12)
+    np.testing.assert_allclose(fi.innovations, Z - mean[:2], rtol=1e-12)
+    np.testing.assert_allclose(fi.log_norm - 0.5 * fi.d2, multivariate_normal(mean[:2], S).logpdf(Z), rtol=1e-10)
+    none = frame_innovations(mean, cov, np.zeros((0, 2)), sensor)
+    assert none.innovations.shape == (0, 2) and none.d2.shape == (0,)
+    np.testing.assert_allclose(none.S, S, rtol=1e-12)

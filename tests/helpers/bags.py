@@ -176,3 +176,36 @@ def as_humble_sqlite3(path: Path) -> Path:
         t["topic_metadata"]["offered_qos_profiles"] = ""
     (path / "metadata.yaml").write_text(yaml.safe_dump(meta))
     return path
+
+
+#: vision_msgs 4.x (ROS 2 Humble and later), transcribed for the tests from the package's .msg
+#: files (ros-perception/vision_msgs, Apache-2.0), independently of dfusion.bags.msgdefs.
+VISION_MSGDEFS = {
+    "vision_msgs/msg/Point2D": "float64 x\nfloat64 y",
+    "vision_msgs/msg/Pose2D": "vision_msgs/msg/Point2D position\nfloat64 theta",
+    "vision_msgs/msg/BoundingBox2D": "vision_msgs/msg/Pose2D center\nfloat64 size_x\nfloat64 size_y",
+    "vision_msgs/msg/BoundingBox3D": "geometry_msgs/msg/Pose center\ngeometry_msgs/msg/Vector3 size",
+    "vision_msgs/msg/ObjectHypothesis": "string class_id\nfloat64 score",
+    "vision_msgs/msg/ObjectHypothesisWithPose": "vision_msgs/msg/ObjectHypothesis hypothesis\n"
+                                                "geometry_msgs/msg/PoseWithCovariance pose",
+    "vision_msgs/msg/Detection2D": "std_msgs/msg/Header header\nvision_msgs/msg/ObjectHypothesisWithPose[] results\n"
+                                   "vision_msgs/msg/BoundingBox2D bbox\nstring id",
+    "vision_msgs/msg/Detection2DArray": "std_msgs/msg/Header header\nvision_msgs/msg/Detection2D[] detections",
+    "vision_msgs/msg/Detection3D": "std_msgs/msg/Header header\nvision_msgs/msg/ObjectHypothesisWithPose[] results\n"
+                                   "vision_msgs/msg/BoundingBox3D bbox\nstring id",
+    "vision_msgs/msg/Detection3DArray": "std_msgs/msg/Header header\nvision_msgs/msg/Detection3D[] detections",
+}
+
+
+def tf_static_record(stamp_ns: int, transforms: list[tuple[str, str, float, float, float]]) -> Record:
+    """A ``/tf_static`` message: ``(parent, child, x, y, yaw)`` per transform."""
+    def build(T, h):
+        out = []
+        for parent, child, x, y, yaw in transforms:
+            hh = T.std_msgs__msg__Header(stamp=h.stamp, frame_id=parent)
+            tr = T.geometry_msgs__msg__Transform(
+                translation=T.geometry_msgs__msg__Vector3(x=float(x), y=float(y), z=0.0),
+                rotation=T.geometry_msgs__msg__Quaternion(x=0.0, y=0.0, z=math.sin(0.5 * yaw), w=math.cos(0.5 * yaw)))
+            out.append(T.geometry_msgs__msg__TransformStamped(header=hh, child_frame_id=child, transform=tr))
+        return T.tf2_msgs__msg__TFMessage(transforms=out)
+    return ("/tf_static", "tf2_msgs/msg/TFMessage", stamp_ns, build)

@@ -235,6 +235,15 @@ type = "nav_msgs/msg/Odometry"
     (("nav_msgs/msg/Odometry", "sensor_msgs/msg/Image"), "inputs[0].type 'sensor_msgs/msg/Image' is not supported"),
     (('topic = "/odom"', 'topic = "odom"'), "inputs[0].topic: a ROS 2 topic is a fully qualified name"),
     (('scenario = "s.toml"', 'scenario = "s.toml"\nduration = -1'), "duration must be positive"),
+    (('scenario = "s.toml"', 'scenario = "s.toml"\nduration = inf'), "duration must be a finite number, got inf"),
+    (('scenario = "s.toml"', 'scenario = "s.toml"\nduration = nan'), "duration must be a finite number, got nan"),
+    (('scenario = "s.toml"', 'scenario = "s.toml"\nstart = inf'), "start must be a finite number, got inf"),
+    (('scenario = "s.toml"', 'scenario = "s.toml"\nstart = -5.0'), "start must be positive, got -5.0"),
+    (('convention = "rmw_zenoh"', 'convention = "rmw_zenoh"\nstale_after = inf'),
+     "ros.stale_after must be a finite number, got inf"),
+    (('convention = "rmw_zenoh"', 'convention = "rmw_zenoh"\ndiagnostics_period = -1'),
+     "ros.diagnostics_period must be positive, got -1"),
+    (('convention = "rmw_zenoh"', 'convention = "rmw_zenoh"\nlatency = nan'), "ros.latency must be a finite number"),
     (('scenario = "s.toml"', 'scenario = "s.toml"\nrun_id = 42'), "run_id must be str, got int 42"),
     (('type = "nav_msgs/msg/Odometry"', 'type = "nav_msgs/msg/Odometry"\nconvert = "nowhere.py:f"'),
      "inputs[0].convert: "),
@@ -299,3 +308,46 @@ def test_a_program_refuses_a_node_file_of_another_kind(tmp_path, capsys):
     assert main([str(f)], kind="camera") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "kind is 'robot', but this is the camera program" in err[0]
+
+
+CUSTOM_INPUT = """
+[[inputs]]
+topic = "/rssi"
+type = "{msgtype}"
+convert = "conv.py:{func}"
+{definition}"""
+
+
+@pytest.mark.parametrize("msgtype, definition, convert, func, error", [
+    ("vendor_msgs/msg/RssiA", "float64[ rssi\n", "def f(msg, t):\n    return None\n", "f",
+     "the definition of vendor_msgs/msg/RssiA does not parse: at 'float64[ rssi'"),
+    ("vendor_msgs/msg/RssiB", "std_msgs/Header header\nvendor_msgs/Nowhere x\n", "def f(msg, t):\n    return None\n",
+     "f", "the definition of vendor_msgs/msg/RssiB uses the unknown type 'vendor_msgs/msg/Nowhere'"),
+    ("vendor_msgs/msg/RssiC", None, "def f(msg, t):\n    return None\n", "f",
+     "unknown ROS 2 message type 'vendor_msgs/msg/RssiC'"),
+    ("vendor_msgs/msg/RssiD", RSSI_MSG, "def f(msg, t)\n    return None\n", "f",
+     "conv.py does not load: SyntaxError"),
+    ("vendor_msgs/msg/RssiE", RSSI_MSG, "import not_a_module_of_anyone\n", "f",
+     "conv.py does not load: ModuleNotFoundError"),
+    ("vendor_msgs/msg/RssiF", RSSI_MSG, "def f(msg, t):\n    return None\n", "g", "conv.py has no function 'g'"),
+], ids=["unparsable-msg", "unknown-nested-type", "no-definition", "syntax-error", "failing-import", "no-function"])
+def test_a_bad_definition_or_converter_stops_the_node_with_one_line_before_it_joins(
+        tmp_path, capsys, monkeypatch, msgtype, definition, convert, func, error):
+    """The .msg definitions are registered, the input types checked and the converters loaded
+    before the node opens its Zenoh session: a bad one is one line, and no session is opened."""
+    from dfusion.run.node_process import Host
+
+    opened = []
+    monkeypatch.setattr(Host, "_open_transport", lambda self: opened.append(1) or pytest.fail("joined the network"))
+    (tmp_path / "s.toml").write_text(TWO_NODES.format(duration=5.0))
+    (tmp_path / "conv.py").write_text(convert)
+    text = NODE + CUSTOM_INPUT.format(msgtype=msgtype, func=func, definition="")
+    if definition is not None:
+        (tmp_path / "Rssi.msg").write_text(definition)
+        text += 'definition = "Rssi.msg"\n'
+    f = tmp_path / "n.toml"
+    f.write_text(text)
+    assert main([str(f)], kind="robot") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(f) in err[0] and error in err[0], err
+    assert opened == []

@@ -228,6 +228,32 @@ def test_monitor_queue_is_bounded_in_bytes_and_forged_publications_take_no_space
         assert mon._queued_bytes == 0 and mon.records["a"].have[3]
 
 
+def test_monitor_computes_one_hmac_per_publication(tmp_path, monkeypatch):
+    """The MAC of a publication is checked once, on arrival: polling reads the authenticated body
+    (it was computed twice, once in the callback and again in Status.decode)."""
+    import numpy as np
+
+    from dfusion.run import common
+    from dfusion.run.common import Status
+    from dfusion.run.monitor import Monitor
+    from dfusion.scenario import load_scenario
+    from dfusion.wire import FrameKey
+    from tests.run.test_processes import chain3
+
+    sc = load_scenario(chain3(tmp_path))
+    key, net = b"k" * 32, "net"
+    pubs = [Status("a", 7, "run", k, 0.1 * k, np.arange(4.0), np.eye(4)).encode(FrameKey(key, net, "r"))
+            for k in range(5)]
+    calls = []
+    real = common._status_mac
+    monkeypatch.setattr(common, "_status_mac", lambda k, body: calls.append(body) or real(k, body))
+    with Monitor(sc, net, network_key=key, run="r") as mon:
+        for data in pubs:
+            mon._on_sample(_Sample(f"dfusion/{net}/monitor/a", data))
+        assert mon.poll() == 5 and mon.rejected == 0
+        assert len(calls) == 5 and mon.records["a"].have[:5].all()
+
+
 def test_log_byte_cap_drops_and_counts_past_its_cap_but_keeps_errors():
     """A node process's log output is capped in bytes (``LogByteCap``): past the cap one line says
     so, lines below ERROR are dropped and counted, errors still written; the bytes are counted

@@ -78,6 +78,16 @@ def test_typos_are_errors_that_name_the_table_and_the_key(tmp_path, old, new, ex
         assert part in msg, msg
 
 
+@pytest.mark.parametrize("value, expected", [("inf", "duration must be a finite number, got inf"),
+                                             ("nan", "duration must be a finite number, got nan"),
+                                             ("-1.0", "duration must be positive, got -1.0"),
+                                             ("true", "duration must be a finite number, got True")])
+def test_a_duration_that_is_not_a_positive_finite_number_is_refused(tmp_path, value, expected):
+    """Through dfusion.scenario.values.number, the checks a node file's values go through too."""
+    msg = error_of(write(tmp_path, GOOD.replace("duration = 3.0", f"duration = {value}")))
+    assert expected in msg, msg
+
+
 def test_a_top_level_key_after_a_table_is_named_as_misplaced(tmp_path):
     # TOML puts a key written after [target] into [target]
     text = GOOD.replace("window = 50\n", "").replace("q = 0.1\n", "q = 0.1\nwindow = 50\n")

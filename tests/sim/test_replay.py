@@ -142,8 +142,7 @@ def test_replay_errors(tmp_path):
         world_from_bag(sc, bag, [TopicInput("/a/fix", "a")], arrival="soon")
     with pytest.raises(ValidationError, match="TOPIC=NODE"):
         parse_topic_input("/a/fix")
-    from dfusion.bags.convert import Velocity, convert
-    from dfusion.sim.replay import standard_z
+    from dfusion.bags.convert import Velocity, convert, standard_z
     with pytest.raises(ValidationError, match="no measurement"):
         standard_z(Velocity(0.0, 1.0, 0.1))
     with pytest.raises(ValidationError, match="no converter"):
