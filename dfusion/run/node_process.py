@@ -252,7 +252,7 @@ class NodeProcess:
         self._records_output = records_output(self.node.policy)
         self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
-                         "max_lag_ms": 0}
+                         "max_lag_ms": 0, "lag_ms": 0}
         self.lost: list[float] = []
         self.t_started = 0.0
         self.links: EmulatedLinks | None = None
@@ -390,6 +390,7 @@ class NodeProcess:
             self._send_due(t)
             self._publish("run", k)
             lag = (time.time() - self.start) - t / self.speed   # wall seconds behind the schedule
+            self.counters["lag_ms"] = max(0, int(lag * 1000))   # (the last step's: the lag at the end)
             if lag * 1000 > self.counters["max_lag_ms"]:
                 self.counters["max_lag_ms"] = int(lag * 1000)
         self._sending = False
