@@ -251,6 +251,7 @@ def _install():
             (_common.Status, "encode", "monitor|Status.encode"),
             (_np.NodeProcess, "stats", "monitor|counters"),
             (_zenoh.ZenohTransport, "poll", "liveliness"),
+            (_zenoh.ZenohTransport, "wait", "waits (ZenohTransport.wait)"),
             (_node.FusionNode, "check_frame", "check on arrival")):
         if hasattr(owner, name):
             wrap(owner, name, label)
@@ -317,12 +318,12 @@ def coarse_table(coarse_dir: Path, n: int, seconds: float) -> dict:
     rest = loop - level1
     rows["scheduler"] = rest * ns
     print(f"  {'scheduler and the rest of the loop':<50} {'':>12} {rest * ns:>9.2f} {100 * rest / proc:>5.1f}%")
-    for k in ("liveliness", "check on arrival", "check on arrival (Zenoh's threads)"):
+    for k in ("liveliness", "waits (ZenohTransport.wait)", "check on arrival", "check on arrival (Zenoh's threads)"):
         if k in tot:
             c, t = tot[k]
             rows[k] = t * ns
-            print(f"    {'of which ' + k if k == 'liveliness' else k:<48} {c / n / seconds:>12.1f} {t * ns:>9.2f} "
-                  f"{100 * t / proc:>5.1f}%")
+            label = "of which " + k if k in ("liveliness", "waits (ZenohTransport.wait)") else k
+            print(f"    {label:<48} {c / n / seconds:>12.1f} {t * ns:>9.2f} {100 * t / proc:>5.1f}%")
     other = proc - loop - tot.get("check on arrival (Zenoh's threads)", [0, 0.0])[1]
     rows["other threads"] = other * ns
     print(f"  {'other threads (Zenoh runtime, ...)':<50} {'':>12} {other * ns:>9.2f} {100 * other / proc:>5.1f}%")
