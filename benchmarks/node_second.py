@@ -1,24 +1,32 @@
 """Where a node-second goes: CPU per node per simulated second of ``dfusion run``, by component.
 
 Runs ``dfusion run`` of a random tree (:func:`dfusion.scenario.generate.random_tree_scenario`:
-position sensors at 10 Hz, steps of 0.1 s, sends every 0.5 s) with ``DFUSION_PROFILE`` set, so
-that every host process profiles its loop's thread with cProfile (on that thread's CPU time)
-and records the CPU of every thread (``dfusion.run.node_process.thread_cpu``). Prints
+position sensors at 10 Hz, steps of 0.1 s, sends every 0.5 s, real time) and prints
 
 * the **CPU per node-second**: every host process's CPU (all threads, from the start of its
   loop to its end: the wait for the start, the run, the final rounds) divided by the nodes and
   the scenario's seconds; the launcher's CPU (monitor, world, result) apart;
-* **the components**: the loop thread's CPU split by what the profile saw (the fusion node's
-  predict, own measurements, receive with the decoding, sends with the encoding and the
-  Zenoh put, the monitor's publications, liveliness, logging, the scheduler), and the CPU of
-  Zenoh's own threads (the session's runtime, its callbacks, which run the arrival checks).
+* **the components** (the fusion node's predict, own measurements, receive with the
+  consistency test and the decoding, sends with the encoding and the Zenoh put, the monitor's
+  publications, the scheduler and its wake-ups, liveliness, the arrival checks, Zenoh's
+  threads), measured one of three ways:
+
+  - ``--coarse``: every host process (through a ``sitecustomize`` on its ``PYTHONPATH``) times
+    those parts with its thread's CPU clock, two clock reads per call (a few percent of
+    overhead): the figures of ``docs/processes.md``, "Where a node-second goes";
+  - default: cProfile in every host process (``DFUSION_PROFILE``, on the loop thread's CPU
+    time) and the CPU of every thread: every function named, but this code's CPU multiplied
+    by 3-4 (its many small calls);
+  - ``--py-spy HZ``: py-spy samples every host process (``pip install py-spy``); on a loaded
+    machine it counts a thread waiting for a core as busy.
 
 Every figure is CPU time, not wall time, so it can be compared across runs on a machine whose
-other jobs steal wall time (they inflate CPU a little too, through caches: compare runs made
-in the same conditions, as ratios). Use ``--per-process 1`` for one node per process.
+other jobs steal wall time (they inflate CPU a little too, through caches): compare versions
+side by side (``--code DIR``: the dfusion in DIR, e.g. an older commit from ``git archive``),
+as ratios. ``--per-process 1`` runs one node per process.
 
-Usage: python benchmarks/node_second.py [--nodes 16] [--per-process 16] [--duration 20]
-       [--speed 1] [--no-network-check] [--top 25] [--keep DIR]
+Usage: python benchmarks/node_second.py [--nodes 16] [--per-process N] [--duration 20] [--coarse | --py-spy HZ |
+       --no-profile] [--code DIR] [--speed 1] [--no-network-check] [--top 25] [--keep DIR] [--json OUT]
 """
 from __future__ import annotations
 
