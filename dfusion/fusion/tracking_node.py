@@ -42,6 +42,10 @@ measurement's information is held as own information by exactly the node that to
 ``k`` only, and reaches the others over ``k``'s channels: nothing counted twice, nothing lost
 once the news has reached every node and the links have settled (own information of ``g``
 older than ``k``'s window start cannot be moved: counted in ``stats.merge_outside_window``).
+A node compares only tracks holding information at most ``merge_fresh`` seconds old: a node
+cut off from the sensors (a link outage) only predicts, two people's predictions may drift
+together, and a merge it decided from them would be enforced on every node when the link
+returns (``tests/fusion/test_tracking_node.py``).
 
 **Deletions.** A track a node's deleter ends is deleted at that node, recorded, and announced;
 every node that hears deletes it too. The deleter sees the fused track (its estimate, and as
@@ -175,6 +179,8 @@ class TrackingNode:
         0.99 gate, 3-of-5 initiation, a covariance deleter; ``deleter=False``: tracks end only
         when a neighbour's end is heard or :meth:`delete` is called).
     merger : the track-to-track associator (``None``: a default one; ``False``: no merges).
+    merge_fresh : seconds: only tracks with information at most this old are compared for merges
+        (predictions that drift together are no evidence; module docstring, "Merges").
     prior : the common prior of every track.
     window, horizon, max_ahead, hold : each track's :class:`FusionNode` settings.
     links_change : links that change at run time (each track follows the tree rule).
@@ -185,7 +191,8 @@ class TrackingNode:
     def __init__(self, name: str, neighbors: Iterable[str], motion: MotionModel, *,
                  associator: DataAssociator | None = None, hypothesiser: Hypothesiser | None = None,
                  initiator: Initiator | None = None, deleter: Deleter | None | bool = None,
-                 merger: TrackToTrackAssociator | None | bool = None, prior: TrackPrior = TrackPrior(),
+                 merger: TrackToTrackAssociator | None | bool = None, merge_fresh: float = 1.0,
+                 prior: TrackPrior = TrackPrior(),
                  window: int | None = 100, horizon: float | None = None, max_ahead: float = MAX_AHEAD,
                  hold: float = HOLD, links_change: bool = False, peers: Iterable[str] | None = None,
                  network_key: bytes | None = None, network: str = "", run: str = "", epoch: int | None = None,
@@ -210,6 +217,9 @@ class TrackingNode:
         self.initiator = initiator or MofNInitiator(motion)
         self.deleter = None if deleter is False else (deleter or CovarianceDeleter())
         self.merger = None if merger is False else (merger or TrackToTrackAssociator())
+        if not (isinstance(merge_fresh, (int, float)) and merge_fresh > 0 and np.isfinite(merge_fresh)):
+            raise ValidationError(f"merge_fresh must be a positive number of seconds, got {merge_fresh!r}")
+        self.merge_fresh = float(merge_fresh)
         self.prior = prior
         self.epoch = _time.time_ns() if epoch is None else int(epoch)
         if not 0 < self.epoch < 2**63:
@@ -391,8 +401,9 @@ class TrackingNode:
     def _merge_duplicates(self) -> None:
         if self.merger is None or self.time is None:
             return
+        newest = {tid: node.newest_information_time() for tid, node in self.tracks.items()}
         live = {tid: node.estimate() for tid, node in self.tracks.items()
-                if node.newest_information_time() is not None}
+                if newest[tid] is not None and self.time - newest[tid] <= self.merge_fresh}
         for a, b in self.merger.check(live, self.time):
             if a in self.tracks and b in self.tracks:
                 keep, gone = self.survivor(a, b)

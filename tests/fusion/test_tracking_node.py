@@ -172,3 +172,35 @@ def test_bundles_split_under_the_size_limit():
     assert len(b.estimates()) == 40
     for (tid, m1, P1), (_, m2, P2) in zip(a.estimates(), b.estimates()):
         np.testing.assert_allclose(m1, m2, rtol=1e-12, atol=1e-12)
+
+
+def test_a_node_cut_off_from_the_sensors_does_not_merge_tracks_its_predictions_bring_together():
+    """Two people walking towards each other, seen by node a; b hears of them, then the link
+    fails. b's predictions of the two meet, but nobody has seen them together: b must not
+    decide that they are one target (its merge would be enforced on the whole network when the
+    link returns). Fresh tracks of one target under two identities still merge."""
+    m = ConstantVelocity(2, 0.01)
+    a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=False, merger=False, epoch=1)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, epoch=2)
+    s = PositionSensor(2, 0.1)
+    x, y = TrackId("a", 0), TrackId("a", 1)
+    for k in range(11):
+        t = 0.1 * k
+        a.predict(t)
+        a.observe(x, t, [t, 0.0], s, born=0.0)
+        a.observe(y, t, [6.0 - t, 0.0], s, born=0.0)
+        for _, d in a.outgoing(t):
+            b.receive(d)
+        b.predict(t)
+    for k in range(11, 40):     # the link is down from here: b only predicts; x and y meet at (3, 0) at t = 3
+        b.predict(0.1 * k)
+    assert {x, y} <= set(b.tracks) and b.stats.merges == 0
+    # fresh information of one target under two identities: merged
+    z1, z2 = TrackId("a", 2), TrackId("b", 0)
+    for k in range(40, 50):
+        t = 0.1 * k
+        b.predict(t)
+        b.observe(z1, t, [10.0, 0.1 * k], s, born=4.0)
+        if z2 not in b.ended:
+            b.observe(z2, t, [10.0, 0.1 * k], s, born=4.0)
+    assert b.stats.merges_decided == 1 and z2 not in b.tracks and z1 in b.tracks
