@@ -204,3 +204,24 @@ def test_a_node_cut_off_from_the_sensors_does_not_merge_tracks_its_predictions_b
         if z2 not in b.ended:
             b.observe(z2, t, [10.0, 0.1 * k], s, born=4.0)
     assert b.stats.merges_decided == 1 and z2 not in b.tracks and z1 in b.tracks
+
+
+def test_a_node_that_does_not_see_two_people_walking_side_by_side_does_not_merge_them():
+    """a sees two people walk side by side 0.3 m apart (a camera would find them distinct: both
+    take a detection of one scan); b, a relay with fresh information from a but no sensor of its
+    own, has no such evidence: it must not merge them (a merge is enforced on every node)."""
+    m = ConstantVelocity(2, 0.01)
+    a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=False, merger=False, epoch=1)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, epoch=2)
+    s = PositionSensor(2, 0.3)
+    x, y = TrackId("a", 0), TrackId("a", 1)
+    rng = np.random.default_rng(0)
+    for k in range(40):
+        t = 0.1 * k
+        a.predict(t)
+        a.observe(x, t, [t, 0.0] + 0.3 * rng.standard_normal(2), s, born=0.0)
+        a.observe(y, t, [t, 0.3] + 0.3 * rng.standard_normal(2), s, born=0.0)
+        for _, d in a.outgoing(t):
+            b.receive(d)
+        b.predict(t)
+    assert {x, y} <= set(b.tracks) and b.stats.merges == 0
