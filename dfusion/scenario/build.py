@@ -124,7 +124,7 @@ def build_front_ends(sc: Scenario) -> dict[str, FrontEnd]:
 
 
 def tracker_components(spec: TrackingSpec, motion) -> dict:
-    """The tracker of ``[tracking]`` as keyword arguments of :class:`TrackingNode` (fresh objects:
+    """The tracker of ``[tracking]`` as keyword arguments of :class:`~dfusion.fusion.tracking_node.TrackingNode` (fresh objects:
     the initiator and the merger keep state, so every node gets its own): ``associator``,
     ``hypothesiser``, ``initiator``, ``deleter``, ``merger``, ``prior``."""
     from dfusion.fusion.tracking_node import TrackPrior
@@ -151,7 +151,7 @@ def tracker_components(spec: TrackingSpec, motion) -> dict:
 
 def build_tracking_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epoch: int | None = None,
                         network: str = "", run: str = "") -> TrackingNode:
-    """The :class:`TrackingNode` of node ``name`` of a multi-target scenario: its tree
+    """The :class:`~dfusion.fusion.tracking_node.TrackingNode` of node ``name`` of a multi-target scenario: its tree
     neighbours, the scenario's window and horizon, the tracker of ``[tracking]``
     (:func:`tracker_components`)."""
     from dfusion.fusion.tracking_node import TrackingNode
