@@ -54,7 +54,7 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _simulate_tracking(sc, args: argparse.Namespace) -> int:
+def _simulate_tracking(sc, args: argparse.Namespace, world=None) -> int:
     """``dfusion simulate`` of a multi-target scenario ([[targets]]): a TrackingNode per node
     (:mod:`dfusion.sim.tracking_runner`); ``--json``, ``--topdown`` (every node's tracks),
     ``--plot`` (the identity timelines), ``--mcap``."""
@@ -64,7 +64,7 @@ def _simulate_tracking(sc, args: argparse.Namespace) -> int:
                                f"--plot and --mcap are)")
     from dfusion.sim.tracking_runner import run_tracking_scenario
 
-    result = run_tracking_scenario(sc, progress=not args.quiet)
+    result = run_tracking_scenario(sc, progress=not args.quiet, world=world)
     print(result.table())
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -92,6 +92,26 @@ def _simulate_tracking(sc, args: argparse.Namespace) -> int:
             print(f"wrote {record_tracks_mcap(result.history, args.mcap, result.world.truth, views=views)} "
                   f"(open it in Foxglove)")
     return 0
+
+
+def _replay_tracking(sc, args: argparse.Namespace) -> int:
+    """``dfusion replay SCENARIO BAG --topic TOPIC=CAMERA_NODE ... [--truth TOPIC ...]`` of a
+    multi-target scenario: the camera nodes' scans are the bag's detection arrays
+    (:func:`dfusion.sim.target_world.world_from_bag`), the rest as ``simulate``."""
+    from dfusion.bags import msgdefs_from_files
+    from dfusion.sim.replay import parse_topic_input
+    from dfusion.sim.target_world import world_from_bag
+
+    if not args.truth:
+        raise DfusionError("a replay of a multi-target scenario needs --truth TOPIC (one per target, or a "
+                           "Detection3DArray with ids): its figures are measured against it")
+    inputs = [parse_topic_input(t) for t in args.topic]
+    world = world_from_bag(sc, args.bag, [(i.topic, i.node, i.convert) for i in inputs], truth_topics=args.truth,
+                           origin_ns=args.origin_ns, msgdefs=msgdefs_from_files(args.msg))
+    c = world.counts
+    print(f"read {c.scans} scans, {c.detections} detections from {args.bag} "
+          f"({', '.join(f'{i.topic} -> {i.node}' for i in inputs)}); truth: {len(world.truth.paths)} targets")
+    return _simulate_tracking(sc, args, world=world)
 
 
 def _outputs(result, args: argparse.Namespace, *, title: str | None = None) -> None:
@@ -137,6 +157,11 @@ def _replay(args: argparse.Namespace) -> int:
     if not args.topic:
         print("dfusion: error: map at least one bag topic to a node with --topic TOPIC=NODE", file=sys.stderr)
         return 2
+    from dfusion.bags import msgdefs_from_files, read_bag
+
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
+    if sc.multi_target:
+        return _replay_tracking(sc, args)
     if len(args.truth) > 1:
         print("dfusion: error: a scenario replay takes one --truth topic (the target's)", file=sys.stderr)
         return 2
@@ -145,9 +170,6 @@ def _replay(args: argparse.Namespace) -> int:
         print("dfusion: error: --plot draws errors against the truth: give --truth TOPIC (or leave --plot out)",
               file=sys.stderr)
         return 2
-    from dfusion.bags import msgdefs_from_files, read_bag
-
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
     inputs = [parse_topic_input(t) for t in args.topic]
     bag = read_bag(args.bag, [i.topic for i in inputs] + ([truth] if truth else []),
                    msgdefs=msgdefs_from_files(args.msg))

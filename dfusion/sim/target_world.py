@@ -20,21 +20,34 @@ the duration) while it is active:
 
 Every node draws from its own generator (spawned from the scenario's seed in node-name
 order), so a node's frames do not change when another node's settings do.
+
+**A recorded world** (:func:`world_from_bag`, ``dfusion replay SCENARIO BAG --topic TOPIC=NODE``):
+the frames of the scenario's camera nodes are a bag's detection arrays instead
+(:func:`dfusion.sim.bag_scans.scans_from_bag`, one scan per message, the node's ``std``,
+``detection``, clutter density and ``view``), and the truth is the bag's truth topics
+(:func:`dfusion.sim.track_replay.truth_tracks`; none: no truth, the metrics are unknown).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from dfusion.bags.detections import DetectionTopic
+from dfusion.bags.reader import Bag, read_bag
+from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 from dfusion.scenario.spec import NodeSpec, Scenario
 from dfusion.scenario.tracking_kinds import view_of
+from dfusion.sim.bag_scans import ScanCounts, scans_from_bag
 from dfusion.sim.plaza import CameraView
 from dfusion.tracking.history import TruthPaths
 from dfusion.tracking.track import Scan
 
-__all__ = ["TagReading", "NodeFrame", "TargetWorld", "simulate_targets", "node_view", "MIN_CLUTTER_DENSITY"]
+__all__ = ["TagReading", "NodeFrame", "TargetWorld", "simulate_targets", "node_view", "MIN_CLUTTER_DENSITY",
+           "detection_topic", "world_from_bag"]
 
 #: Clutter density (per m^2) a scan states at least: a camera without false detections still
 #: gives the association a finite miss weight ``lambda (1 - P_D P_G)``.
@@ -72,6 +85,8 @@ class TargetWorld:
     detections: int = 0
     false_detections: int = 0
     readings: int = 0
+    #: A recorded world: what was read from the bag (None for a simulated one).
+    counts: ScanCounts | None = None
 
 
 def node_view(spec: NodeSpec) -> CameraView | None:
@@ -142,3 +157,49 @@ def _camera_frame(sc: Scenario, spec: NodeSpec, view: CameraView, std: float, t:
     world.false_detections += k
     scan = Scan(t, z, spec.sensor, max(clutter / view.area, MIN_CLUTTER_DENSITY), spec.detection, None, spec.name, view.probability_inside)
     return NodeFrame(t, spec.name, scan, tuple(who[i] for i in order))
+
+
+def detection_topic(sc: Scenario, topic: str, node: str, convert: Callable[[Any, float], Any] | None = None
+                    ) -> DetectionTopic:
+    """The :class:`~dfusion.bags.detections.DetectionTopic` of a bag topic feeding camera node
+    ``node`` of multi-target scenario ``sc``: the node's ``std``, ``detection``, clutter density
+    and ``view``."""
+    spec = sc.nodes.get(node)
+    if spec is None or spec.sensor_kind != "detections":
+        cams = sorted(n for n, s in sc.nodes.items() if s.sensor_kind == "detections")
+        raise ValidationError(f"--topic {topic}={node}: {node!r} is not a camera node (sensor = \"detections\") of "
+                              f"{sc.path}; those are {', '.join(cams) or 'none'}")
+    view = node_view(spec)
+    assert view is not None
+    density = max(float(spec.params.get("clutter", 0.0)) / view.area, MIN_CLUTTER_DENSITY)
+    return DetectionTopic(topic, node, convert, std=float(spec.params.get("std", 0.3)),
+                          detection_probability=max(spec.detection, 1e-9), clutter_density=density,
+                          view=(view.x0, view.x1, view.y0, view.y1))
+
+
+def world_from_bag(sc: Scenario, bag: str | Path | Bag, topics: Sequence[tuple[str, str, Callable | None]], *,
+                   truth_topics: Sequence[str] = (), frame: str = "map", origin_ns: int | None = None,
+                   msgdefs=None) -> TargetWorld:
+    """The world of multi-target scenario ``sc`` read from a bag (module docstring): ``topics`` are
+    ``(topic, camera node, converter or None)``; times are seconds after ``origin_ns`` (default: the
+    earliest stamp of the topics), up to the scenario's duration."""
+    from dfusion.bags.tf import TF_STATIC
+    from dfusion.sim.track_replay import truth_tracks
+
+    dtopics = [detection_topic(sc, t, n, f) for t, n, f in topics]
+    if not dtopics:
+        raise ValidationError("a replay of a multi-target scenario needs at least one --topic TOPIC=CAMERA_NODE")
+    if not isinstance(bag, Bag):
+        bag = read_bag(bag, [o.topic for o in dtopics] + list(truth_topics), optional=[TF_STATIC], msgdefs=msgdefs)
+    names = [o.topic for o in dtopics] + list(truth_topics)
+    if origin_ns is None:
+        origin_ns = min((m.stamp_ns for m in bag.messages if m.topic in names), default=bag.origin_ns)
+    truth = truth_tracks(bag, truth_topics, frame, origin_ns) if truth_topics else {}
+    times = np.round(sc.dt * np.arange(sc.steps + 1), 9)
+    world = TargetWorld(times, [], TruthPaths(truth), counts=ScanCounts())
+    for node, scan in scans_from_bag(bag, dtopics, frame=frame, origin_ns=origin_ns, duration=sc.duration,
+                                     counts=world.counts):
+        world.frames.append(NodeFrame(float(scan.time), node, scan))
+        world.detections += len(scan.detections)
+    world.frames.sort(key=lambda f: (f.t, f.node))
+    return world

@@ -98,3 +98,51 @@ def test_dfusion_simulate_runs_a_multi_target_scenario_and_writes_json(tmp_path,
     assert data["kind"] == "multi_target" and set(data["nodes"]) == {"cam_e", "cam_w", "wsn"}
     assert data["steps"] == 30 and len(data["series"]["cam_w"]) == 30
     assert main(["simulate", str(path), "--duration", "1", "-q", "--csv", str(tmp_path / "x.csv")]) == 2
+
+
+def test_replay_of_a_pose_array_bag_into_the_scenario_gives_what_simulate_gives(tmp_path, capsys):
+    """The cameras' detections of a simulated world written as PoseArray messages (one topic per
+    camera) and the truth as PoseStamped per target: ``dfusion replay SCENARIO BAG`` tracks them as
+    ``simulate`` does with the same detections (the tag readings, which are not in the bag, left out)."""
+    from dataclasses import replace
+
+    from tests.helpers.bags import ns, pose_msg, write_bag
+
+    from dfusion.sim.target_world import simulate_targets
+
+    origin = 1_700_000_000_000_000_000
+    text = MULTI.replace("duration = 12.0", "duration = 6.0").replace('meets = "ann"\n', "")
+    sc = load_scenario(write(tmp_path, text))
+    world = simulate_targets(sc)
+    recs = []
+    for f in world.frames:
+        if f.scan is None:
+            continue
+        pts = f.scan.detections.copy()
+        recs.append((f"/{f.node}/people", "geometry_msgs/msg/PoseArray", ns(f.t, origin),
+                     lambda T, h, pts=pts: T.geometry_msgs__msg__PoseArray(
+                         header=h, poses=[pose_msg(T, x, y, 0.0) for x, y in pts])))
+    for name, (ts, xy) in world.truth.paths.items():
+        recs += [(f"/truth/{name}", "geometry_msgs/msg/PoseStamped", ns(t, origin),
+                  lambda T, h, p=p: T.geometry_msgs__msg__PoseStamped(header=h, pose=pose_msg(T, p[0], p[1], 0.0)))
+                 for t, p in zip(ts, xy)]
+    bag = write_bag(tmp_path / "people", "mcap", recs)
+    out = tmp_path / "replay.json"
+    argv = ["replay", str(tmp_path / "s.scenario.toml"), str(bag), "--topic", "/cam_w/people=cam_w",
+            "--topic", "/cam_e/people=cam_e", "-q", "--json", str(out)]
+    argv += [a for name in world.truth.paths for a in ("--truth", f"/truth/{name}")]
+    assert main(argv) == 0
+    assert "read 122 scans" in capsys.readouterr().out
+    replayed = json.loads(out.read_text())
+    # the same world without the tag readings, simulated
+    cameras_only = replace(world, frames=[f for f in world.frames if f.scan is not None],
+                           truth=type(world.truth)({f"/truth/{n}": p for n, p in world.truth.paths.items()}))
+    simulated = run_tracking_scenario(sc, world=cameras_only).metrics
+    for node in ("cam_w", "cam_e", "wsn", CENTRAL):
+        a = replayed["nodes"].get(node, replayed["central"] if node == CENTRAL else None)
+        b = simulated["nodes"].get(node, simulated["central"] if node == CENTRAL else None)
+        assert abs(a["gospa"]["mean"] - b["gospa"]["mean"]) <= 1e-6 and a["idf1"] == b["idf1"], (node, a, b)
+        assert a["switches"] == b["switches"] and a.get("births") == b.get("births"), (node, a, b)
+    assert replayed["nodes"]["cam_w"]["gospa"]["mean"] < 1.5
+    assert main(argv[:-2 * len(world.truth.paths)]) == 2          # no --truth: refused in one line
+    assert "needs --truth" in capsys.readouterr().err
