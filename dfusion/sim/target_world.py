@@ -36,7 +36,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from dfusion.bags.detections import DetectionTopic
-from dfusion.bags.reader import Bag, read_bag
+from dfusion.bags.reader import Bag
 from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 from dfusion.scenario.spec import NodeSpec, Scenario
@@ -183,17 +183,12 @@ def world_from_bag(sc: Scenario, bag: str | Path | Bag, topics: Sequence[tuple[s
     """The world of multi-target scenario ``sc`` read from a bag (module docstring): ``topics`` are
     ``(topic, camera node, converter or None)``; times are seconds after ``origin_ns`` (default: the
     earliest stamp of the topics), up to the scenario's duration."""
-    from dfusion.bags.tf import TF_STATIC
-    from dfusion.sim.track_replay import truth_tracks
+    from dfusion.sim.track_replay import open_detection_bag, truth_tracks
 
     dtopics = [detection_topic(sc, t, n, f) for t, n, f in topics]
     if not dtopics:
         raise ValidationError("a replay of a multi-target scenario needs at least one --topic TOPIC=CAMERA_NODE")
-    if not isinstance(bag, Bag):
-        bag = read_bag(bag, [o.topic for o in dtopics] + list(truth_topics), optional=[TF_STATIC], msgdefs=msgdefs)
-    names = [o.topic for o in dtopics] + list(truth_topics)
-    if origin_ns is None:
-        origin_ns = min((m.stamp_ns for m in bag.messages if m.topic in names), default=bag.origin_ns)
+    bag, origin_ns = open_detection_bag(bag, dtopics, truth_topics, origin_ns, msgdefs=msgdefs)
     truth = truth_tracks(bag, truth_topics, frame, origin_ns) if truth_topics else {}
     times = np.round(sc.dt * np.arange(sc.steps + 1), 9)
     world = TargetWorld(times, [], TruthPaths(truth), counts=ScanCounts())

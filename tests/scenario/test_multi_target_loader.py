@@ -165,3 +165,9 @@ def test_the_multi_target_sensor_kinds_belong_to_multi_target_scenarios(tmp_path
     assert "sensor 'detections' belongs to a multi-target scenario" in msg, msg
     msg = error_of(write(tmp_path, MULTI.replace('[[targets]]\nname = "ann"', '[[targetz]]\nname = "ann"', 1)))
     assert "[[targetz]]: unknown table (did you mean" in msg, msg
+
+
+def test_a_run_shortened_to_before_a_rendezvous_leaves_it_out_with_a_warning(tmp_path):
+    sc = load_scenario(write(tmp_path, MULTI), duration=3.0)
+    assert sc.rendezvous == [] and any("rob comes no closer than" in w and "left out" in w for w in sc.warnings)
+    assert sc.targets[0].leave == 3.0
