@@ -9,8 +9,8 @@ The world is :func:`dfusion.sim.target_world.simulate_targets`'s. Every step ``t
    :meth:`TrackingNode.observe` with the target's identity (:func:`~dfusion.scenario.targets.tag_track_id`,
    born when the target appears; if the network merged that track into another, the reading
    goes to the survivor; if it was deleted, the tag starts over under the next serial, born at
-   the reading). A reader that creates a tag's track adds, as its own information at the birth,
-   the initiator's velocity prior ``N(0, velocity_std^2 I)`` (``tracking.initiator.velocity_std``:
+   the reading). A reader that creates a tag's track adds, as its own information at that first
+   reading, the initiator's velocity prior ``N(0, velocity_std^2 I)`` (``tracking.initiator.velocity_std``:
    what is known of a person's walking speed), as the initiator does for a track it starts;
    without it one reading leaves the velocity at the broad common prior's 100 m/s;
 2. the bundles that have arrived by ``t`` are received;
@@ -216,7 +216,7 @@ def run_tracking_scenario(sc: Scenario, *, world: TargetWorld | None = None, pro
                 new = tid not in node.tracks
                 node.observe(tid, f.t, r.z, sc.nodes[f.node].sensor, born=born)
                 if new and velocity_prior is not None:   # what the reader knows of a target's speed
-                    node.tracks[tid].add_local_information(born, velocity_prior, np.zeros(4))
+                    node.tracks[tid].add_local_information(f.t, velocity_prior, np.zeros(4))
             c1 = time.process_time()
             if f.scan is not None:
                 central.step(f.scan)
