@@ -11,7 +11,7 @@ network label agreement (:func:`label_agreement`); see ``docs/multi-target.md``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Hashable, Sequence
 
 import numpy as np
@@ -134,7 +134,8 @@ class IdentityMetrics:
       the number of frames in which they are within the threshold;
       ``IDF1 = 2 IDTP / (truth count + track count)``.
 
-    Counts are over (object, frame) pairs.
+    Counts are over (object, frame) pairs; ``switches_by_truth`` gives the switches of each
+    truth identity (those with none are absent).
     """
 
     mota: float
@@ -146,6 +147,7 @@ class IdentityMetrics:
     matches: int
     truth_count: int
     track_count: int
+    switches_by_truth: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -199,6 +201,7 @@ def clear_mot_matches(frames: Sequence[TrackingFrame], threshold: float = 1.0) -
 def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) -> IdentityMetrics:
     """CLEAR MOT (MOTA, MOTP, switches) and IDF1 of ``frames``; pairs match within ``threshold`` (see :class:`IdentityMetrics`)."""
     matched = clear_mot_matches(frames, threshold)
+    by_truth: dict[Hashable, int] = {}
     switches = misses = fps = matches = n_truth = n_tracks = 0
     dist_sum = 0.0
     co: dict[tuple[Hashable, Hashable], int] = {}
@@ -219,6 +222,9 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
                 key = (gids[i], hids[j])
                 co[key] = co.get(key, 0) + 1
         switches += sum(p.switched for p in pairs)
+        for p in pairs:
+            if p.switched:
+                by_truth[p.truth_id] = by_truth.get(p.truth_id, 0) + 1
         dist_sum += sum(p.distance for p in pairs)
         matches += len(pairs)
         misses += len(gids) - len(pairs)
@@ -240,7 +246,7 @@ def identity_metrics(frames: Sequence[TrackingFrame], threshold: float = 1.0) ->
         motp=dist_sum / matches if matches else float("nan"),
         idf1=2.0 * idtp / total if total else 1.0,
         switches=int(switches), misses=int(misses), false_positives=int(fps), matches=int(matches),
-        truth_count=int(n_truth), track_count=int(n_tracks))
+        truth_count=int(n_truth), track_count=int(n_tracks), switches_by_truth=by_truth)
 
 
 _NONE = object()

@@ -70,6 +70,7 @@ def test_identity_metrics_agree_with_motmetrics():
     import motmetrics as mm          # the independent reference (in the test extra)
 
     rng = np.random.default_rng(0)
+    switched = 0
     for _ in range(40):
         frames, acc = [], mm.MOTAccumulator(auto_id=True)
         G, H = int(rng.integers(1, 6)), int(rng.integers(1, 7))
@@ -90,6 +91,11 @@ def test_identity_metrics_agree_with_motmetrics():
         assert ours.idf1 == pytest.approx(ref.idf1)
         assert (ours.switches, ours.misses, ours.false_positives) == (ref.num_switches, ref.num_misses,
                                                                       ref.num_false_positives)
+        ev = acc.mot_events                                   # per truth: motmetrics' SWITCH events
+        per_truth = ev[ev.Type == "SWITCH"].OId.value_counts().to_dict()
+        assert ours.switches_by_truth == {int(g): int(n) for g, n in per_truth.items()}
+        switched += ours.switches
+    assert switched > 0                                       # the sequences do switch
 
 
 def test_label_agreement_of_a_hand_computed_example():

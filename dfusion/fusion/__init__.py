@@ -1,4 +1,4 @@
-"""Decentralized fusion: channel filters, fusion nodes, the consistency test of neighbours' information and the tree rule for links that change."""
+"""Decentralized fusion: channel filters, fusion nodes (one target; many targets: TrackingNode), the consistency test of neighbours' information and the tree rule for links that change."""
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -10,6 +10,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.fusion.guard import GuardConfig, LinkRecord, NeighbourGuard, information_statistic, split_blocks
     from dfusion.fusion.node import FusionNode
     from dfusion.fusion.stats import NodeStats
+    from dfusion.fusion.tracking_node import TrackingNode, TrackingStats, TrackPrior
     from dfusion.fusion.tree import SpanningTree, TreeChange, TreeEpoch
 
 __all__ = [
@@ -22,6 +23,9 @@ __all__ = [
     "ChannelFilter",
     "NodeStats",
     "FusionNode",
+    "TrackingNode",
+    "TrackingStats",
+    "TrackPrior",
     "SpanningTree",
     "TreeEpoch",
     "TreeChange",
@@ -41,6 +45,9 @@ _WHERE = {
     "time_key": ("dfusion.fusion.channel", 'time_key'),
     "time_keys": ("dfusion.fusion.channel", 'time_keys'),
     "FusionNode": ("dfusion.fusion.node", 'FusionNode'),
+    "TrackingNode": ("dfusion.fusion.tracking_node", 'TrackingNode'),
+    "TrackingStats": ("dfusion.fusion.tracking_node", 'TrackingStats'),
+    "TrackPrior": ("dfusion.fusion.tracking_node", 'TrackPrior'),
     "NodeStats": ("dfusion.fusion.stats", 'NodeStats'),
     "SpanningTree": ("dfusion.fusion.tree", 'SpanningTree'),
     "TreeEpoch": ("dfusion.fusion.tree", 'TreeEpoch'),

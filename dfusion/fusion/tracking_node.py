@@ -56,7 +56,8 @@ every node that hears deletes it too. The deleter sees the fused track (its esti
 **Ends are reliable.** An end is sent to every neighbour in the next bundle, and again to a
 neighbour whenever it sends a message for an ended track (it missed the news); messages for an
 ended track are otherwise ignored (``stats.ended_track_messages``). Ends are remembered for
-``ended_for`` seconds of the node's clock.
+``ended_for`` seconds of the node's clock, at most ``16 max_tracks`` of them (the oldest
+are forgotten first: ``stats.ends_forgotten``).
 
 **Bounds.** At most ``max_tracks`` tracks (a message that would start more is not fused for
 those tracks: ``stats.tracks_refused``); bundles of at most ``max_message_bytes`` (a send that
@@ -129,6 +130,7 @@ class TrackingStats:
     ended_track_messages: int = 0      # per-track messages for tracks that had ended (ignored)
     tracks_refused: int = 0            # tracks not started because of max_tracks
     merge_outside_window: int = 0      # own blocks of a merged track older than the survivor's window
+    ends_forgotten: int = 0            # ends dropped before ended_for because more than max_ended were held
     bundles_sent: int = 0
     bytes_sent: int = 0
     bundles_received: int = 0
@@ -233,6 +235,8 @@ class TrackingNode:
         self.frame_key = None if network_key is None else FrameKey(bytes(network_key), network, run)
         self.max_tracks, self.max_message_bytes = max_tracks, int(max_message_bytes)
         self.ended_for = float(ended_for)
+        #: Most ends remembered (the oldest are forgotten first).
+        self.max_ended = 16 * max_tracks
         self._track_options = dict(window=window, horizon=horizon, max_ahead=max_ahead, hold=hold,
                                    max_message_bytes=self.max_message_bytes, log_interval=log_interval)
         self.issuer = IdentityIssuer(name)
@@ -372,6 +376,12 @@ class TrackingNode:
     # ------------------------------------------------------------------------- ends of tracks
     def _record_end(self, end: TrackEnd) -> None:
         self.ended[end.track] = (end, self.time if self.time is not None else end.at)
+        if len(self.ended) > self.max_ended:   # the oldest ends go first (a flood of ends cannot grow a node)
+            for tid in list(self.ended)[:len(self.ended) - self.max_ended]:
+                del self.ended[tid]
+                for pending in self._announce.values():
+                    pending.pop(tid, None)
+                self.stats.ends_forgotten += 1
         for j in self.links:
             self._announce.setdefault(j, {})[end.track] = end
 

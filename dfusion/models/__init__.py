@@ -11,7 +11,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.models.camera import MountedCamera, PinholeCamera, SceneCamera
     from dfusion.models.laser import BeamErfcModel, LaserConfig, LaserScanSensor, LikelihoodFieldModel
     from dfusion.models.measurement import LandmarkRangeBearing, PositionFix, PositionSensor, RangeBearing, RSSISensor, TargetRangeBearing, fit_path_loss
-    from dfusion.models.motion import ConstantVelocity, Unicycle
+    from dfusion.models.motion import ConstantVelocity, MeanRevertingVelocity, Unicycle
     from dfusion.models.odometry import OdometryMotionModel, VelocityOdometry, odometry_increment
 
 __all__ = [
@@ -43,6 +43,7 @@ __all__ = [
     "TargetRangeBearing",
     "PositionFix",
     "ConstantVelocity",
+    "MeanRevertingVelocity",
     "Unicycle",
     "OdometryMotionModel",
     "VelocityOdometry",
@@ -78,6 +79,7 @@ _WHERE = {
     "TargetRangeBearing": ("dfusion.models.measurement", 'TargetRangeBearing'),
     "fit_path_loss": ("dfusion.models.measurement", 'fit_path_loss'),
     "ConstantVelocity": ("dfusion.models.motion", 'ConstantVelocity'),
+    "MeanRevertingVelocity": ("dfusion.models.motion", 'MeanRevertingVelocity'),
     "Unicycle": ("dfusion.models.motion", 'Unicycle'),
     "OdometryMotionModel": ("dfusion.models.odometry", 'OdometryMotionModel'),
     "VelocityOdometry": ("dfusion.models.odometry", 'VelocityOdometry'),

@@ -9,6 +9,25 @@ Navigation*, 2001, sec. 6.2.2). State ``[p_1..p_d, v_1..v_d]``::
 
 with ``q`` the power spectral density of the acceleration noise (m^2/s^3).
 
+``MeanRevertingVelocity``: the velocity is an Ornstein-Uhlenbeck process, ``dv = -v/tau dt
++ sqrt(q) dW`` per axis, with stationary standard deviation ``sigma`` (``q = 2 sigma^2 /
+tau``): Singer's model (R. A. Singer, "Estimating optimal tracking filter performance for
+manned maneuvering targets", IEEE Trans. AES 6(4), 1970; Bar-Shalom, Li & Kirubarajan 2001,
+sec. 8.2.3) one derivative lower. A target whose direction of motion decorrelates within
+``tau`` seconds (a robot that keeps turning) and that is not seen for a long time: the
+predicted mean stops after about ``tau`` instead of drifting on with the last velocity,
+and the position variance grows like a random walk's, ``2 sigma^2 tau dt``, not like
+``sigma_v^2 dt^2``. With ``a = exp(-dt/tau)``, per axis::
+
+    F(dt) = [[1, tau (1 - a)], [0, a]]
+    Q(dt) = q [[tau^3/2 (2 dt/tau - 3 + 4a - a^2), tau^2/2 (1 - a)^2],
+               [tau^2/2 (1 - a)^2,                  tau/2 (1 - a^2)]]
+
+(the integrals ``int_0^dt e^{A s} B q B^T e^{A^T s} ds`` of the linear SDE with ``A = [[0, 1],
+[0, -1/tau]]``; for ``dt/tau < 1e-2`` the position term is its series ``q (dt^3/3 - dt^4/(4
+tau) + 7 dt^5/(60 tau^2) - dt^6/(24 tau^3))``, which avoids the cancellation; ``tau -> inf`` is the
+constant-velocity model).
+
 ``Unicycle``: planar unicycle ``(x, y, theta)`` driven by velocity odometry
 ``u = (v, omega)``, integrated exactly along circular arcs, with control-noise
 process covariance (Thrun, Burgard & Fox, *Probabilistic Robotics*, 2005,
@@ -66,6 +85,59 @@ class ConstantVelocity(MotionModel):
         Q[i, i] = self.q * dt**3 / 3.0
         Q[i, i + d] = Q[i + d, i] = self.q * dt**2 / 2.0
         Q[i + d, i + d] = self.q * dt
+        return Q
+
+
+class MeanRevertingVelocity(MotionModel):
+    """Position and an Ornstein-Uhlenbeck velocity in ``dim`` (1-3) dimensions (module docstring).
+
+    Parameters
+    ----------
+    dim : number of position axes; the state is ``[p_1..p_d, v_1..v_d]`` (as :class:`ConstantVelocity`).
+    sigma : stationary standard deviation of each velocity component (m/s), ``> 0``.
+    tau : velocity correlation time (s), ``> 0``.
+    """
+
+    is_linear = True
+
+    def __init__(self, dim: int = 2, sigma: float = 0.05, tau: float = 5.0) -> None:
+        if dim not in (1, 2, 3):
+            raise ShapeError(f"MeanRevertingVelocity dim must be 1, 2 or 3, got {dim}")
+        self.axes = int(dim)
+        self.dim = 2 * self.axes
+        self.sigma = _positive(sigma, "MeanRevertingVelocity sigma")
+        self.tau = _positive(tau, "MeanRevertingVelocity tau")
+        self.q = 2.0 * self.sigma**2 / self.tau
+
+    def __repr__(self) -> str:
+        return f"MeanRevertingVelocity(dim={self.axes}, sigma={self.sigma}, tau={self.tau})"
+
+    def F(self, dt: float, x: Array | None = None, u: Array | None = None) -> Array:
+        d = self.axes
+        a = float(np.exp(-dt / self.tau))
+        F = np.eye(self.dim)
+        F[:d, d:] = -self.tau * float(np.expm1(-dt / self.tau)) * np.eye(d)
+        F[d:, d:] = a * np.eye(d)
+        return F
+
+    def f(self, x: Array, dt: float, u: Array | None = None) -> Array:
+        return self.F(dt) @ np.asarray(x, dtype=float)
+
+    def Q(self, dt: float, x: Array | None = None, u: Array | None = None) -> Array:
+        d, q, tau = self.axes, self.q, self.tau
+        r = dt / tau
+        b = -float(np.expm1(-r))                     # 1 - a, accurate for small r
+        if r < 1e-2:
+            pp = q * (dt**3 / 3.0 - dt**4 / (4.0 * tau) + 7.0 * dt**5 / (60.0 * tau**2) - dt**6 / (24.0 * tau**3))
+        else:
+            pp = q * tau**3 / 2.0 * (2.0 * r - 2.0 * b - b * b)    # 2r - 3 + 4a - a^2 with a = 1 - b
+        pv = q * tau**2 / 2.0 * b * b
+        vv = q * tau / 2.0 * b * (2.0 - b)           # 1 - a^2 = b (2 - b)
+        Q = np.zeros((self.dim, self.dim))
+        i = np.arange(d)
+        Q[i, i] = pp
+        Q[i, i + d] = Q[i + d, i] = pv
+        Q[i + d, i + d] = vv
         return Q
 
 

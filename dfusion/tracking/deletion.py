@@ -16,6 +16,7 @@ r"""Deleters: when a confirmed track ends.
   scan, where the rules above wait for several; a track whose estimate overshoots the
   border while its target, just inside, is still detected is kept.
 * :class:`AnyDeleter`: when any of its deleters says so.
+* :class:`NoDeleter`: never (a team of known size whose members never leave).
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 from dfusion.tracking.track import Track
 
-__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "RegionDeleter", "AnyDeleter"]
+__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "RegionDeleter", "AnyDeleter", "NoDeleter"]
 
 
 class Deleter(ABC):
@@ -108,3 +109,10 @@ class AnyDeleter(Deleter):
 
     def should_delete(self, track: Track) -> bool:
         return any(d.should_delete(track) for d in self.deleters)
+
+
+class NoDeleter(Deleter):
+    """Never delete: the targets are a team of known size that stays (e.g. the MRCLAM robots)."""
+
+    def should_delete(self, track: Track) -> bool:
+        return False

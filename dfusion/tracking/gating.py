@@ -18,6 +18,11 @@ a track with ``P_D,t = 0`` takes no part). These are the single-target
 PDA's terms (:mod:`dfusion.estimation.pda`: ``b / e_i`` is ``g_t0 / g_tj``), computed by the
 PDA's own :func:`~dfusion.estimation.pda.frame_innovations`. ``lambda = 0``
 is floored at ``1e-300`` (then a gated detection is always taken).
+
+**Per-detection noise.** When the scan gives each detection its own covariance ``R_j``
+(:attr:`~dfusion.tracking.track.Scan.noise`), the innovation covariance is per pair,
+``S_tj = H_t P^_t H_t^T + R_j``, and ``d_tj^2`` and ``g_tj`` use it (the same Gaussian
+likelihood, with the pair's own ``S``); :attr:`Hypotheses.pair_S` holds them.
 """
 from __future__ import annotations
 
@@ -29,7 +34,7 @@ from typing import Sequence
 import numpy as np
 
 from dfusion.estimation.pda import frame_innovations, gate_threshold
-from dfusion.linalg import Array
+from dfusion.linalg import Array, cholesky, symmetrize
 from dfusion.tracking.track import Scan, Track
 
 __all__ = ["Hypotheses", "Hypothesiser", "GaussianHypothesiser"]
@@ -53,6 +58,9 @@ class Hypotheses:
     detection : (T,) ``P_D,t`` (0 for a track out of view).
     visibility : (T,) probability that each track is in the scan's view.
     gamma : the gate.
+    pair_S : (T, k, m, m) ``S_tj = H_t P^_t H_t^T + R_j`` when the scan gives per-detection noise
+             (``S`` then holds ``H_t P^_t H_t^T + sensor.R``, unused); ``None`` otherwise.
+    noise : (k, m, m) the scan's per-detection ``R_j``, or ``None``.
     """
 
     means: list[Array]
@@ -67,6 +75,8 @@ class Hypotheses:
     detection: Array
     visibility: Array
     gamma: float
+    pair_S: Array | None = None
+    noise: Array | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -82,11 +92,23 @@ class Hypothesiser(ABC):
 
 
 class GaussianHypothesiser(Hypothesiser):
-    """Gaussian likelihoods and a chi-square gate of probability ``gate`` (module docstring)."""
+    """Gaussian likelihoods and a chi-square gate of probability ``gate`` (module docstring).
 
-    def __init__(self, gate: float = 0.99) -> None:
+    ``detections_in_view=True``: the detection weight is ``g_tj = P_D N(nu_tj; 0, S_tj)`` for
+    every track with a non-zero view probability ``v_t``, and ``v_t`` enters only the miss
+    weight ``lambda (1 - P_D v_t P_G)``. With a view-limited detection probability
+    ``P_D(x) = P_D 1_view(x)``, the likelihood of a detection at ``z`` is
+    ``int P_D 1_view(x) N(z; Hx, R) N(x; x^, P^) dx``, which is ``P_D N(z; Hx^, S)`` when the
+    noise is small against the view (``1_view(x) = 1_view(z) = 1`` where the integrand
+    matters), whereas the default ``P_D v_t N(...)`` underweights a track whose estimate is
+    wide against the view (a robot not seen for a long time, ``v_t << 1``) below clutter.
+    Default ``False`` (``P_D v_t`` in both weights: the plaza benchmark's setting).
+    """
+
+    def __init__(self, gate: float = 0.99, *, detections_in_view: bool = False) -> None:
         gate_threshold(gate)
         self.gate = float(gate)
+        self.detections_in_view = bool(detections_in_view)
 
     def hypothesise(self, tracks: Sequence[Track], scan: Scan) -> Hypotheses:
         sensor = scan.sensor
@@ -102,6 +124,7 @@ class GaussianHypothesiser(Hypothesiser):
         log_miss = np.zeros(T)
         pd = np.zeros(T)
         vis = np.zeros(T)
+        pair_S = None if scan.noise is None else np.zeros((T, k, m, m))
         for t, track in enumerate(tracks):
             x, P = track.estimate()
             fi = frame_innovations(x, P, Z, sensor)   # H, S, nu_tj, d_tj^2: the PDA's
@@ -115,9 +138,22 @@ class GaussianHypothesiser(Hypothesiser):
             log_miss[t] = log_density + math.log(miss) if miss > 0 else -np.inf
             if k == 0:
                 continue
-            d2[t] = fi.d2
             nus[t] = fi.innovations
+            if pair_S is None:
+                d2[t] = fi.d2
+                log_norm = np.full(k, fi.log_norm)
+            else:                                      # S_tj = H P^ H^T + R_j per detection
+                HPH = fi.S - np.asarray(sensor.R, dtype=float)
+                log_norm = np.empty(k)
+                for j in range(k):
+                    Sj = symmetrize(HPH + scan.noise[j])
+                    pair_S[t, j] = Sj
+                    C = cholesky(Sj, "innovation covariance S")
+                    w = np.linalg.solve(C, fi.innovations[j])
+                    d2[t, j] = float(w @ w)
+                    log_norm[j] = -0.5 * m * math.log(2.0 * math.pi) - float(np.sum(np.log(np.diag(C))))
             if pd[t] > 0:
-                logw[t] = np.where(d2[t] <= gamma, math.log(pd[t]) + fi.log_norm - 0.5 * d2[t], -np.inf)
+                p_det = scan.detection_probability if self.detections_in_view else pd[t]
+                logw[t] = np.where(d2[t] <= gamma, math.log(p_det) + log_norm - 0.5 * d2[t], -np.inf)
         gated = np.isfinite(logw)
-        return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, vis, gamma)
+        return Hypotheses(means, covs, Hs, Ss, nus, d2, gated, logw, log_miss, pd, vis, gamma, pair_S, scan.noise)

@@ -43,7 +43,7 @@ from dfusion.tracking.association import GNN
 from dfusion.tracking.gating import GaussianHypothesiser
 from dfusion.tracking.track import IdentityIssuer, Scan, Track
 
-__all__ = ["Initiator", "MofNInitiator", "two_point_state"]
+__all__ = ["Initiator", "MofNInitiator", "NoInitiator", "two_point_state"]
 
 
 class Initiator(ABC):
@@ -58,6 +58,19 @@ class Initiator(ABC):
     @abstractmethod
     def tentative(self) -> list[Track]:
         """Tracks being initiated (not confirmed yet)."""
+
+
+class NoInitiator(Initiator):
+    """Starts no track: the tracks are given (:meth:`~dfusion.tracking.MultiTargetTracker.add_track`),
+    e.g. a team of known size started from known positions; a detection no track takes is
+    treated as clutter."""
+
+    def initiate(self, scan: Scan, detections: Array, issuer: IdentityIssuer) -> list[Track]:
+        return []
+
+    @property
+    def tentative(self) -> list[Track]:
+        return []
 
 
 def _position_axes(sensor: MeasurementModel, n: int) -> int:
@@ -132,6 +145,9 @@ class MofNInitiator(Initiator):
 
     def initiate(self, scan: Scan, detections: Array, issuer: IdentityIssuer) -> list[Track]:
         _position_axes(scan.sensor, self.motion.dim)
+        if scan.noise is not None:
+            raise ValidationError("MofNInitiator needs one noise covariance for all detections of a scan "
+                                  "(a scan with per-detection noise is not supported yet)")
         Z = np.asarray(detections, dtype=float).reshape(-1, int(scan.sensor.dim_z))
         if self.candidate_ids is None:
             self.candidate_ids = IdentityIssuer(issuer.origin + "~tentative")

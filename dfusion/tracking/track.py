@@ -134,6 +134,11 @@ class Scan:
               track's detection probability is ``P_D`` times it, and a scan without a detection
               counts as a miss only when it is at least 1/2 (a target near the edge of a view
               is not missed by a camera that probably does not see it).
+    noise : optional (k, m, m) measurement noise covariance of each detection, replacing
+              ``sensor.R`` for that detection (a sensor whose detections differ in accuracy, e.g.
+              range-bearing sightings converted to world-frame positions, whose covariance grows
+              with the range and the observer's pose uncertainty:
+              :func:`dfusion.tracking.sightings.sightings_scan`). ``None``: ``sensor.R`` for all.
     """
 
     time: float
@@ -144,6 +149,7 @@ class Scan:
     in_view: Callable[[Array], bool] | None = None
     source: str = ""
     view_probability: Callable[[Array, Array], float] | None = None
+    noise: Array | None = None
 
     def __post_init__(self) -> None:
         m = int(self.sensor.dim_z)
@@ -161,6 +167,24 @@ class Scan:
         if not (0.0 <= self.detection_probability <= 1.0):
             raise ValidationError(f"detection probability must be in [0, 1], got {self.detection_probability!r}")
         object.__setattr__(self, "detections", z)
+        if self.noise is not None:
+            R = np.asarray(self.noise, dtype=float)
+            if R.size == 0 and z.shape[0] == 0:
+                R = np.zeros((0, m, m))
+            if R.shape != (z.shape[0], m, m):
+                raise ShapeError(f"scan noise must be ({z.shape[0]}, {m}, {m}) (one covariance per detection), "
+                                 f"got shape {R.shape}")
+            if not np.all(np.isfinite(R)):
+                raise ValidationError("scan noise covariances must be finite")
+            if not np.allclose(R, np.swapaxes(R, 1, 2), rtol=1e-9, atol=1e-12):
+                raise ValidationError("scan noise covariances must be symmetric")
+            object.__setattr__(self, "noise", 0.5 * (R + np.swapaxes(R, 1, 2)))
+
+    def detection_noise(self, j: int) -> Array:
+        """The noise covariance of detection ``j``: ``noise[j]``, or ``sensor.R`` when the scan has no ``noise``."""
+        if self.noise is None:
+            return np.asarray(self.sensor.R, dtype=float)
+        return self.noise[j]
 
     def sees(self, x: ArrayLike) -> bool:
         """Whether a target at state ``x`` is in this scan's view."""

@@ -13,11 +13,18 @@ the test statistic of the hypothesis that both estimate one position (Bar-Shalom
 Tian, *Tracking and Data Fusion*, 2011, sec. 9.2 "track-to-track association"; with the
 cross-covariance of the two estimates taken as zero: the tracks of one person hold disjoint
 measurements and share only the broad common prior, so ``P_i + P_j`` slightly overstates
-the covariance of the difference and the test is conservative). A pair is *close* when
-``d^2 <= chi2_{gate}(dim)`` and the positions are within ``max_distance`` metres.
+the covariance of the difference and the test is conservative). Over ``N = confirm``
+consecutive checks at which the positions are within ``max_distance`` metres, the pair is
+one target when
 
-**Rule.** A pair is declared one target when it has been close at ``confirm``
-consecutive checks and was never seen *distinct* in that time: two tracks that both took
+.. math:: \sum_{k=1}^{N} d_k^2 \le \chi^2_{gate}(N \cdot dim)
+
+the same test on the stacked differences of ``N`` checks (taken as independent: a
+sequential test over a window, sec. 9.2's "track history"), which one unlucky check does not
+break as a test of every check alone would.
+
+**Rule.** A pair is declared one target when the windowed test above passes and it was never
+seen *distinct* in that time: two tracks that both took
 a detection of one scan of one sensor are two targets (a sensor sees a target once per
 scan), and such a pair is not merged for ``distinct_for`` seconds. The pairs found are
 returned in a deterministic order; which of the two survives is the node's rule
@@ -43,7 +50,7 @@ class TrackToTrackAssociator:
     Parameters
     ----------
     gate : probability of the chi-square gate on ``d^2`` (position axes).
-    confirm : consecutive close checks before a pair is declared one target.
+    confirm : consecutive checks (within ``max_distance``) of the windowed test.
     max_distance : largest distance (m) between the two position estimates of a pair.
     distinct_for : seconds a pair seen distinct (both detected in one scan) is not merged.
     axes : position axes of the state (the first ``axes`` components).
@@ -60,8 +67,8 @@ class TrackToTrackAssociator:
                 raise ValidationError(f"{name} must be finite and >= 0, got {v!r}")
         self.gate, self.confirm = float(gate), confirm
         self.max_distance, self.distinct_for, self.axes = float(max_distance), float(distinct_for), int(axes)
-        self.threshold = chi2_isf(1.0 - self.gate, self.axes)
-        self._close: dict[tuple[TrackId, TrackId], int] = {}
+        self.threshold = chi2_isf(1.0 - self.gate, self.axes * self.confirm)
+        self._close: dict[tuple[TrackId, TrackId], list[float]] = {}
         self._distinct: dict[tuple[TrackId, TrackId], float] = {}
 
     def distinct(self, tracks: Iterable[TrackId], t: float) -> None:
@@ -99,13 +106,13 @@ class TrackToTrackAssociator:
             sel = np.flatnonzero(near)
             a, b = iu[0][sel], iu[1][sel]
             d2[sel] = np.einsum("ki,ki->k", diff[a, b], np.linalg.solve(S[a, b], diff[a, b][..., None])[..., 0])
-        close = {(ids[a], ids[b]) for a, b, ok in zip(iu[0], iu[1], d2 <= self.threshold) if ok}
-        counts = {}
-        for pair in close:
-            if pair not in self._distinct:
-                counts[pair] = self._close.get(pair, 0) + 1
-        self._close = counts
-        found = sorted(p for p, c in counts.items() if c >= self.confirm)
+        recent: dict[tuple[TrackId, TrackId], list[float]] = {}
+        for a, b, value in zip(iu[0], iu[1], d2):
+            pair = (ids[a], ids[b])
+            if np.isfinite(value) and pair not in self._distinct:
+                recent[pair] = (self._close.get(pair, []) + [float(value)])[-self.confirm:]
+        self._close = recent
+        found = sorted(p for p, v in recent.items() if len(v) == self.confirm and sum(v) <= self.threshold)
         for p in found:
             del self._close[p]
         return found

@@ -29,7 +29,8 @@ import numpy as np
 from dfusion.errors import TimeError
 from dfusion.estimation.eif import ExtendedInformationFilter
 from dfusion.estimation.pda import PDAResult, pda_information, pda_moments
-from dfusion.linalg import Array
+from dfusion.estimation.gaussian import project_psd_information
+from dfusion.linalg import Array, cholesky, spd_inverse, spd_solve, symmetrize
 from dfusion.models.base import MotionModel
 from dfusion.tracking.association import Association, DataAssociator
 from dfusion.tracking.deletion import Deleter
@@ -56,6 +57,8 @@ def track_update_information(hyp: Hypotheses, assoc: Association, t: int) -> tup
         return None
     beta = assoc.weights[t, used]
     beta0 = float(assoc.miss[t])
+    if hyp.pair_S is not None:
+        return _per_detection_update_information(hyp, t, used, beta, beta0)
     x, P, H, S = hyp.means[t], hyp.covs[t], hyp.H[t], hyp.S[t]
     nus = hyp.innovations[t, used]
     mean, cov = pda_moments(x, P, H, S, nus, beta0, beta)
@@ -63,6 +66,44 @@ def track_update_information(hyp: Hypotheses, assoc: Association, t: int) -> tup
                     float(hyp.detection[t]), hyp.gamma)
     info = pda_information(res)
     return info.info, info.vec
+
+
+def _per_detection_update_information(hyp: Hypotheses, t: int, used: Array, beta: Array,
+                                      beta0: float) -> tuple[Array, Array]:
+    r"""The update factor of track ``t`` when each detection has its own noise ``R_j``.
+
+    One detection with weight 1 (GNN, or a JPDA track with a single sure detection): the
+    Kalman update in information form, ``Lambda = H^T R_j^-1 H``,
+    ``y = H^T R_j^-1 (nu_j + H x^)`` (exact). Otherwise the moments of the mixture
+    ``beta_0 N(x^, P^) + sum_j beta_j N(x^ + K_j nu_j, P^ - K_j S_tj K_j^T)``,
+    ``K_j = P^ H^T S_tj^-1`` (the PDA mixture of :func:`dfusion.estimation.pda_moments` with
+    each detection's own gain; Bar-Shalom, Daum & Huang 2009, eq. 45-47), entered as
+    ``Lambda = P^-1 - P^^-1``, ``y = P^-1 x - P^^-1 x^``, projected onto the positive
+    semi-definite cone (:func:`dfusion.estimation.project_psd_information`): exact when the
+    mixture is narrower than the prediction in every direction, otherwise the directions
+    where it is wider take no information.
+    """
+    x, P, H = hyp.means[t], hyp.covs[t], hyp.H[t]
+    if used.size == 1 and beta0 <= 0.0 and abs(float(beta[0]) - 1.0) <= 1e-12:
+        j = int(used[0])
+        C = cholesky(hyp.noise[j], "detection noise R")
+        AH = np.linalg.solve(C, H)
+        Ar = np.linalg.solve(C, hyp.innovations[t, j] + H @ x)
+        return symmetrize(AH.T @ AH), AH.T @ Ar
+    mean = beta0 * x
+    second = beta0 * (P + np.outer(x, x))
+    for b, j in zip(beta, used):
+        S = hyp.pair_S[t, j]
+        K = spd_solve(S, H @ P, "innovation covariance S").T     # P H^T S^-1
+        xj = x + K @ hyp.innovations[t, j]
+        Pj = symmetrize(P - K @ S @ K.T)
+        mean = mean + b * xj
+        second = second + b * (Pj + np.outer(xj, xj))
+    cov = symmetrize(second - np.outer(mean, mean))
+    Om_post = spd_inverse(cov, "mixture covariance")
+    Om_prior = spd_inverse(P, "predicted covariance")
+    info, vec, _ = project_psd_information(Om_post - Om_prior, Om_post @ mean - Om_prior @ x)
+    return info, vec
 
 
 class MultiTargetTracker:

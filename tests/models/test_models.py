@@ -570,3 +570,30 @@ def test_wrap_angle_range():
     assert np.all((w >= -np.pi) & (w < np.pi))
     np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-12)
     np.testing.assert_allclose(np.sin(w), np.sin(a), atol=1e-9)
+
+
+def test_mean_reverting_velocity_against_van_loan():
+    """F and Q of the Ornstein-Uhlenbeck velocity model against Van Loan's matrix exponential
+    (C. F. Van Loan, "Computing integrals involving the matrix exponential", IEEE TAC 23(3), 1978)
+    of the SDE dx = A x dt + B dW; the constant-velocity model in the limit tau -> inf."""
+    from scipy.linalg import expm
+
+    from dfusion.models import MeanRevertingVelocity
+
+    m = MeanRevertingVelocity(2, sigma=0.05, tau=5.0)
+    A = np.zeros((4, 4))
+    A[0, 2] = A[1, 3] = 1.0
+    A[2, 2] = A[3, 3] = -1.0 / m.tau
+    BQB = np.diag([0.0, 0.0, m.q, m.q])
+    for dt in (1e-4, 0.01, 0.049, 0.051, 1.0, 12.0, 30.0):      # (Van Loan loses accuracy for dt >> tau)
+        M = expm(np.block([[-A, BQB], [np.zeros((4, 4)), A.T]]) * dt)
+        F = M[4:, 4:].T
+        Q = F @ M[:4, 4:]
+        np.testing.assert_allclose(m.F(dt), F, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(m.Q(dt), Q, rtol=1e-8, atol=1e-20)
+    # stationary velocity variance sigma^2; long-run position variance ~ 2 sigma^2 tau dt
+    assert m.Q(1e4)[2, 2] == pytest.approx(0.05**2)
+    assert m.Q(1e4)[0, 0] == pytest.approx(2 * 0.05**2 * 5.0 * 1e4, rel=1e-3)
+    cv, slow = ConstantVelocity(2, 1e-3), MeanRevertingVelocity(2, sigma=math.sqrt(1e-3 * 1e6 / 2), tau=1e6)
+    np.testing.assert_allclose(slow.Q(2.0), cv.Q(2.0), rtol=1e-5)
+    np.testing.assert_allclose(slow.F(2.0), cv.F(2.0), atol=1e-5)
