@@ -269,7 +269,8 @@ def test_two_cameras_that_both_start_a_track_for_each_person_end_with_one_identi
     ids = {n: sorted(str(tid) for tid, _, _ in x.estimates()) for n, x in nodes.items()}
     assert ids["cam1"] == ids["cam2"] and len(ids["cam1"]) == 2, ids
     assert sum(x.stats.births for x in nodes.values()) == 4
-    assert sum(x.stats.merges_decided for x in nodes.values()) >= 1
+    # each node ends both duplicates, by a merge or by starvation (which one depends on timing: a node
+    # compares a track it has just heard of only after one of its own scans bore on it, merge_fresh)
     assert all(x.stats.merges + x.stats.deletions == 2 for x in nodes.values())
     for x in nodes.values():
         for _, mean, P in x.estimates():
