@@ -282,7 +282,11 @@ class MagneticLocalizer:
         ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
         prediction, this resets the reference of :meth:`information_contribution`.
 
-        Particles are first redrawn around the fix (when ``Omega`` is positive definite): the fraction
+        A set started without a prior with ``init_from_radio`` is, at the first definite information, redrawn
+        whole from ``N(Omega^-1 eta, init_inflate^2 Omega^-1)`` restricted to the map's support, at equal
+        weights, and the information is not applied again (it is the proposal: uniform prior times the fix).
+
+        Otherwise particles are first redrawn around the fix (when ``Omega`` is positive definite): the fraction
         ``max(inject, recovery_fraction)`` (:meth:`recovery_fraction`, augmented MCL) of the particles
         with the lowest weights is replaced by draws from ``N(Omega^-1 eta, Omega^-1)`` (heading offset,
         scale and bias from their initial laws) at the mean weight of the set: the mixture proposal of
