@@ -40,7 +40,7 @@ log = logging.getLogger("indoor")
 SETTINGS = dict(
     folds=10,
     map_cell=1.0, map_sigma=1.0, map_n0=2.0,
-    knn_k=4, wifi_max_age=2.0,
+    knn_k=4, knn_missing=-95.0, wifi_max_age=5.0,
     kf_step_var=0.15, kf_init_scale=1.0,
     pf=MagneticPFSettings(),
     track_init_std=1.0,
@@ -125,7 +125,7 @@ class Fold:
                     G.append(i)
         if len(set(G)) < 2:
             return None
-        loc = FingerprintLocalizer(S, np.array(P), np.array(G), k=cfg["knn_k"])
+        loc = FingerprintLocalizer(S, np.array(P), np.array(G), k=cfg["knn_k"], missing=cfg["knn_missing"])
         loc.calibrate()
         return loc
 

@@ -247,6 +247,33 @@ def test_reweight_information_is_the_gaussian_product():
     assert cov == pytest.approx(P1, abs=0.05)
 
 
+def test_global_start_is_redrawn_from_the_first_fix_restricted_to_the_walkable_support():
+    """init_from_radio: a set started without a prior becomes, at the first radio information, draws of
+    N(z, C) restricted to the map's support, at equal weights (the fix is then not applied a second time).
+    Reference: the truncated Gaussian's mean by brute-force summation over a fine grid of the support."""
+    rng = np.random.default_rng(11)
+    p = np.vstack([np.column_stack([rng.uniform(0, 40, 4000), rng.uniform(18, 22, 4000)]),   # an L of
+                   np.column_stack([rng.uniform(18, 22, 4000), rng.uniform(0, 40, 4000)])])  # corridors
+    mp = MagneticMap.build(p, np.full((p.shape[0], 3), 40.0), bounds=(0, 0, 40, 40), cell=0.5, sigma=0.5)
+    loc = MagneticLocalizer(mp, 0.5, 0.0, MagneticPFSettings(n_particles=20000), seed=12)
+    loc.initialize(0.0)
+    assert loc.awaiting_radio
+    z, C = np.array([27.0, 26.0]), np.array([[25.0, 5.0], [5.0, 16.0]])
+    O = np.linalg.inv(C)
+    loc.reweight_information(O @ z, O)
+    assert not loc.awaiting_radio and loc.pf.ess == pytest.approx(loc.pf.n)
+    assert loc.map.on_support(loc.pf.particles[:, :2]).all()
+    g = np.arange(0.05, 40, 0.1)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    inside = mp.support[(X / 0.5).astype(int), (Y / 0.5).astype(int)]
+    d = np.stack([X - z[0], Y - z[1]], axis=-1)
+    dens = np.exp(-0.5 * np.einsum("...i,ij,...j->...", d, O, d)) * inside
+    ref = np.array([(dens * X).sum(), (dens * Y).sum()]) / dens.sum()
+    assert loc.estimate()[0] == pytest.approx(ref, abs=0.1)
+    loc.reweight_information(O @ z, O)  # later information re-weights as before
+    assert loc.pf.ess < 0.9 * loc.pf.n
+
+
 def test_radio_fit_is_the_gaussian_integral():
     """For particles from N(m, P), sum_i w_i exp(-d_i^T Omega d_i / 2) tends to the closed form
     sqrt(det C / det(C + P)) exp(-(m - z)^T (C + P)^-1 (m - z) / 2), C = Omega^-1."""

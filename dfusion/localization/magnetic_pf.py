@@ -67,7 +67,10 @@ class MagneticPFSettings:
     particles :meth:`MagneticLocalizer.reweight_information` redraws around the radio fix;
     ``recover_alpha`` (0: off): significance level of the test of the particle set against the radio track
     (:meth:`MagneticLocalizer.radio_track_test`) below which particles are redrawn from that track;
-    ``redraw_from_track``: every redraw (also augmented MCL's) is from the radio track instead of the latest fix."""
+    ``redraw_from_track``: every redraw (also augmented MCL's) is from the radio track instead of the latest fix;
+    ``init_from_radio``: a set initialized without a prior (global localization) is redrawn, at the first radio
+    information it receives, from that information's Gaussian (covariance times ``init_inflate ** 2``)
+    restricted to the map's support (:meth:`MagneticLocalizer.reweight_information`)."""
 
     n_particles: int = 2000
     sigma_delta: float = np.radians(0.5)
@@ -87,6 +90,8 @@ class MagneticPFSettings:
     recover_fast: float = 0.5
     recover_alpha: float = 0.0
     redraw_from_track: bool = True
+    init_from_radio: bool = True
+    init_inflate: float = 1.0
 
 
 class MagneticLocalizer:
@@ -133,6 +138,24 @@ class MagneticLocalizer:
         self.w_slow = self.w_fast = None
         self.injected = 0
         self.radio_track: tuple[Array, Array] | None = None
+        self.awaiting_radio = mean is None and c.init_from_radio
+
+    def _draw_on_support(self, n: int, mean: Array, cov: Array, rng: np.random.Generator) -> Array:
+        """``n`` particles from ``N(mean, cov)`` restricted to the map's support (the walkable-area prior times
+        the radio likelihood), by rejection in batches of ``n``; topped up by unrestricted draws if 20 batches
+        do not give ``n`` (a fix far from any walked cell)."""
+        keep: list[Array] = []
+        got = 0
+        for _ in range(20):
+            x = self._draw(n, mean, cov, rng)
+            x = x[self.map.on_support(x[:, :2])]
+            keep.append(x)
+            got += x.shape[0]
+            if got >= n:
+                break
+        if got < n:
+            keep.append(self._draw(n - got, mean, cov, rng))
+        return np.vstack(keep)[:n]
 
     def _draw(self, n: int, mean: ArrayLike | None, cov: ArrayLike | None, rng: np.random.Generator) -> Array:
         """``n`` particles: positions from ``N(mean, cov)`` (uniform over the support without a mean),
@@ -259,7 +282,11 @@ class MagneticLocalizer:
         ``(x, y)``; pass only what this node did not contribute itself), then resample if needed. Like a
         prediction, this resets the reference of :meth:`information_contribution`.
 
-        Particles are first redrawn around the fix (when ``Omega`` is positive definite): the fraction
+        A set started without a prior with ``init_from_radio`` is, at the first definite information, redrawn
+        whole from ``N(Omega^-1 eta, init_inflate^2 Omega^-1)`` restricted to the map's support, at equal
+        weights, and the information is not applied again (it is the proposal: uniform prior times the fix).
+
+        Otherwise particles are first redrawn around the fix (when ``Omega`` is positive definite): the fraction
         ``max(inject, recovery_fraction)`` (:meth:`recovery_fraction`, augmented MCL) of the particles
         with the lowest weights is replaced by draws from ``N(Omega^-1 eta, Omega^-1)`` (heading offset,
         scale and bias from their initial laws) at the mean weight of the set: the mixture proposal of
@@ -281,6 +308,13 @@ class MagneticLocalizer:
             C = np.linalg.inv(O)
             C = 0.5 * (C + C.T)
             src = (z, C)
+            if self.awaiting_radio:  # global start: the first radio information becomes the proposal
+                self.awaiting_radio = False
+                pf.set_particles(self._draw_on_support(pf.n, z, self.cfg.init_inflate ** 2 * C, pf.rng))
+                if self.cfg.recover_alpha > 0 or self.cfg.redraw_from_track:
+                    self.radio_track = (z.copy(), C.copy())
+                self._ref = self._fit()
+                return
             k = max(k, int(self.recovery_fraction(self.radio_fit(z, O)) * pf.n))
             if self.cfg.recover_alpha > 0 or self.cfg.redraw_from_track:
                 pval = self.radio_track_test(z, C)
