@@ -224,32 +224,50 @@ def _replay_detections(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run(args: argparse.Namespace) -> int:
+def _launch(make_launcher):
+    """Make a launcher and run it, SIGTERM and SIGINT stopping it (every node within 2 s):
+    ``(launcher, result, None)``, or ``(launcher, None, exit status)`` when stopped."""
     import signal
 
     stop: list[str] = []
     launcher = None
 
-    def on_signal(signum, frame):   # only sets a flag; the launcher stops every node within 2 s
+    def on_signal(signum, frame):   # only sets a flag; the launcher stops every node
         stop.append(signal.Signals(signum).name)
         if launcher is not None:
             launcher.request_stop(stop[0])
 
     codes = {"SIGTERM": 128 + signal.SIGTERM, "SIGINT": 128 + signal.SIGINT}
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        launcher = make_launcher()
+        if stop:
+            return launcher, None, codes.get(stop[0], 1)
+        result = launcher.run()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    if result is None:
+        print(f"dfusion: stopped ({launcher.stop_reason}); every node process was stopped", file=sys.stderr)
+        return launcher, None, codes.get(launcher.stop_reason or "", 1)
+    return launcher, result, None
+
+
+def _run(args: argparse.Namespace) -> int:
     from dfusion.scenario.loader import load_scenario
 
     sc = load_scenario(args.scenario, seed=args.seed, duration=args.duration, plugins=args.plugin)
     if sc.multi_target:
         return _run_tracking(sc, args)
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
+
+    def make_launcher():
         from dfusion.run.common import security_from_args
         from dfusion.run.launcher import Launcher, Restart, RunOptions
         from dfusion.run.supervision import RestartPolicy
 
         policy = RestartPolicy(enabled=not args.no_supervise, max_restarts=args.max_restarts,
                                backoff=args.restart_backoff, backoff_max=max(args.restart_backoff, 8.0))
-        opts = RunOptions(
+        return Launcher(RunOptions(
             scenario=args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, speed=args.speed,
             run_dir=args.run_dir, network=args.network, network_key_file=args.network_key_file,
             restarts=[Restart.parse(r) for r in args.restart], emulate_links=args.emulate_links,
@@ -258,20 +276,14 @@ def _run(args: argparse.Namespace) -> int:
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
             nodes_per_process=args.nodes_per_process, sends=args.sends, min_send_interval=args.min_send_interval,
             chaos_dir=args.chaos_dir,
-        )
-        launcher = Launcher(opts)
-        if stop:
-            return codes.get(stop[0], 1)
-        result = launcher.run()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        ))
+
+    launcher, result, code = _launch(make_launcher)
+    if result is None:
+        return code
     from dfusion.run.launcher import supervision_lines
     from dfusion.run.monitor import run_table
 
-    if result is None:
-        print(f"dfusion: stopped ({launcher.stop_reason}); every node process was stopped", file=sys.stderr)
-        return codes.get(launcher.stop_reason or "", 1)
     print(result.table())
     print(run_table(result))
     print(supervision_lines(result))
@@ -301,32 +313,18 @@ _NOT_FOR_TRACKING = {"fusion": None, "sends": None, "min_send_interval": None, "
 def _run_tracking(sc, args: argparse.Namespace) -> int:
     """``dfusion run`` of a multi-target scenario: a process per TrackingNode in lockstep
     (:mod:`dfusion.run.tracking`); ``--compare`` also runs ``simulate`` and compares per node."""
-    import signal
-
     given = [k for k, default in _NOT_FOR_TRACKING.items() if getattr(args, k, default) != default]
     if given:
         raise DfusionError(f"--{given[0].replace('_', '-')} is not available for a multi-target scenario "
                            f"(dfusion run runs every tracking node in lockstep; docs/processes.md)")
     from dfusion.run.tracking import TrackingLauncher, TrackingRunOptions
 
-    launcher = TrackingLauncher(TrackingRunOptions(
+    launcher, result, code = _launch(lambda: TrackingLauncher(TrackingRunOptions(
         scenario=args.scenario, seed=args.seed, duration=args.duration, run_dir=args.run_dir, network=args.network,
         network_key_file=args.network_key_file, plugins=list(args.plugin), startup_timeout=args.startup_timeout,
-        lag_timeout=args.lag_timeout, keep_run_dir=args.run_dir is not None))
-    codes = {"SIGTERM": 128 + signal.SIGTERM, "SIGINT": 128 + signal.SIGINT}
-
-    def on_signal(signum, frame):   # only sets a flag; the launcher stops every node process
-        launcher.request_stop(signal.Signals(signum).name)
-
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        result = launcher.run()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        lag_timeout=args.lag_timeout, keep_run_dir=args.run_dir is not None)))
     if result is None:
-        print(f"dfusion: stopped ({launcher.stop_reason}); every node process was stopped", file=sys.stderr)
-        return codes.get(launcher.stop_reason or "", 1)
+        return code
     print(result.table())
     run = result.metrics["run"]
     lags = sum(run["lags"].values())
