@@ -20,6 +20,10 @@ The world is :func:`dfusion.sim.target_world.simulate_targets`'s. Every step ``t
    the scenario's link settings (latency, jitter, drops, duplicates, reordering, outages);
 5. every node's tracks are recorded (:class:`~dfusion.tracking.TrackHistory`).
 
+Steps 1-4 of one node are :class:`NodeDriver`'s, which ``dfusion run`` also drives, one node per
+process, in lockstep with these steps (:mod:`dfusion.run.tracking`); the reference is
+:func:`run_central` and the metrics :func:`tracking_metrics`, for both.
+
 **The centralized reference** (``central``): one :class:`~dfusion.tracking.MultiTargetTracker`
 with the same components, given every scan of every camera at its time without delay, and
 every tag reading as an update of the tag's track (created at the first reading, with the
@@ -55,7 +59,7 @@ from dfusion.scenario.build import build_tracking_nodes, tracker_components
 from dfusion.scenario.spec import Scenario
 from dfusion.scenario.targets import tag_track_id
 from dfusion.sim.runner import Progress
-from dfusion.sim.target_world import TargetWorld, simulate_targets
+from dfusion.sim.target_world import NodeFrame, TargetWorld, simulate_targets
 from dfusion.tracking.history import TrackHistory
 from dfusion.tracking.track import TrackId
 from dfusion.tracking.tracker import MultiTargetTracker
@@ -196,7 +200,7 @@ class NodeDriver:
         self.cpu = 0.0
         self.rejected = 0
 
-    def frame(self, f) -> None:
+    def frame(self, f: NodeFrame) -> None:
         """Step 1: frame ``f`` (of this node) to the node."""
         node, c0 = self.node, time.process_time()
         if f.scan is not None:
@@ -233,9 +237,9 @@ class NodeDriver:
                 "tag_restarts": self.reader.restarts, "tracks": len(self.node.tracks)}
 
 
-def frames_by_step(world: TargetWorld) -> list[list]:
+def frames_by_step(world: TargetWorld) -> list[list[NodeFrame]]:
     """``out[k]``: the world's frames taken by ``world.times[k]`` and after ``world.times[k - 1]``."""
-    out: list[list] = []
+    out: list[list[NodeFrame]] = []
     fi, frames = 0, world.frames
     for t in world.times:
         batch = []
