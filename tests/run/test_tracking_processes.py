@@ -25,10 +25,13 @@ from tests.scenario.test_multi_target_loader import MULTI
 pytest.importorskip("zenoh")
 
 #: MULTI over 8 s (its outage of the link cam_e - wsn from 5 s to 7 s inside), and the link
-#: cam_w - cam_e with jitter, drops and duplicates besides its fixed latency (drawn per link).
+#: cam_w - cam_e with drops, duplicates and reordering besides its fixed latency (drawn per link).
+#: Both links into cam_e have the same fixed latency: bundles sent at one step arrive at one time
+#: (and so do a duplicate's copies), and the order of those ties is simulate's too.
 SHORT = (MULTI.replace("duration = 12.0", "duration = 8.0")
          .replace('between = ["cam_w", "cam_e"]\nlatency = 0.05\n',
-                  'between = ["cam_w", "cam_e"]\nlatency = 0.05\njitter = 0.05\ndrop = 0.1\nduplicate = 0.1\n'))
+                  'between = ["cam_w", "cam_e"]\nlatency = 0.05\ndrop = 0.1\nduplicate = 0.15\nreorder = 0.2\n'
+                  'reorder_delay = 0.15\n'))
 
 
 def _pids(run_dir) -> list[int]:
@@ -49,7 +52,7 @@ def _gone(pid: int) -> bool:
 
 
 def test_dfusion_run_of_a_multi_target_scenario_equals_simulate_per_node(tmp_path, capsys):
-    assert "jitter = 0.05" in SHORT and "outages = [[5.0, 7.0]]" in SHORT
+    assert "reorder = 0.2" in SHORT and "outages = [[5.0, 7.0]]" in SHORT
     path = write(tmp_path, SHORT)
     out, run_dir = tmp_path / "run.json", tmp_path / "rd"
     assert main(["run", str(path), "-q", "--json", str(out), "--run-dir", str(run_dir)]) == 0
