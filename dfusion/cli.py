@@ -66,6 +66,12 @@ def _simulate_tracking(sc, args: argparse.Namespace, world=None) -> int:
 
     result = run_tracking_scenario(sc, progress=not args.quiet, world=world)
     print(result.table())
+    _tracking_outputs(sc, result, args)
+    return 0
+
+
+def _tracking_outputs(sc, result, args: argparse.Namespace) -> None:
+    """``--json``, ``--topdown``, ``--plot``, ``--mcap`` of a multi-target run (simulate, run, replay)."""
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(result.to_json(series=True))
@@ -75,14 +81,15 @@ def _simulate_tracking(sc, args: argparse.Namespace, world=None) -> int:
         from dfusion.viz.tracks import plot_identity_timeline, plot_tracks_topdown
 
         views = [v for v in (node_view(spec) for _, spec in sorted(sc.nodes.items())) if v is not None]
-        nodes = sorted(result.nodes) + ["central"]
+        nodes = sorted(result.metrics["nodes"]) + ["central"]
         name = Path(sc.path).stem
         if args.topdown:
             path = plot_tracks_topdown(result.history, result.world.truth, args.topdown, nodes=nodes, views=views,
                                        region=sc.tracking.region, title=f"{name}: every node's tracks and the truth")
             print(f"wrote {path}")
         if args.plot:
-            path, _ = plot_identity_timeline(result.history, result.world.truth, args.plot, nodes=sorted(result.nodes),
+            path, _ = plot_identity_timeline(result.history, result.world.truth, args.plot,
+                                             nodes=sorted(result.metrics["nodes"]),
                                              threshold=sc.tracking.match,
                                              title=f"{name}: identity timeline per node")
             print(f"wrote {path}")
@@ -91,7 +98,6 @@ def _simulate_tracking(sc, args: argparse.Namespace, world=None) -> int:
 
             print(f"wrote {record_tracks_mcap(result.history, args.mcap, result.world.truth, views=views)} "
                   f"(open it in Foxglove)")
-    return 0
 
 
 def _replay_tracking(sc, args: argparse.Namespace) -> int:
@@ -218,13 +224,15 @@ def _replay_detections(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run(args: argparse.Namespace) -> int:
+def _launch(make_launcher):
+    """Make a launcher and run it, SIGTERM and SIGINT stopping it (every node within 2 s):
+    ``(launcher, result, None)``, or ``(launcher, None, exit status)`` when stopped."""
     import signal
 
     stop: list[str] = []
     launcher = None
 
-    def on_signal(signum, frame):   # only sets a flag; the launcher stops every node within 2 s
+    def on_signal(signum, frame):   # only sets a flag; the launcher stops every node
         stop.append(signal.Signals(signum).name)
         if launcher is not None:
             launcher.request_stop(stop[0])
@@ -232,13 +240,34 @@ def _run(args: argparse.Namespace) -> int:
     codes = {"SIGTERM": 128 + signal.SIGTERM, "SIGINT": 128 + signal.SIGINT}
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
+        launcher = make_launcher()
+        if stop:
+            return launcher, None, codes.get(stop[0], 1)
+        result = launcher.run()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    if result is None:
+        print(f"dfusion: stopped ({launcher.stop_reason}); every node process was stopped", file=sys.stderr)
+        return launcher, None, codes.get(launcher.stop_reason or "", 1)
+    return launcher, result, None
+
+
+def _run(args: argparse.Namespace) -> int:
+    from dfusion.scenario.loader import load_scenario
+
+    sc = load_scenario(args.scenario, seed=args.seed, duration=args.duration, plugins=args.plugin)
+    if sc.multi_target:
+        return _run_tracking(sc, args)
+
+    def make_launcher():
         from dfusion.run.common import security_from_args
         from dfusion.run.launcher import Launcher, Restart, RunOptions
         from dfusion.run.supervision import RestartPolicy
 
         policy = RestartPolicy(enabled=not args.no_supervise, max_restarts=args.max_restarts,
                                backoff=args.restart_backoff, backoff_max=max(args.restart_backoff, 8.0))
-        opts = RunOptions(
+        return Launcher(RunOptions(
             scenario=args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, speed=args.speed,
             run_dir=args.run_dir, network=args.network, network_key_file=args.network_key_file,
             restarts=[Restart.parse(r) for r in args.restart], emulate_links=args.emulate_links,
@@ -247,20 +276,14 @@ def _run(args: argparse.Namespace) -> int:
             security=security_from_args(args), supervision=policy, foxglove=args.foxglove,
             nodes_per_process=args.nodes_per_process, sends=args.sends, min_send_interval=args.min_send_interval,
             chaos_dir=args.chaos_dir,
-        )
-        launcher = Launcher(opts)
-        if stop:
-            return codes.get(stop[0], 1)
-        result = launcher.run()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        ))
+
+    launcher, result, code = _launch(make_launcher)
+    if result is None:
+        return code
     from dfusion.run.launcher import supervision_lines
     from dfusion.run.monitor import run_table
 
-    if result is None:
-        print(f"dfusion: stopped ({launcher.stop_reason}); every node process was stopped", file=sys.stderr)
-        return codes.get(launcher.stop_reason or "", 1)
     print(result.table())
     print(run_table(result))
     print(supervision_lines(result))
@@ -278,6 +301,41 @@ def _run(args: argparse.Namespace) -> int:
     title = (f"{Path(launcher.sc.path).name} as processes at x{run['speed']:g}: estimate − truth per node vs "
              f"centralized EKF\n{run['links']}; {'mutual TLS' if run['tls'] else 'no TLS'}")
     _outputs(result, args, title=title)
+    return 1 if launcher.failures else 0
+
+
+#: ``dfusion run`` flags that do not apply to a multi-target scenario, and their defaults.
+_NOT_FOR_TRACKING = {"fusion": None, "sends": None, "min_send_interval": None, "nodes_per_process": 1, "restart": [],
+                     "foxglove": None, "emulate_links": True, "no_supervise": False, "chaos_dir": None, "csv": None,
+                     "tls_dir": None, "tls_ca": None, "tls_cert": None, "tls_key": None}
+
+
+def _run_tracking(sc, args: argparse.Namespace) -> int:
+    """``dfusion run`` of a multi-target scenario: a process per TrackingNode in lockstep
+    (:mod:`dfusion.run.tracking`); ``--compare`` also runs ``simulate`` and compares per node."""
+    given = [k for k, default in _NOT_FOR_TRACKING.items() if getattr(args, k, default) != default]
+    if given:
+        raise DfusionError(f"--{given[0].replace('_', '-')} is not available for a multi-target scenario "
+                           f"(dfusion run runs every tracking node in lockstep; docs/processes.md)")
+    from dfusion.run.tracking import TrackingLauncher, TrackingRunOptions
+
+    launcher, result, code = _launch(lambda: TrackingLauncher(TrackingRunOptions(
+        scenario=args.scenario, seed=args.seed, duration=args.duration, run_dir=args.run_dir, network=args.network,
+        network_key_file=args.network_key_file, plugins=list(args.plugin), startup_timeout=args.startup_timeout,
+        lag_timeout=args.lag_timeout, keep_run_dir=args.run_dir is not None)))
+    if result is None:
+        return code
+    print(result.table())
+    run = result.metrics["run"]
+    lags = sum(run["lags"].values())
+    print(f"run: {run['processes']} processes over Zenoh in lockstep, {run['wall_s']:.1f} s after a start-up of "
+          f"{run['startup_s']:.1f} s; {lags} lags (a neighbour's frame not there within {run['lag_timeout']:g} s)"
+          + ("" if lags else ": the tracks are simulate's"))
+    if args.compare:
+        from dfusion.run.tracking import compare_with_simulate
+
+        print(compare_with_simulate(result))
+    _tracking_outputs(sc, result, args)
     return 1 if launcher.failures else 0
 
 
@@ -342,7 +400,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--run-dir", default=None, help="keep logs, state logs and results here (default: a temporary directory)")
     r.add_argument("--network", default=None, help="Zenoh network name (default: unique per run)")
     r.add_argument("--startup-timeout", type=float, default=60.0, help="seconds to wait for every node to be ready")
-    r.add_argument("--compare", action="store_true", help="also run simulate and compare RMSE and final gaps")
+    r.add_argument("--compare", action="store_true", help="also run simulate and compare RMSE and final gaps "
+                                                          "(multi-target: every node's metrics and tracks)")
+    r.add_argument("--lag-timeout", type=float, default=10.0, metavar="S",
+                   help="multi-target lockstep: seconds a node waits for a neighbour's step frame before it goes on "
+                        "(a counted lag; default 10)")
     r.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                    help="load sensor kinds / policies from this module or .py file (repeatable; every node process loads it too)")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -20,6 +20,10 @@ The world is :func:`dfusion.sim.target_world.simulate_targets`'s. Every step ``t
    the scenario's link settings (latency, jitter, drops, duplicates, reordering, outages);
 5. every node's tracks are recorded (:class:`~dfusion.tracking.TrackHistory`).
 
+Steps 1-4 of one node are :class:`NodeDriver`'s, which ``dfusion run`` also drives, one node per
+process, in lockstep with these steps (:mod:`dfusion.run.tracking`); the reference is
+:func:`run_central` and the metrics :func:`tracking_metrics`, for both.
+
 **The centralized reference** (``central``): one :class:`~dfusion.tracking.MultiTargetTracker`
 with the same components, given every scan of every camera at its time without delay, and
 every tag reading as an update of the tag's track (created at the first reading, with the
@@ -36,12 +40,13 @@ in which the node tracks both with distinct identities.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -54,13 +59,14 @@ from dfusion.scenario.build import build_tracking_nodes, tracker_components
 from dfusion.scenario.spec import Scenario
 from dfusion.scenario.targets import tag_track_id
 from dfusion.sim.runner import Progress
-from dfusion.sim.target_world import TargetWorld, simulate_targets
+from dfusion.sim.target_world import NodeFrame, TargetWorld, simulate_targets
 from dfusion.tracking.history import TrackHistory
 from dfusion.tracking.track import TrackId
 from dfusion.tracking.tracker import MultiTargetTracker
 from dfusion.transport.simulated import SimulatedNetwork
 
-__all__ = ["TrackingResult", "run_tracking_scenario", "CENTRAL", "RENDEZVOUS_WINDOW"]
+__all__ = ["TrackingResult", "run_tracking_scenario", "NodeDriver", "frames_by_step", "run_central", "tracking_metrics",
+           "CENTRAL", "RENDEZVOUS_WINDOW"]
 
 log = logging.getLogger(__name__)
 
@@ -178,6 +184,96 @@ def _central_reading(tracker: MultiTargetTracker, tid: TrackId, t: float, z: Arr
     track.record(True, 1)
 
 
+class NodeDriver:
+    """What one node does in a step of the run (module docstring, steps 1-5), in ``simulate`` and in
+    ``dfusion run``'s lockstep processes alike (:mod:`dfusion.run.tracking`): the node's frames, its
+    tag reader, its send period and its CPU time."""
+
+    def __init__(self, sc: Scenario, node: TrackingNode) -> None:
+        self.sc, self.node = sc, node
+        self.reader = _TagReader()
+        self.appear = {t.name: t.appear for t in sc.targets}
+        vstd = sc.tracking.velocity_std
+        #: what the reader knows of a target's speed, added to a tag's track at its first reading
+        self.velocity_prior = None if vstd is None else np.diag([0.0, 0.0, vstd**-2, vstd**-2])
+        self.last_sent = -math.inf
+        self.cpu = 0.0
+        self.rejected = 0
+
+    def frame(self, f: NodeFrame) -> None:
+        """Step 1: frame ``f`` (of this node) to the node."""
+        node, c0 = self.node, time.process_time()
+        if f.scan is not None:
+            node.process(f.scan)
+        for r in f.readings:
+            tid, born = self.reader.track_of(node, r.target, self.appear[r.target], f.t)
+            new = tid not in node.tracks
+            node.observe(tid, f.t, r.z, self.sc.nodes[f.node].sensor, born=born)
+            if new and self.velocity_prior is not None:
+                node.tracks[tid].add_local_information(f.t, self.velocity_prior, np.zeros(4))
+        self.cpu += time.process_time() - c0
+
+    def step(self, t: float, deliveries: Iterable[bytes]) -> list[tuple[str, bytes]]:
+        """Steps 2-4 at ``t``: receive ``deliveries`` (in arrival order), predict, and return the
+        bundles to send now (``(neighbour, data)``; none before the send period has elapsed)."""
+        node, c0 = self.node, time.process_time()
+        for data in deliveries:
+            try:
+                node.receive(data)
+            except MessageError as exc:   # counted by the node; a simulated network never corrupts
+                self.rejected += 1
+                log.warning("%s: %s", node.name, exc)
+        node.predict(t)
+        out: list[tuple[str, bytes]] = []
+        if t - self.last_sent >= self.sc.nodes[node.name].send_period - 1e-9:
+            self.last_sent = t
+            out = node.outgoing(t)
+        self.cpu += time.process_time() - c0
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        """The node's counters as plain data (what :func:`tracking_metrics` reads)."""
+        return {**dataclasses.asdict(self.node.stats), "cpu": self.cpu, "rejected": self.rejected,
+                "tag_restarts": self.reader.restarts, "tracks": len(self.node.tracks)}
+
+
+def frames_by_step(world: TargetWorld) -> list[list[NodeFrame]]:
+    """``out[k]``: the world's frames taken by ``world.times[k]`` and after ``world.times[k - 1]``."""
+    out: list[list[NodeFrame]] = []
+    fi, frames = 0, world.frames
+    for t in world.times:
+        batch = []
+        while fi < len(frames) and frames[fi].t <= float(t) + 1e-9:
+            batch.append(frames[fi])
+            fi += 1
+        out.append(batch)
+    return out
+
+
+def run_central(sc: Scenario, world: TargetWorld, history: TrackHistory) -> float:
+    """The centralized reference (module docstring) over ``world``, recorded in ``history`` under
+    :data:`CENTRAL` at every step ``k >= 1``; returns its CPU seconds."""
+    parts = tracker_components(sc.tracking, sc.target.motion)
+    central = MultiTargetTracker(sc.target.motion, parts["associator"], parts["initiator"], parts["deleter"],
+                                 origin=CENTRAL, hypothesiser=parts["hypothesiser"])
+    vstd = sc.tracking.velocity_std or sc.tracking.prior_velocity_std
+    cpu = 0.0
+    for k, (t, batch) in enumerate(zip(world.times, frames_by_step(world))):
+        c0 = time.process_time()
+        for f in batch:
+            if f.scan is not None:
+                central.step(f.scan)
+            for r in f.readings:
+                _central_reading(central, tag_track_id(r.target), f.t, r.z, sc.nodes[f.node].sensor, vstd)
+        if k:
+            for tr in central.tracks:
+                tr.predict(float(t))
+        cpu += time.process_time() - c0
+        if k:
+            history.record(CENTRAL, float(t), central.estimates())
+    return cpu
+
+
 def run_tracking_scenario(sc: Scenario, *, world: TargetWorld | None = None, progress: bool = False) -> TrackingResult:
     """Run multi-target scenario ``sc`` with every node in this process (module docstring)."""
     if not sc.multi_target:
@@ -186,74 +282,31 @@ def run_tracking_scenario(sc: Scenario, *, world: TargetWorld | None = None, pro
     nodes = build_tracking_nodes(sc)
     names = sorted(nodes)
     net = SimulatedNetwork(((a, b, spec) for (a, b), spec in sc.links.items()), seed=sc.seed)
-    motion = sc.target.motion
-    parts = tracker_components(sc.tracking, motion)
-    central = MultiTargetTracker(motion, parts["associator"], parts["initiator"], parts["deleter"], origin=CENTRAL,
-                                 hypothesiser=parts["hypothesiser"])
-    vstd = sc.tracking.velocity_std or sc.tracking.prior_velocity_std
-    velocity_prior = (np.diag([0.0, 0.0, vstd**-2, vstd**-2]) if sc.tracking.velocity_std is not None else None)
-    appear = {t.name: t.appear for t in sc.targets}
-    readers = {n: _TagReader() for n in names}
+    drivers = {n: NodeDriver(sc, nodes[n]) for n in names}
     history = TrackHistory()
-    cpu = dict.fromkeys(names, 0.0)
-    cpu_central = 0.0
-    last_sent = dict.fromkeys(names, -math.inf)
-    rejected = 0
-    fi = 0
-    frames = world.frames
     bar = Progress(len(world.times) - 1) if progress else None
-    for k, t in enumerate(world.times):
+    for k, (t, batch) in enumerate(zip(world.times, frames_by_step(world))):
         t = float(t)
-        while fi < len(frames) and frames[fi].t <= t + 1e-9:
-            f = frames[fi]
-            fi += 1
-            node = nodes[f.node]
-            c0 = time.process_time()
-            if f.scan is not None:
-                node.process(f.scan)
-            for r in f.readings:
-                tid, born = readers[f.node].track_of(node, r.target, appear[r.target], f.t)
-                new = tid not in node.tracks
-                node.observe(tid, f.t, r.z, sc.nodes[f.node].sensor, born=born)
-                if new and velocity_prior is not None:   # what the reader knows of a target's speed
-                    node.tracks[tid].add_local_information(f.t, velocity_prior, np.zeros(4))
-            c1 = time.process_time()
-            if f.scan is not None:
-                central.step(f.scan)
-            for r in f.readings:
-                _central_reading(central, tag_track_id(r.target), f.t, r.z, sc.nodes[f.node].sensor, vstd)
-            cpu[f.node] += c1 - c0
-            cpu_central += time.process_time() - c1
+        for f in batch:
+            drivers[f.node].frame(f)
         for n in names:
-            c0 = time.process_time()
-            for d in net.receive(n, t + 1e-9):
-                try:
-                    nodes[n].receive(d.data)
-                except MessageError as exc:   # a simulated network never corrupts; log anyway
-                    rejected += 1
-                    log.warning("%s: %s", n, exc)
-            nodes[n].predict(t)
-            if t - last_sent[n] >= sc.nodes[n].send_period - 1e-9:
-                last_sent[n] = t
-                for j, data in nodes[n].outgoing(t):
-                    net.send(n, j, data, t)
-            cpu[n] += time.process_time() - c0
+            for j, data in drivers[n].step(t, [d.data for d in net.receive(n, t + 1e-9)]):
+                net.send(n, j, data, t)
         if k == 0:
             continue
         for n in names:
             history.record(n, t, nodes[n].estimates())
-        c0 = time.process_time()
-        for tr in central.tracks:
-            tr.predict(t)
-        cpu_central += time.process_time() - c0
-        history.record(CENTRAL, t, central.estimates())
         if bar is not None:
             bar.update(k)
     if bar is not None:
         bar.close()
+    cpu_central = run_central(sc, world, history)
+    total = net.stats.total
+    traffic = {"sent": int(total.sent), "duplicated": int(total.duplicated), "delivered": int(total.delivered),
+               "dropped": int(total.dropped), "in_flight": int(total.in_flight)}
     result = TrackingResult(sc, world, history, nodes=nodes)
-    result.metrics = _metrics(sc, world, history, nodes, net, rejected, cpu, cpu_central,
-                              sum(r.restarts for r in readers.values()))
+    result.metrics = tracking_metrics(sc, world, history, {n: d.stats() for n, d in drivers.items()}, traffic,
+                                      cpu_central)
     return result
 
 
@@ -296,11 +349,14 @@ def _rendezvous(sc: Scenario, history: TrackHistory, world: TargetWorld, names: 
     return out
 
 
-def _metrics(sc: Scenario, world: TargetWorld, history: TrackHistory, nodes: dict[str, TrackingNode],
-             net: SimulatedNetwork, rejected: int, cpu: dict[str, float], cpu_central: float,
-             tag_restarts: int) -> dict[str, Any]:
+def tracking_metrics(sc: Scenario, world: TargetWorld, history: TrackHistory, stats: dict[str, dict[str, Any]],
+                     traffic: dict[str, int], cpu_central: float) -> dict[str, Any]:
+    """The metrics of a multi-target run (module docstring): ``history`` holds every node's tracks
+    and the reference's (:data:`CENTRAL`) at every step ``k >= 1``; ``stats[node]`` is
+    :meth:`NodeDriver.stats`; ``traffic`` counts the network's copies (``sent``, ``duplicated``,
+    ``delivered``, ``dropped``, ``in_flight``). ``simulate`` and ``dfusion run`` both call it."""
     spec = sc.tracking
-    names = sorted(nodes)
+    names = sorted(stats)
     steps = len(world.times) - 1
     c, match = spec.gospa_c, spec.match
     pairs = {}
@@ -318,7 +374,7 @@ def _metrics(sc: Scenario, world: TargetWorld, history: TrackHistory, nodes: dic
         "world": {"targets": len(sc.targets), "people": sum(t.kind == "person" for t in sc.targets),
                   "robots": sum(t.kind == "robot" for t in sc.targets), "detections": world.detections,
                   "false_detections": world.false_detections, "readings": world.readings,
-                  "tag_restarts": tag_restarts},
+                  "tag_restarts": sum(v["tag_restarts"] for v in stats.values())},
         "label_agreement": {"agreement": network.agreement, "agreeing": network.agreeing,
                             "compared": network.compared},
         "nodes": {},
@@ -334,15 +390,15 @@ def _metrics(sc: Scenario, world: TargetWorld, history: TrackHistory, nodes: dic
             continue
         agree = [pairs[tuple(sorted((n, o)))] for o in names if o != n]
         num, den = sum(a for a, _ in agree), sum(b for _, b in agree)
-        st = nodes[n].stats
-        v.update({"label_agreement": num / den if den else None, "births": st.births, "tracks_heard": st.tracks_heard,
-                  "merges": st.merges, "merges_decided": st.merges_decided, "deletions": st.deletions,
-                  "deletions_decided": st.deletions_decided, "bundles": st.bundles_sent, "bytes": st.bytes_sent,
-                  "bundles_received": st.bundles_received, "bundles_rejected": st.bundles_rejected,
-                  "cpu_ms_per_step": 1e3 * cpu[n] / max(steps, 1)})
+        st = stats[n]
+        v.update({"label_agreement": num / den if den else None, "births": st["births"],
+                  "tracks_heard": st["tracks_heard"], "merges": st["merges"], "merges_decided": st["merges_decided"],
+                  "deletions": st["deletions"], "deletions_decided": st["deletions_decided"],
+                  "bundles": st["bundles_sent"], "bytes": st["bytes_sent"],
+                  "bundles_received": st["bundles_received"], "bundles_rejected": st["bundles_rejected"],
+                  "cpu_ms_per_step": 1e3 * st["cpu"] / max(steps, 1)})
         out["nodes"][n] = v
-    total = net.stats.total
-    out["traffic"] = {"sent": int(total.sent), "duplicated": int(total.duplicated), "delivered": int(total.delivered),
-                      "dropped": int(total.dropped), "in_flight": int(total.in_flight), "rejected": rejected}
+    out["traffic"] = {**{k: int(traffic[k]) for k in ("sent", "duplicated", "delivered", "dropped", "in_flight")},
+                      "rejected": sum(v["rejected"] for v in stats.values())}
     out["rendezvous"] = _rendezvous(sc, history, world, names)
     return out

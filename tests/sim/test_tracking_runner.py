@@ -146,9 +146,3 @@ def test_replay_of_a_pose_array_bag_into_the_scenario_gives_what_simulate_gives(
     assert replayed["nodes"]["cam_w"]["gospa"]["mean"] < 1.5
     assert main(argv[:-2 * len(world.truth.paths)]) == 2          # no --truth: refused in one line
     assert "needs --truth" in capsys.readouterr().err
-
-
-def test_dfusion_run_refuses_a_multi_target_scenario_in_one_line(tmp_path, capsys):
-    assert main(["run", str(write(tmp_path, MULTI)), "-q"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "dfusion run does not take multi-target scenarios" in err, err
