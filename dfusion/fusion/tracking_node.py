@@ -22,6 +22,15 @@ initiator's; a node that hears of the track first in a message creates it with t
 prior at the same ``t_b`` (carried in every bundle) and fuses what arrives. The prior is
 common information, never exchanged: each track's network is a single-target network.
 
+**Tracks every node knows from the start** (:meth:`TrackingNode.add_track`: a team of known
+size, a registered tag): their common prior is a given ``(t_b, mean, cov)`` instead of
+:class:`TrackPrior`. Every node must add such a track identically (same identity, time, mean
+and covariance) before it takes or hears anything of it: it is then common information, as
+:class:`TrackPrior` is, and the track is exact against a Kalman filter from that prior. A node
+that hears of the track in a bundle without having added it creates it with
+:class:`TrackPrior` at the same ``t_b`` (it lacks the given prior's information: conservative,
+not exact).
+
 **Association.** A scan at ``t`` (one sensor, one time; scans of a node in time order) is
 associated with every track holding information at ``t`` (its fused estimate at ``t``, a
 window state); a track's factor ``(Lambda, y)`` (:func:`dfusion.tracking.track_update_information`,
@@ -74,7 +83,7 @@ from dfusion.fusion.bundle import (MAX_TRACKS_PER_BUNDLE, TrackBundle, TrackEnd,
 from dfusion.fusion.node import HOLD, MAX_AHEAD, FusionNode
 from dfusion.fusion.stats import LOG_INTERVAL, RejectionLog
 from dfusion.fusion.tree import SpanningTree
-from dfusion.linalg import Array, symmetrize
+from dfusion.linalg import Array, as_spd, as_vector, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.tracking.association import GNN, DataAssociator
 from dfusion.tracking.deletion import CovarianceDeleter, Deleter
@@ -150,6 +159,8 @@ class _TrackView:
 
     def estimate(self) -> tuple[Array, Array]:
         return self.node.estimate()
+
+    given_prior: bool = False        # added by add_track: its prior is informative from the start
 
     record = Track.record
 
@@ -247,8 +258,10 @@ class TrackingNode:
         """Birth time of a live track (the time of its common prior)."""
         return self._views[track].born
 
-    def _track(self, tid: TrackId, born: float) -> FusionNode | None:
-        """The fusion of ``tid``, created with the common prior at ``born`` if new (``None``: over ``max_tracks``)."""
+    def _track(self, tid: TrackId, born: float,
+               prior: tuple[float, Array, Array] | None = None) -> FusionNode | None:
+        """The fusion of ``tid``, created with the common prior at ``born`` (or ``prior``) if new
+        (``None``: over ``max_tracks``)."""
         node = self.tracks.get(tid)
         if node is not None:
             return node
@@ -258,13 +271,37 @@ class TrackingNode:
         links = sorted(self.links)
         tree = SpanningTree(self.name, links) if self.links_change else None
         node = FusionNode(self.name, links if self.links_change else self.neighbors, self.motion,
-                          prior=self.prior.at(born, self.motion.dim), epoch=self.epoch, tree=tree, peers=self.peers,
-                          **self._track_options)
+                          prior=prior or self.prior.at(born, self.motion.dim), epoch=self.epoch, tree=tree,
+                          peers=self.peers, **self._track_options)
         if self.time is not None and self.time > node.latest_time:
             node.predict(self.time)
         self.tracks[tid] = node
-        self._views[tid] = _TrackView(tid, node, float(born))
+        self._views[tid] = _TrackView(tid, node, float(born), given_prior=prior is not None)
         return node
+
+    def add_track(self, track: TrackId, t: float, mean: ArrayLike, cov: ArrayLike) -> None:
+        """A track every node knows from the start (a team of known size, a registered tag):
+        its common prior is ``(t, mean, cov)`` instead of :class:`TrackPrior`, and it takes part
+        in the association and :meth:`estimates` from the start. Every node must add it
+        identically, before it takes or hears anything of it (module docstring)."""
+        if not isinstance(track, TrackId):
+            raise ValidationError(f"track must be a TrackId, got {track!r}")
+        if track in self.tracks or track in self.ended:
+            raise ValidationError(f"{self.name}: track {track} is already known here")
+        n = self.motion.dim
+        t = float(t)
+        if not np.isfinite(t):
+            raise TimeError(f"track {track}: prior time must be finite, got {t!r}")
+        m = as_vector(mean, n, "track prior mean")
+        P = as_spd(cov, n, "track prior covariance")
+        if self._track(track, t, (t, m, P)) is None:
+            raise ValidationError(f"{self.name}: at most {self.max_tracks} tracks")
+        if track.origin == self.name:   # never issue this identity again
+            self.issuer.issued = max(self.issuer.issued, track.serial + 1)
+
+    def _informed(self, tid: TrackId) -> bool:
+        """Whether a track holds information: measurements (own or received), or a given prior."""
+        return self._views[tid].given_prior or self.tracks[tid].newest_information_time() is not None
 
     def _drop(self, tid: TrackId) -> FusionNode | None:
         self._views.pop(tid, None)
@@ -273,9 +310,8 @@ class TrackingNode:
         return self.tracks.pop(tid, None)
 
     def estimates(self) -> list[tuple[TrackId, Array, Array]]:
-        """``(track, mean, cov)`` of every track holding information, at the node's newest time."""
-        return [(tid, *node.estimate()) for tid, node in sorted(self.tracks.items())
-                if node.newest_information_time() is not None]
+        """``(track, mean, cov)`` of every track holding information (or a given prior), at the node's newest time."""
+        return [(tid, *node.estimate()) for tid, node in sorted(self.tracks.items()) if self._informed(tid)]
 
     # ------------------------------------------------------------------------------ local data
     def predict(self, t: float) -> None:
@@ -314,7 +350,7 @@ class TrackingNode:
             self.predict(t)
         ids, views = [], []
         for tid, node in sorted(self.tracks.items()):
-            if node.newest_information_time() is None or t < node.filter.oldest_time:
+            if not self._informed(tid) or t < node.filter.oldest_time:
                 continue
             node.predict(t)   # a state at t (t is in the window)
             ids.append(tid)
@@ -401,8 +437,7 @@ class TrackingNode:
     def _merge_duplicates(self) -> None:
         if self.merger is None or self.time is None:
             return
-        live = {tid: node.estimate() for tid, node in self.tracks.items()
-                if node.newest_information_time() is not None}
+        live = {tid: node.estimate() for tid, node in self.tracks.items() if self._informed(tid)}
         for a, b in self.merger.check(live, self.time):
             if a in self.tracks and b in self.tracks:
                 keep, gone = self.survivor(a, b)
