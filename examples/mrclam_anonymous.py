@@ -90,7 +90,7 @@ import mrclam_tracking as single  # noqa: E402  (the single-target example: its 
 from dfusion.datasets import read_mrclam  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402
 from dfusion.estimation.innovation import InnovationMonitor, MonitorSettings  # noqa: E402
-from dfusion.frontends import TargetTrackingFrontEnd  # noqa: E402
+from dfusion.frontends import TargetTrackingFrontEnd, TeamSightingsFrontEnd  # noqa: E402
 from dfusion.fusion import TrackingNode  # noqa: E402
 from dfusion.localization import LandmarkEKF  # noqa: E402
 from dfusion.metrics import TrackingFrame, identity_metrics, label_agreement  # noqa: E402
@@ -124,7 +124,9 @@ class Settings:
     exchange_period: float = 0.5    # s, network: every node sends its bundles to its tree neighbours
     track_horizon: float = 20.0     # s, network: each track's delayed-state window (FusionNode horizon)
     tree: tuple = ((1, 2), (2, 3), (3, 4), (4, 5))   # network: the chain 1 - 2 - 3 - 4 - 5
-    recovery: bool = False          # network: lock-out recovery (known: the single-target robust front end)
+    recovery: bool = True           # network: lock-out recovery (known: the single-target robust front end;
+                                    # anonymous: TeamSightingsFrontEnd), with the single-target TARGET_MONITOR
+    exclude_self: bool = True       # network, anonymous: a node's own track takes no part in its association
 
 
 def _motion(s: Settings):
@@ -269,6 +271,8 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
         gate_probability=s.gate, huber_probability=None, drift_test=False, recover=False)
     fronts = {(o, j): TargetTrackingFrontEnd(InnovationMonitor(f"robot{o}/robot{j}", 2, monitor))
               for o in robots for j in robots if j != o} if known else {}
+    teams = {o: TeamSightingsFrontEnd(nodes[o], single.TARGET_MONITOR, velocity_std=s.sigma, window=s.track_horizon)
+             for o in robots} if s.recovery and not known else {}
     view = CameraView(s.half_angle, s.min_range, s.max_range)
     eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
     send_t = np.round(s.exchange_period * np.arange(1, int(math.floor(duration / s.exchange_period + 1e-9)) + 1), 9)
@@ -334,13 +338,23 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
                               s.bearing_std, view=view, detection_probability=s.detection_probability,
                               clutter_density=s.clutter_density, source=names[o])
         before = {j: np.trace(node.tracks[tids[j]].estimate(t)[1][:2, :2]) for j in robots}
-        node.process(scan)
+        own = (tids[o],) if s.exclude_self else ()     # a robot's camera never sees the robot itself
+        if o in teams:
+            n_events = len(teams[o].stats.events)
+            teams[o].process(scan, exclude=own)
+        else:
+            node.process(scan, exclude=own)
         if seen.size == 1:     # which track took the lone sighting: the one whose covariance at t shrank
             took = [j for j in robots if np.trace(node.tracks[tids[j]].estimate(t)[1][:2, :2]) < 0.999 * before[j]]
+            if o in teams and len(teams[o].stats.events) > n_events:    # re-acquired by a widened track
+                took = [teams[o].stats.events[-1][1].serial]
             taken[o].append((int(log.meas_subject[seen[0]]), took[0] if took else None))
     tick(math.inf)
     return {o: {"t": eval_t, "tracks": out[o], "frames": counts[o]["frames"], "sightings": counts[o]["sightings"],
-                "taken": taken[o], "observers": [o], "node": nodes[o]} for o in robots}
+                "taken": taken[o], "observers": [o], "node": nodes[o],
+                "recovery": ({k: v for k, v in vars(teams[o].stats).items() if k != "events"} if o in teams else
+                             {str(j): fronts[(o, j)].health() for j in robots if j != o} if known else {})}
+            for o in robots}
 
 
 def track_mapping(res: dict) -> dict[int, int]:
@@ -520,13 +534,18 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--network", action="store_true",
                     help="the network instead: every robot a TrackingNode of the chain 1-2-3-4-5 exchanging track "
                          "bundles (rows 'network')")
+    ap.add_argument("--no-recovery", action="store_true",
+                    help="network: the plain 0.999 gate, no lock-out recovery (known) or re-acquisition (anonymous)")
+    ap.add_argument("--no-exclude-self", action="store_true",
+                    help="network, anonymous: a node's own track takes part in the association of its sightings")
     ap.add_argument("--json", type=Path, default=None, help="write both runs and the table as JSON")
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    s = Settings(associator=args.associator, motion=args.motion)
+    s = Settings(associator=args.associator, motion=args.motion, recovery=not args.no_recovery,
+                 exclude_self=not args.no_exclude_self)
 
     def progress(msg: str) -> None:
         print(msg, flush=True)

@@ -339,9 +339,11 @@ class TrackingNode:
             self.predict(t)
         node.update(t, z, sensor)
 
-    def process(self, scan: Scan) -> list[TrackId]:
+    def process(self, scan: Scan, *, exclude: Iterable[TrackId] = ()) -> list[TrackId]:
         """Associate one scan of this node's sensors with the fused tracks, fuse it, start
-        tracks from what no track explains; returns the tracks started. Scans in time order."""
+        tracks from what no track explains; returns the tracks started. Scans in time order.
+        ``exclude``: tracks the scan cannot have seen (a robot's camera never sees the robot
+        itself): they take no part in the association."""
         t = float(scan.time)
         if self._scan_time is not None and t < self._scan_time - 1e-9:
             raise TimeError(f"{self.name}: scan at t={t} is older than the previous scan ({self._scan_time})")
@@ -349,8 +351,9 @@ class TrackingNode:
         if self.time is None or t > self.time:
             self.predict(t)
         ids, views = [], []
+        skip = set(exclude)
         for tid, node in sorted(self.tracks.items()):
-            if not self._informed(tid) or t < node.filter.oldest_time:
+            if tid in skip or not self._informed(tid) or t < node.filter.oldest_time:
                 continue
             node.predict(t)   # a state at t (t is in the window)
             ids.append(tid)
