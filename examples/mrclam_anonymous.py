@@ -4,6 +4,7 @@ r"""MRCLAM as a multi-target problem: every robot tracks every other robot from 
 Usage::
 
     python examples/mrclam_anonymous.py DATASET_DIR [--duration S] [--associator gnn|jpda] [--json OUT]
+    python examples/mrclam_anonymous.py DATASET_DIR --network [--no-recovery] [--no-exclude-self] ...
 
 ``DATASET_DIR`` is an MRCLAM dataset directory (``MRCLAM_Dataset6``; where to get it:
 ``tests/data/mrclam/README.md``; the 180 s slice ``tests/data/mrclam`` runs as is).
@@ -36,6 +37,23 @@ in time order (each converted from its own robot's estimated pose; a robot's own
 in its camera's view, being closer than the minimum range): the centralized reference that a
 network of robots fusing their tracks would approach, and the like-for-like comparison with
 the single-target result of ``examples/mrclam_tracking.py``, which fuses four observers.
+
+**The network** (``--network``, rows ``network``): every robot a
+:class:`~dfusion.fusion.TrackingNode` of the chain 1 - 2 - 3 - 4 - 5, fed only its own
+robot's sighting scans (with its own pose covariance), every node adding the same five start
+tracks (:meth:`TrackingNode.add_track`: the start position, 0.3 m, zero velocity with
+``sigma``), bundles exchanged every 0.5 s in process (no delay), no initiator, no deleter,
+no merges (the team is known). A node associates its scans with its **fused** tracks, so
+every node tracks all five robots, also those it never sees, under identities the nodes
+share. Its own track takes no part in the association of its own sightings (a robot's
+camera never sees the robot itself; ``--no-exclude-self``). Lock-out recovery
+(``--no-recovery`` turns it off): anonymous, :class:`~dfusion.frontends.TeamSightingsFrontEnd`
+(k = 5 agreeing detections outside every gate re-acquire the likeliest track without recent
+information); identities known, each sighting of robot ``j`` goes through a
+:class:`~dfusion.frontends.TargetTrackingFrontEnd` on track ``j`` with the single-target
+run's robust settings (``mrclam_tracking.TARGET_MONITOR``: gate 0.999, Huber, lock-out
+recovery); without recovery, the plain 0.999 gate. Anonymous tracks are mapped to robots
+once for the whole network (the nodes share the identities).
 
 The **identities-known** run is the same tracker with the identity given: one tracker per
 (observer, tracked robot) with that robot's track only, fed only the sightings of that
@@ -352,7 +370,9 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
     tick(math.inf)
     return {o: {"t": eval_t, "tracks": out[o], "frames": counts[o]["frames"], "sightings": counts[o]["sightings"],
                 "taken": taken[o], "observers": [o], "node": nodes[o],
-                "recovery": ({k: v for k, v in vars(teams[o].stats).items() if k != "events"} if o in teams else
+                "recovery": ({**{k: v for k, v in vars(teams[o].stats).items() if k != "events"},
+                              "events": [(round(te, 3), tid.serial, round(jump, 2))
+                                         for te, tid, jump in teams[o].stats.events]} if o in teams else
                              {str(j): fronts[(o, j)].health() for j in robots if j != o} if known else {})}
             for o in robots}
 
@@ -475,7 +495,8 @@ def run_net(dataset: Path, s: Settings, *, known: bool, duration: float | None =
         node = r.pop("node")
         stats[str(o)] = {"bundles_sent": node.stats.bundles_sent, "bytes_sent": node.stats.bytes_sent,
                          "bundles_rejected": node.stats.bundles_rejected,
-                         "track_messages_rejected": node.stats.track_messages_rejected}
+                         "track_messages_rejected": node.stats.track_messages_rejected,
+                         "recovery": r.pop("recovery")}
     if progress:
         progress(f"{'known' if known else 'anonymous'}: the network ({len(runs)} TrackingNodes, tree "
                  f"{'-'.join(f'{a}{b}' for a, b in s.tree)}): {time.perf_counter() - t_wall:.1f} s")
