@@ -157,6 +157,41 @@ def _tracker(s: Settings, origin: str) -> MultiTargetTracker:
                               hypothesiser=GaussianHypothesiser(s.gate, detections_in_view=True))
 
 
+def _localizers(ds, observers) -> tuple[dict, dict]:
+    """The landmark map and each observer's self-localization (``examples/mrclam_tracking.py``'s)."""
+    lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
+    ekfs = {}
+    for o in observers:
+        log = ds.robots[o]
+        odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
+        ekfs[o] = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
+                              monitor=InnovationMonitor(f"robot{o}/pose", 2, single.POSE_MONITOR))
+    return lm, ekfs
+
+
+def _camera_frames(ds, observers) -> list[tuple[float, int, int, int]]:
+    """Every camera frame of the observers in time order: ``(time, observer, first row, end row)``."""
+    frames = []
+    for o in observers:
+        log = ds.robots[o]
+        frame_t, first = np.unique(log.meas_t, return_index=True)
+        frames += [(float(t), o, int(a), int(b)) for t, a, b in zip(frame_t, first, list(first[1:]) + [log.meas_t.size])]
+    frames.sort()
+    return frames
+
+
+def _localize(ekf, log, lm: dict, s: Settings, t: float, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """The observer's pose EKF at frame time ``t`` after the frame's landmark sightings (rows ``a:b``);
+    returns the frame's rows and their subjects."""
+    ekf.predict(t)
+    rows = np.arange(a, b)
+    subj = log.meas_subject[rows]
+    for i in rows[subj > 5]:   # landmarks: the robot's own localization
+        sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
+        ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
+    return rows, subj
+
+
 def run_observer(ds, observer: int, s: Settings, known: bool, duration: float) -> dict:
     """One robot tracking the four others from its own sightings (:func:`run_tracker`)."""
     return run_tracker(ds, [observer], [r for r in sorted(ds.robots) if r != observer], s, known, duration,
@@ -173,13 +208,7 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
     ``min_range``). Returns ``{"t": (E,), "tracks": {label: (E, 2) positions}, "frames", "sightings",
     "taken": [(robot sighted, track label or None) per lone sighting], "observers"}``.
     """
-    lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
-    ekfs = {}
-    for o in observers:
-        log = ds.robots[o]
-        odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
-        ekfs[o] = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
-                              monitor=InnovationMonitor(f"robot{o}/pose", 2, single.POSE_MONITOR))
+    lm, ekfs = _localizers(ds, observers)
     P0 = np.diag([s.prior_std**2] * 2 + [s.prior_velocity_std**2] * 2)
     starts = {j: np.r_[ds.robots[j].truth_at(0.0)[:2], 0.0, 0.0] for j in tracked}
     if known:
@@ -193,12 +222,7 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
     view = CameraView(s.half_angle, s.min_range, s.max_range)
     eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
     out = {j: np.empty((eval_t.size, 2)) for j in tracked}
-    frames = []                                  # (time, observer, first row, end row)
-    for o in observers:
-        log = ds.robots[o]
-        frame_t, first = np.unique(log.meas_t, return_index=True)
-        frames += [(float(t), o, int(a), int(b)) for t, a, b in zip(frame_t, first, list(first[1:]) + [log.meas_t.size])]
-    frames.sort()
+    frames = _camera_frames(ds, observers)
     ie = 0
     n_frames = n_sightings = 0
     taken: list[tuple[int, int | None]] = []
@@ -217,12 +241,7 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
             break
         record(t - 1e-6)          # evaluation times before this frame
         log, ekf = ds.robots[o], ekfs[o]
-        ekf.predict(t)
-        rows = np.arange(a, b)
-        subj = log.meas_subject[rows]
-        for i in rows[subj > 5]:   # landmarks: the robot's own localization
-            sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
-            ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
+        rows, subj = _localize(ekf, log, lm, s, t, a, b)
         seen = rows[np.isin(subj, tracked)]
         if not seen.size:
             continue
@@ -267,13 +286,7 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
     for a, b in s.tree:
         nbrs[a].append(names[b])
         nbrs[b].append(names[a])
-    lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
-    ekfs = {}
-    for o in robots:
-        log = ds.robots[o]
-        odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
-        ekfs[o] = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
-                              monitor=InnovationMonitor(f"robot{o}/pose", 2, single.POSE_MONITOR))
+    lm, ekfs = _localizers(ds, robots)
     P0 = np.diag([s.prior_std**2] * 2 + [s.prior_velocity_std**2] * 2)
     tids = {j: TrackId("start", j) for j in robots}
     motion = _motion(s)
@@ -295,12 +308,7 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
     eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
     send_t = np.round(s.exchange_period * np.arange(1, int(math.floor(duration / s.exchange_period + 1e-9)) + 1), 9)
     out = {o: {j: np.empty((eval_t.size, 2)) for j in robots} for o in robots}
-    frames = []                                  # (time, observer, first row, end row)
-    for o in robots:
-        log = ds.robots[o]
-        frame_t, first = np.unique(log.meas_t, return_index=True)
-        frames += [(float(t), o, int(a), int(b)) for t, a, b in zip(frame_t, first, list(first[1:]) + [log.meas_t.size])]
-    frames.sort()
+    frames = _camera_frames(ds, robots)
     ticks = sorted([(float(t), 0) for t in send_t] + [(float(t), 1) for t in eval_t])
     counts = {o: {"frames": 0, "sightings": 0} for o in robots}
     taken: dict[int, list[tuple[int, int | None]]] = {o: [] for o in robots}
@@ -330,12 +338,7 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
             break
         tick(t - 1e-6)
         log, ekf = ds.robots[o], ekfs[o]
-        ekf.predict(t)
-        rows = np.arange(a, b)
-        subj = log.meas_subject[rows]
-        for i in rows[subj > 5]:   # landmarks: the robot's own localization
-            sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
-            ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
+        rows, subj = _localize(ekf, log, lm, s, t, a, b)
         seen = rows[np.isin(subj, robots) & (subj != o)]
         if not seen.size:
             continue
