@@ -43,7 +43,7 @@ import numpy as np
 from dfusion.errors import ValidationError
 from dfusion.estimation.innovation import MonitorSettings
 from dfusion.fusion.tracking_node import TrackingNode
-from dfusion.linalg import Array, spd_inverse, symmetrize
+from dfusion.linalg import Array, cholesky, spd_inverse, symmetrize
 from dfusion.models.measurement import PositionFix
 from dfusion.tracking.track import Scan, TrackId
 
@@ -150,6 +150,6 @@ class TeamSightingsFrontEnd:
 
 def _d2(nu: Array, S: Array) -> float:
     """``nu^T S^-1 nu`` by a Cholesky solve."""
-    C = np.linalg.cholesky(symmetrize(S))
+    C = cholesky(symmetrize(S), "innovation covariance")
     w = np.linalg.solve(C, nu)
     return float(w @ w)
