@@ -36,6 +36,8 @@ def _simulate(args: argparse.Namespace) -> int:
     sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin,
                        protection=False if args.no_protection else None, sends=args.sends,
                        min_send_interval=args.min_send_interval)
+    if sc.multi_target:
+        return _simulate_tracking(sc, args)
     live = None
     if args.foxglove is not None:
         from dfusion.viz.foxglove import LiveView
@@ -50,6 +52,66 @@ def _simulate(args: argparse.Namespace) -> int:
     print(result.table())
     _outputs(result, args)
     return 0
+
+
+def _simulate_tracking(sc, args: argparse.Namespace, world=None) -> int:
+    """``dfusion simulate`` of a multi-target scenario ([[targets]]): a TrackingNode per node
+    (:mod:`dfusion.sim.tracking_runner`); ``--json``, ``--topdown`` (every node's tracks),
+    ``--plot`` (the identity timelines), ``--mcap``."""
+    for flag in ("csv", "frames", "foxglove"):
+        if getattr(args, flag, None) is not None:
+            raise DfusionError(f"--{flag} is not available for a multi-target scenario yet (--json, --topdown, "
+                               f"--plot and --mcap are)")
+    from dfusion.sim.tracking_runner import run_tracking_scenario
+
+    result = run_tracking_scenario(sc, progress=not args.quiet, world=world)
+    print(result.table())
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(result.to_json(series=True))
+        print(f"wrote {args.json}")
+    if args.topdown or args.plot or args.mcap:
+        from dfusion.sim.target_world import node_view
+        from dfusion.viz.tracks import plot_identity_timeline, plot_tracks_topdown
+
+        views = [v for v in (node_view(spec) for _, spec in sorted(sc.nodes.items())) if v is not None]
+        nodes = sorted(result.nodes) + ["central"]
+        name = Path(sc.path).stem
+        if args.topdown:
+            path = plot_tracks_topdown(result.history, result.world.truth, args.topdown, nodes=nodes, views=views,
+                                       region=sc.tracking.region, title=f"{name}: every node's tracks and the truth")
+            print(f"wrote {path}")
+        if args.plot:
+            path, _ = plot_identity_timeline(result.history, result.world.truth, args.plot, nodes=sorted(result.nodes),
+                                             threshold=sc.tracking.match,
+                                             title=f"{name}: identity timeline per node")
+            print(f"wrote {path}")
+        if args.mcap:
+            from dfusion.viz.foxglove import record_tracks_mcap
+
+            print(f"wrote {record_tracks_mcap(result.history, args.mcap, result.world.truth, views=views)} "
+                  f"(open it in Foxglove)")
+    return 0
+
+
+def _replay_tracking(sc, args: argparse.Namespace) -> int:
+    """``dfusion replay SCENARIO BAG --topic TOPIC=CAMERA_NODE ... [--truth TOPIC ...]`` of a
+    multi-target scenario: the camera nodes' scans are the bag's detection arrays
+    (:func:`dfusion.sim.target_world.world_from_bag`), the rest as ``simulate``."""
+    from dfusion.bags import msgdefs_from_files
+    from dfusion.sim.replay import parse_topic_input
+    from dfusion.sim.target_world import world_from_bag
+
+    if not args.truth:
+        raise DfusionError("a replay of a multi-target scenario needs --truth TOPIC (one per target, or a "
+                           "Detection3DArray with ids): its figures are measured against it")
+    inputs = [parse_topic_input(t) for t in args.topic]
+    world = world_from_bag(sc, args.bag, [(i.topic, i.node, i.convert) for i in inputs], truth_topics=args.truth,
+                           origin_ns=args.origin_ns, msgdefs=msgdefs_from_files(args.msg))
+    c = world.counts
+    print(f"read {c.scans} scans, {c.detections} detections from {args.bag} "
+          f"({', '.join(f'{i.topic} -> {i.node}' for i in inputs)}); truth: {len(world.truth.paths)} targets")
+    return _simulate_tracking(sc, args, world=world)
 
 
 def _outputs(result, args: argparse.Namespace, *, title: str | None = None) -> None:
@@ -95,6 +157,11 @@ def _replay(args: argparse.Namespace) -> int:
     if not args.topic:
         print("dfusion: error: map at least one bag topic to a node with --topic TOPIC=NODE", file=sys.stderr)
         return 2
+    from dfusion.bags import msgdefs_from_files, read_bag
+
+    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
+    if sc.multi_target:
+        return _replay_tracking(sc, args)
     if len(args.truth) > 1:
         print("dfusion: error: a scenario replay takes one --truth topic (the target's)", file=sys.stderr)
         return 2
@@ -103,9 +170,6 @@ def _replay(args: argparse.Namespace) -> int:
         print("dfusion: error: --plot draws errors against the truth: give --truth TOPIC (or leave --plot out)",
               file=sys.stderr)
         return 2
-    from dfusion.bags import msgdefs_from_files, read_bag
-
-    sc = load_scenario(args.scenario, seed=args.seed, fusion=args.fusion, duration=args.duration, plugins=args.plugin)
     inputs = [parse_topic_input(t) for t in args.topic]
     bag = read_bag(args.bag, [i.topic for i in inputs] + ([truth] if truth else []),
                    msgdefs=msgdefs_from_files(args.msg))

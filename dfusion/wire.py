@@ -385,14 +385,15 @@ def check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None = Non
 
 
 def _check_frame(data: bytes | bytearray | memoryview, key: FrameKey | None,
-                 max_bytes: int) -> tuple[memoryview, int]:
-    """:func:`check_frame`; returns the body and the flags."""
+                 max_bytes: int, verify: bool = True) -> tuple[memoryview, int]:
+    """:func:`check_frame`; returns the body and the flags (``verify=False``: without the checksum
+    and the MAC, :func:`open_frame`)."""
     if isinstance(data, (bytes, bytearray, memoryview)) and 0 < len(data) <= max_bytes:
         view = memoryview(data).cast("B") if isinstance(data, memoryview) else memoryview(data)
         if (len(data) < _HEAD + 1 + _CRC or bytes(view[:2]) != MAGIC) and (
                 view[0] in (0x80 | 3, 0xDE, 0xDF) or 0x80 <= view[0] <= 0x8F):
             raise _reject("version", "a version-1 message (msgpack map): this node speaks version 2 only")
-    return open_frame(data, key, max_bytes, magic=MAGIC, version=VERSION, known_flags=_KNOWN_FLAGS)
+    return open_frame(data, key, max_bytes, magic=MAGIC, version=VERSION, known_flags=_KNOWN_FLAGS, verify=verify)
 
 
 def seal_frame(body: bytes, key: FrameKey | None, *, magic: bytes, version: int, flags: int) -> bytes:
@@ -407,9 +408,13 @@ def seal_frame(body: bytes, key: FrameKey | None, *, magic: bytes, version: int,
 
 
 def open_frame(data: bytes | bytearray | memoryview, key: FrameKey | None, max_bytes: int, *,
-               magic: bytes, version: int, known_flags: int) -> tuple[memoryview, int]:
+               magic: bytes, version: int, known_flags: int, verify: bool = True) -> tuple[memoryview, int]:
     """The checks of :func:`seal_frame`'s envelope (size, magic, version, flags, checksum, MAC);
-    returns the body (a view) and the flags, or raises :class:`MessageError` with ``reason``."""
+    returns the body (a view) and the flags, or raises :class:`MessageError` with ``reason``.
+
+    ``verify=False`` skips the checksum and the MAC (the other checks run): only for bytes that
+    passed this function with ``verify=True`` and the same key already (a transport's check on
+    arrival, ``Delivery.checked``), so that one frame's MAC is computed once."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise _reject("malformed", f"message must be bytes, got {type(data).__name__}")
     size = len(data)
@@ -427,13 +432,14 @@ def open_frame(data: bytes | bytearray | memoryview, key: FrameKey | None, max_b
     end = size - (MAC_BYTES if keyed else 0)
     if end - _CRC < _HEAD + 1:
         raise _reject("malformed", "message too short")
-    (crc,) = _CRC_STRUCT.unpack_from(view, end - _CRC)
-    if zlib.crc32(view[:end - _CRC]) != crc:
-        raise _reject("corrupt", "checksum mismatch: the message was corrupted")
+    if verify:
+        (crc,) = _CRC_STRUCT.unpack_from(view, end - _CRC)
+        if zlib.crc32(view[:end - _CRC]) != crc:
+            raise _reject("corrupt", "checksum mismatch: the message was corrupted")
     if key is not None:
         if not keyed:
             raise _reject("unauthenticated", "message is not authenticated (no MAC) but a network key is set")
-        if not hmac.compare_digest(bytes(view[end:]), key.mac(view[:end])):
+        if verify and not hmac.compare_digest(bytes(view[end:]), key.mac(view[:end])):
             raise _reject("unauthenticated", "message authentication failed (wrong key, network or run)")
     elif keyed:
         raise _reject("unauthenticated", "message is authenticated (keyed network) but this node has no key")
@@ -524,14 +530,18 @@ def _decode_keys(buf: bytes, name: str, wide: bool) -> np.ndarray:
 
 
 def decode(data: bytes | bytearray | memoryview, key: FrameKey | None = None,
-           max_bytes: int = MAX_MESSAGE_BYTES) -> InfoMessage:
+           max_bytes: int = MAX_MESSAGE_BYTES, *, checked: bool = False) -> InfoMessage:
     """Parse and validate a frame; raises :class:`MessageError` (with ``reason``) on any defect.
 
     Every check of ``docs/wire-format.md`` runs before anything is returned: sizes, every
     integer's range, times, finiteness and magnitudes, symmetry (by construction: only the
-    upper triangle travels) and positive semi-definiteness of every block.
+    upper triangle travels) and positive semi-definiteness of every block. ``checked=True``:
+    :func:`check_frame` with the same ``key`` has passed on these very bytes (immutable
+    ``bytes``), so its checksum and MAC are not computed again; every other check runs.
     """
-    body, flags = _check_frame(data, key, max_bytes)
+    if checked and not isinstance(data, bytes):
+        raise _reject("internal", "only immutable bytes can be decoded as checked")
+    body, flags = _check_frame(data, key, max_bytes, verify=not checked)
     try:
         fields = msgpack.unpackb(body, raw=False, use_list=True, strict_map_key=True, max_bin_len=max_bytes,
                                  max_array_len=32, max_map_len=0, max_str_len=256)

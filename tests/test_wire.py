@@ -380,6 +380,26 @@ def test_check_frame_returns_the_body_without_parsing_it():
         rejected(junk, key, "malformed", "not a msgpack body")
 
 
+def test_a_checked_frame_is_decoded_without_a_second_mac_and_the_same_message(monkeypatch):
+    """decode(checked=True): the bytes passed check_frame already (a transport's check on arrival),
+    so neither the checksum nor the MAC is computed again; the message is the same, and every
+    check of the body still runs."""
+    data = encode(make_msg(), KEY)
+    check_frame(data, KEY)
+    calls = []
+    real_mac, real_crc = FrameKey.mac, wire.zlib.crc32
+    monkeypatch.setattr(FrameKey, "mac", lambda self, d: calls.append("mac") or real_mac(self, d))
+    monkeypatch.setattr(wire.zlib, "crc32", lambda d: calls.append("crc") or real_crc(d))
+    assert_same(decode(data, KEY, checked=True), decode(data, KEY))
+    assert calls == ["crc", "mac"]   # only the unchecked decode computed them
+    junk = seal(b"DF\x02" + bytes([FULL | KEYED]) + b"\xc1 not msgpack", True)
+    check_frame(junk, KEY)
+    with pytest.raises(MessageError, match="not a msgpack body"):
+        decode(junk, KEY, checked=True)
+    with pytest.raises(MessageError, match="immutable bytes"):   # a buffer could change after its check
+        decode(bytearray(data), KEY, checked=True)
+
+
 # ---------------------------------------------------------------- rejections: the frame
 @pytest.mark.parametrize("data", ["text", None, 42, [b"DF"], {"v": 2}], ids=repr)
 def test_not_bytes(data):

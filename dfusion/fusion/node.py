@@ -359,28 +359,33 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         for ch in self.channels.values():
             ch.ack_lag = value
 
-    def receive(self, data: bytes) -> int:
+    def receive(self, data: bytes, *, checked: bool = False) -> int:
         """Fuse a neighbour's message; returns the number of state blocks that changed.
 
         Raises :class:`MessageError` (with ``reason``), counts it and changes nothing else if
         the message is malformed, corrupt, unauthenticated while a key is set, from a
         non-neighbour, addressed to another node, of another state dimension, of an earlier
         incarnation, too far ahead in its sequence numbers, or not fusable.
+
+        ``checked=True`` says that :meth:`check_frame` of this node passed on these very bytes
+        (a transport's check on arrival: ``Delivery.checked``), so the checksum and the MAC are
+        not computed a second time; the other checks run. Never pass it for bytes that
+        :meth:`check_frame` has not accepted.
         """
         try:
-            return self._receive(data)
+            return self._receive(data, checked)
         except BaseException:   # (what did not go through _reject, an interrupt: its verdict undone too)
             self._undo_incarnation()
             raise
         finally:
             self._incarnation_undo = None
 
-    def _receive(self, data: bytes) -> int:
+    def _receive(self, data: bytes, checked: bool = False) -> int:
         """:meth:`receive`, whose verdict on a neighbour's incarnation :meth:`_reject` undoes."""
         self._settle()
         self._tree_undo = None
         try:
-            msg = decode(data, self.frame_key, self.max_message_bytes)
+            msg = decode(data, self.frame_key, self.max_message_bytes, checked=checked)
         except MessageError as exc:
             raise self._reject(getattr(exc, "reason", "malformed"), str(exc)) from None
         except Exception as exc:   # a defect of the decoder: the message is still rejected, nothing changed
@@ -494,7 +499,8 @@ class FusionNode(SteadyPath, ReceiveTransaction, GuardedLinks, TreeFollowing, Me
         transport may run it in its own threads on every copy as it arrives and drop the
         failing ones before they take queue space
         (:meth:`dfusion.transport.zenoh.ZenohTransport.set_check`); count
-        them with :meth:`count_rejections`. :meth:`receive` runs the same checks again.
+        them with :meth:`count_rejections`; :meth:`receive` then need not compute the checksum and
+        MAC again (``receive(data, checked=True)``).
         """
         check_frame(data, self.frame_key, self.max_message_bytes)
 

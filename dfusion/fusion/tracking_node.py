@@ -51,6 +51,12 @@ measurement's information is held as own information by exactly the node that to
 ``k`` only, and reaches the others over ``k``'s channels: nothing counted twice, nothing lost
 once the news has reached every node and the links have settled (own information of ``g``
 older than ``k``'s window start cannot be moved: counted in ``stats.merge_outside_window``).
+A node compares only tracks its own data bore on in the last ``merge_fresh`` seconds (in view
+of one of its scans, or observed): only such a node can have seen the two tracks take
+detections of one scan (distinct), and a merge is enforced on every node. A relay without
+sensors, a node that does not see the place, or one cut off from the sensors by a link outage
+(whose predictions of two people may drift together) decides no merge; it follows those of
+the nodes that see (``tests/fusion/test_tracking_node.py``).
 
 **Deletions.** A track a node's deleter ends is deleted at that node, recorded, and announced;
 every node that hears deletes it too. The deleter sees the fused track (its estimate, and as
@@ -156,11 +162,11 @@ class _TrackView:
     consecutive_misses: int = 0
     recent: list[int] = field(default_factory=list)
     confirmed: bool = True
+    seen: float | None = None          # newest time this node's own data bore on the track (in view, or observed)
+    given_prior: bool = False          # added by add_track: its prior is informative from the start
 
     def estimate(self) -> tuple[Array, Array]:
         return self.node.estimate()
-
-    given_prior: bool = False        # added by add_track: its prior is informative from the start
 
     record = Track.record
 
@@ -188,6 +194,8 @@ class TrackingNode:
         0.99 gate, 3-of-5 initiation, a covariance deleter; ``deleter=False``: tracks end only
         when a neighbour's end is heard or :meth:`delete` is called).
     merger : the track-to-track associator (``None``: a default one; ``False``: no merges).
+    merge_fresh : seconds: only tracks this node's own data (a scan that had them in view, an
+        observation) bore on at most this long ago are compared for merges (module docstring, "Merges").
     prior : the common prior of every track.
     window, horizon, max_ahead, hold : each track's :class:`FusionNode` settings.
     links_change : links that change at run time (each track follows the tree rule).
@@ -198,7 +206,8 @@ class TrackingNode:
     def __init__(self, name: str, neighbors: Iterable[str], motion: MotionModel, *,
                  associator: DataAssociator | None = None, hypothesiser: Hypothesiser | None = None,
                  initiator: Initiator | None = None, deleter: Deleter | None | bool = None,
-                 merger: TrackToTrackAssociator | None | bool = None, prior: TrackPrior = TrackPrior(),
+                 merger: TrackToTrackAssociator | None | bool = None, merge_fresh: float = 1.0,
+                 prior: TrackPrior = TrackPrior(),
                  window: int | None = 100, horizon: float | None = None, max_ahead: float = MAX_AHEAD,
                  hold: float = HOLD, links_change: bool = False, peers: Iterable[str] | None = None,
                  network_key: bytes | None = None, network: str = "", run: str = "", epoch: int | None = None,
@@ -223,6 +232,9 @@ class TrackingNode:
         self.initiator = initiator or MofNInitiator(motion)
         self.deleter = None if deleter is False else (deleter or CovarianceDeleter())
         self.merger = None if merger is False else (merger or TrackToTrackAssociator())
+        if not (isinstance(merge_fresh, (int, float)) and merge_fresh > 0 and np.isfinite(merge_fresh)):
+            raise ValidationError(f"merge_fresh must be a positive number of seconds, got {merge_fresh!r}")
+        self.merge_fresh = float(merge_fresh)
         self.prior = prior
         self.epoch = _time.time_ns() if epoch is None else int(epoch)
         if not 0 < self.epoch < 2**63:
@@ -338,6 +350,8 @@ class TrackingNode:
         if t > node.latest_time:
             self.predict(t)
         node.update(t, z, sensor)
+        view = self._views[track]
+        view.seen = t if view.seen is None else max(view.seen, t)
 
     def process(self, scan: Scan, *, exclude: Iterable[TrackId] = ()) -> list[TrackId]:
         """Associate one scan of this node's sensors with the fused tracks, fuse it, start
@@ -370,6 +384,7 @@ class TrackingNode:
             hit = assoc.hit(i)
             if hit or hyp.visibility[i] >= 0.5:
                 self._views[tid].record(hit, window=1)
+                self._views[tid].seen = t
             if hit:
                 hit_ids.append(tid)
         if self.merger is not None and len(hit_ids) > 1:
@@ -440,7 +455,9 @@ class TrackingNode:
     def _merge_duplicates(self) -> None:
         if self.merger is None or self.time is None:
             return
-        live = {tid: node.estimate() for tid, node in self.tracks.items() if self._informed(tid)}
+        live = {tid: node.estimate() for tid, node in self.tracks.items()
+                if self._views[tid].seen is not None and self.time - self._views[tid].seen <= self.merge_fresh
+                and self._informed(tid)}
         for a, b in self.merger.check(live, self.time):
             if a in self.tracks and b in self.tracks:
                 keep, gone = self.survivor(a, b)

@@ -45,6 +45,8 @@ MAX_STATUS_BYTES = 1 << 20
 #: What a publication holds besides its estimates, tree and lost times (bytes): the envelope and
 #: MAC (about 60), names, phase, times (about 100), the counters (about 40 of them: about 1.5 kB).
 STATUS_BASE_BYTES = 16 * 1024
+#: Most publications in one batch (:func:`encode_status_batch`): a host's nodes that stepped together.
+MAX_STATUS_BATCH = 64
 #: Domain of a monitor publication's MAC (fusion frames start with b"DF": the two never collide).
 _STATUS_DOMAIN = b"dfusion-monitor/2\0"
 PHASES = ("ready", "run", "final", "stopped")
@@ -153,6 +155,34 @@ def status_limit(sc: Scenario) -> int:
     names = sum(len(name) + 3 for name in sc.nodes)
     lost = 36 * max((spec.rate * sc.duration + 1 for spec in sc.nodes.values()), default=1)
     return int(min(MAX_STATUS_BYTES, STATUS_BASE_BYTES + 2 * estimate + 2 * names + lost))
+
+
+def encode_status_batch(publications: list[bytes]) -> bytes:
+    """Several publications (:meth:`Status.encode`, each with its own MAC) as one Zenoh payload: a
+    msgpack array of them. A host process sends the step publications of its nodes so, one put per
+    step instead of one per node, on ``dfusion/NET/monitor/FIRST/batch``
+    (:func:`dfusion.transport.zenoh.monitor_batch_key`, ``docs/processes.md``). At most
+    :data:`MAX_STATUS_BATCH` of them."""
+    if not 0 < len(publications) <= MAX_STATUS_BATCH:
+        raise ValidationError(f"a batch holds 1 to {MAX_STATUS_BATCH} publications, got {len(publications)}")
+    return msgpack.packb(list(publications), use_bin_type=True)
+
+
+def split_status_batch(data: bytes, max_each: int) -> list[bytes]:
+    """The publications of a batch (:func:`encode_status_batch`). Raises :class:`MessageError` (``malformed``) for
+    a batch that is not an array of 1 to :data:`MAX_STATUS_BATCH` byte strings of at most
+    ``max_each`` bytes each (``oversized``); nothing in it is authenticated yet."""
+    try:
+        parts = msgpack.unpackb(data, raw=False, max_array_len=MAX_STATUS_BATCH, max_bin_len=max_each,
+                                max_map_len=0, max_str_len=0)
+    except ValueError as exc:
+        reason = "oversized" if "exceeds max_bin_len" in str(exc) else "malformed"
+        raise _status_reject(reason, f"monitor batch: {exc}") from None
+    except Exception as exc:
+        raise _status_reject("malformed", f"malformed monitor batch: {type(exc).__name__}: {exc}") from None
+    if not (isinstance(parts, list) and parts and all(isinstance(p, bytes) for p in parts)):
+        raise _status_reject("malformed", f"a monitor batch is an array of 1 to {MAX_STATUS_BATCH} publications")
+    return parts
 
 
 def _status_mac(key: FrameKey, body: bytes) -> bytes:

@@ -202,6 +202,9 @@ class Launcher:
         self.opts = opts
         self.sc = load_scenario(opts.scenario, seed=opts.seed, fusion=opts.fusion, duration=opts.duration,
                                 plugins=opts.plugins, sends=opts.sends, min_send_interval=opts.min_send_interval)
+        if self.sc.multi_target:
+            raise DfusionError(f"{self.sc.path}: dfusion run does not take multi-target scenarios ([[targets]]) yet; "
+                               f"dfusion simulate runs them")
         for name in self.sc.nodes:
             check_name(name)
         if isinstance(opts.nodes_per_process, bool) or not isinstance(opts.nodes_per_process, int) \

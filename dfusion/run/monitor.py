@@ -42,8 +42,8 @@ from dfusion.errors import MessageError
 from dfusion.fusion.channel import time_key
 from dfusion.fusion.stats import RejectionLog
 from dfusion.fusion.tree import NodeTreeState, TreeEpoch, forest_settled
-from dfusion.run.common import (Status, TreeStatus, add_tls_arguments, load_network_key, security_from_args,
-                                status_limit)
+from dfusion.run.common import (MAX_STATUS_BATCH, Status, TreeStatus, add_tls_arguments, load_network_key,
+                                security_from_args, split_status_batch, status_limit)
 from dfusion.scenario.loader import load_scenario
 from dfusion.scenario.spec import Scenario
 from dfusion.sim.links import LinkChange
@@ -56,6 +56,7 @@ from dfusion.transport.zenoh import (
     ZenohConfig,
     alive_key,
     close_session,
+    monitor_batch_key,
     monitor_key,
     open_session,
 )
@@ -111,12 +112,15 @@ class Monitor:
 
     Every publication is validated (:meth:`Status.decode`: MAC, types, ranges, the state
     dimension) and must come from the node it names (its key expression
-    ``dfusion/NET/monitor/NAME``); a bad one is counted by reason in :attr:`rejections`
+    ``dfusion/NET/monitor/NAME``; a host process's batch of its nodes' step publications,
+    :func:`~dfusion.run.common.encode_status_batch`, goes on the key of its first one, each
+    publication in it checked alone); a bad one is counted by reason in :attr:`rejections`
     (total :attr:`rejected`) and logged at most once per :data:`dfusion.fusion.stats.LOG_INTERVAL`
     seconds, never fatal. At most :data:`MAX_PENDING` publications and :data:`MAX_PENDING_BYTES`
     bytes wait between two polls (the oldest are dropped, counted in ``rejections["queue-full"]``
     and :attr:`queue`), and a publication longer than any node of the scenario can make
-    (:func:`~dfusion.run.common.status_limit`) is dropped as it arrives, before its payload is
+    (:func:`~dfusion.run.common.status_limit`; a batch: that times
+    :data:`~dfusion.run.common.MAX_STATUS_BATCH`) is dropped as it arrives, before its payload is
     copied (``rejections["oversized"]``): a flood of large publications costs a length check each;
     the envelope and MAC are checked as a publication arrives too (:meth:`Status.authenticate`, the
     only HMAC computed per publication; :meth:`poll` reads the authenticated body with
@@ -163,41 +167,70 @@ class Monitor:
         self._session = open_session(config or ZenohConfig())
         try:
             self._session.declare_subscriber(monitor_key(network), self._on_sample)
+            self._session.declare_subscriber(monitor_batch_key(network), lambda s: self._on_sample(s, batch=True))
             self._session.liveliness().declare_subscriber(alive_key(network), self._on_alive, history=True)
         except BaseException:
             self.close()
             raise
 
-    def _on_sample(self, sample) -> None:
-        """Zenoh's callback (its thread): queue the publication, bounded in count and bytes, never blocking."""
+    def _on_sample(self, sample, batch: bool = False) -> None:
+        """Zenoh's callback (its thread): queue the publication, bounded in count and bytes, never blocking.
+
+        ``batch``: a host's batch of publications (:func:`~dfusion.run.common.encode_status_batch`, at
+        most :data:`~dfusion.run.common.MAX_STATUS_BATCH`, on ``monitor/FIRST/batch``): each is checked
+        alone, as a single one."""
         size = len(sample.payload)
         q = self.queue
-        if size > self.max_status_bytes:   # before copying the payload
-            with self._queue_lock:
-                self._oversized += 1
-                q["oversized"] += 1
-                q["oversized_bytes"] += size
-                self._oversized_detail = f"{size} bytes, more than any node's {self.max_status_bytes}"
+        if size > self.max_status_bytes * (MAX_STATUS_BATCH + 1 if batch else 1):   # before copying the payload
+            self._oversized_one(size)
             return
-        try:   # forged (or garbled) publications never take queue space; the HMAC is computed here only
-            body = Status.authenticate(sample.payload.to_bytes(), self.key)
-        except MessageError as exc:
-            with self._queue_lock:
-                reason = getattr(exc, "reason", "malformed")
-                self._arrival_rejects[reason] = self._arrival_rejects.get(reason, 0) + 1
-                self._arrival_detail = str(exc)
-            return
-        item = (str(sample.key_expr).rsplit("/", 1)[-1], body, size)
+        chunk = str(sample.key_expr).split("/")[3]   # dfusion/NET/monitor/NAME[/batch]
+        if batch:
+            try:
+                parts = split_status_batch(sample.payload.to_bytes(), self.max_status_bytes)
+            except MessageError as exc:
+                self._arrival_reject(exc)
+                return
+        else:
+            parts = [sample.payload.to_bytes()]
+        items = []
+        for i, part in enumerate(parts):
+            if len(part) > self.max_status_bytes:
+                self._oversized_one(len(part))
+                continue
+            try:   # forged (or garbled) publications never take queue space; the HMAC is computed here only
+                body = Status.authenticate(part, self.key)
+            except MessageError as exc:
+                self._arrival_reject(exc)
+                continue
+            # the key names the (first) node of the payload: the others of a batch are its host's
+            items.append((chunk if i == 0 else None, body, len(part)))
         with self._queue_lock:
-            while self._queue and (len(self._queue) >= MAX_PENDING or self._queued_bytes + size > MAX_PENDING_BYTES):
-                _, _, old = self._queue.popleft()
-                self._queued_bytes -= old
-                self._dropped += 1
-                q["shed"] += 1
-                q["shed_bytes"] += old
-            self._queue.append(item)
-            self._queued_bytes += size
-            q["peak_bytes"] = max(q["peak_bytes"], self._queued_bytes)
+            for item in items:
+                size = item[2]
+                while self._queue and (len(self._queue) >= MAX_PENDING
+                                       or self._queued_bytes + size > MAX_PENDING_BYTES):
+                    _, _, old = self._queue.popleft()
+                    self._queued_bytes -= old
+                    self._dropped += 1
+                    q["shed"] += 1
+                    q["shed_bytes"] += old
+                self._queue.append(item)
+                self._queued_bytes += size
+                q["peak_bytes"] = max(q["peak_bytes"], self._queued_bytes)
+
+    def _oversized_one(self, size: int) -> None:
+        with self._queue_lock:
+            self._oversized += 1
+            self.queue["oversized"] += 1
+            self.queue["oversized_bytes"] += size
+            self._oversized_detail = f"{size} bytes, more than any node's {self.max_status_bytes}"
+
+    def _arrival_reject(self, exc: MessageError) -> None:
+        with self._queue_lock:
+            reason = getattr(exc, "reason", "malformed")
+            self._arrival_rejects[reason] = self._arrival_rejects.get(reason, 0) + 1
+            self._arrival_detail = str(exc)
 
     def _on_alive(self, sample) -> None:
         """Zenoh's liveliness callback: only the scenario's nodes are followed (a flood of tokens of
@@ -262,7 +295,7 @@ class Monitor:
             if rec is None:
                 self._reject("not-a-node", f"publication of {st.node!r}, not a node of the scenario")
                 continue
-            if st.node != chunk:
+            if chunk is not None and st.node != chunk:
                 self._reject("forged-sender", f"publication of {st.node!r} on the key of {chunk!r}")
                 continue
             if 0 <= st.k and st.k >= len(rec.have) or (st.phase in ("run", "final") and st.k < 0):
@@ -474,6 +507,9 @@ def build_result(
             "measurements_lost": len(fin.lost) if fin is not None else 0,
             "liveliness_losses": rec.losses,
             "max_lag_wall_s": max((s.get("max_lag_ms", 0) for s in per_epoch), default=0) / 1000,
+            # the lag of the last step the node reported (its final incarnation's): behind the clock at the end
+            "lag_at_end_wall_s": (fin.stats if fin is not None else per_epoch[-1] if per_epoch else {}).get(
+                "lag_ms", 0) / 1000,
             "cpu_s": total.get("cpu_ms", 0) / 1000,
             # the consistency test of the neighbours' information (docs/clutter.md), summed over incarnations
             "guard_tests": total.get("guard_tests", 0),
@@ -646,7 +682,8 @@ def run_table(result) -> str:
                     + (f" (up to {per} per process)" if per > 1 else " (one per node)"))
     if "speed" in run:
         bits.append(f"speed x{run['speed']:g}, wall {run.get('wall_seconds', math.nan):.1f} s")
-    bits.append(f"largest lag behind the clock {lag:.2f} s wall")
+    end = max((v.get("lag_at_end_wall_s", 0.0) for v in run.get("nodes", {}).values()), default=0.0)
+    bits.append(f"largest lag behind the clock {lag:.2f} s wall ({end:.2f} s at the end)")
     bits.append(f"network {run.get('network', '?')}")
     if run.get("monitor_rejected"):
         why = ", ".join(f"{r} {c}" for r, c in sorted(run.get("monitor_rejections", {}).items(), key=lambda x: -x[1]))

@@ -54,11 +54,13 @@ import zenoh
 
 from dfusion.errors import DfusionError, MessageError, OutsideWindowError
 from dfusion.run.common import (
+    MAX_STATUS_BATCH,
     ROUND_TIMEOUT,
     LogByteCap,
     Status,
     TreeStatus,
     add_tls_arguments,
+    encode_status_batch,
     final_rounds,
     load_network_key,
     parse_zenoh_options,
@@ -92,12 +94,16 @@ from dfusion.run.supervision import (
     set_parent_death_signal,
 )
 from dfusion.policies.base import records_output
-from dfusion.transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_key
+from dfusion.transport.zenoh import ZenohConfig, ZenohTransport, check_name, monitor_batch_key, monitor_key
 
 log = logging.getLogger("dfusion.node")
 
 #: Longest time the node blocks without looking at its stop flag (seconds).
 POLL = 0.05
+#: Longest time a host's loop sleeps without looking at its stop flags (seconds). Its steps,
+#: event sends, delayed copies and arrivals wake it anyway; a shorter bound would add wake-ups
+#: (each costs the process tens of microseconds of CPU on a VM) between steps of 0.1 s.
+LOOP_POLL = 0.25
 #: Wall-clock period of the "ready" publication while waiting for the start.
 READY_PERIOD = 0.2
 #: Wall-clock period of the counters in a node's step publications (the estimate goes every step).
@@ -178,6 +184,9 @@ class NodeProcess:
         requested there (:mod:`dfusion.run.chaos`); None (the default): no such requests are read.
     """
 
+    #: Where this node's step publications wait for its host to send them together
+    #: (:meth:`Host.flush_monitor`); None: each goes at once.
+    monitor_batch: list[tuple[NodeProcess, bytes]] | None = None
     #: The byte cap on this process's log output (:class:`dfusion.run.common.LogByteCap`); the
     #: first node of a process reports its drops (``log_lines_dropped``), so they are counted once.
     log_cap: LogByteCap | None = None
@@ -247,7 +256,7 @@ class NodeProcess:
         self._records_output = records_output(self.node.policy)
         self.counters = {"skipped_not_alive": 0, "measurements_fused": 0,
                          "measurements_refused": 0, "measurements_replayed": 0,
-                         "max_lag_ms": 0}
+                         "max_lag_ms": 0, "lag_ms": 0}
         self.lost: list[float] = []
         self.t_started = 0.0
         self.links: EmulatedLinks | None = None
@@ -385,6 +394,7 @@ class NodeProcess:
             self._send_due(t)
             self._publish("run", k)
             lag = (time.time() - self.start) - t / self.speed   # wall seconds behind the schedule
+            self.counters["lag_ms"] = max(0, int(lag * 1000))   # (the last step's: the lag at the end)
             if lag * 1000 > self.counters["max_lag_ms"]:
                 self.counters["max_lag_ms"] = int(lag * 1000)
         self._sending = False
@@ -546,7 +556,8 @@ class NodeProcess:
                 r = int(round((d.t_sent - T) / self.sc.dt))
                 self._round_seen[d.src] = max(self._round_seen.get(d.src, 0), r)
             try:
-                changed += self.node.receive(d.data)
+                # the transport ran this node's check_frame (checksum, MAC) on these bytes as they arrived
+                changed += self.node.receive(d.data, checked=d.checked)
             except MessageError:
                 pass   # counted in node.stats.messages_rejected and logged by the node
         return changed
@@ -690,6 +701,8 @@ class NodeProcess:
             if phase == "final":
                 self.tr.session.put(self._monitor_key, st.encode(self.node.frame_key),
                                     congestion_control=zenoh.CongestionControl.BLOCK)
+            elif phase == "run" and self.monitor_batch is not None:
+                self.monitor_batch.append((self, st.encode(self.node.frame_key)))   # the host sends it
             else:
                 self._pub.put(st.encode(self.node.frame_key))
         except Exception as exc:   # the monitor is optional
@@ -745,6 +758,8 @@ class Host:
         self.label = label or "+".join(names)
         #: The endpoint this host's session listens on (known once the session is open).
         self.endpoint: str | None = None
+        self._monitor_batch: list[tuple[NodeProcess, bytes]] = []
+        self._batch_pubs: dict[str, object] = {}
 
     def request_stop(self, reason: str) -> None:
         """Ask every node to stop (safe from a signal handler: only sets flags)."""
@@ -768,6 +783,32 @@ class Host:
         """Scenario time of the host's nodes (the first one's clock: they share start and speed)."""
         return self.procs[0].now()
 
+    def flush_monitor(self) -> None:
+        """Send the step publications the nodes made since the last call: one Zenoh put per
+        :data:`~dfusion.run.common.MAX_STATUS_BATCH` of them, on the key of the first one's node
+        (:func:`~dfusion.run.common.encode_status_batch` on
+        :func:`~dfusion.transport.zenoh.monitor_batch_key`; one alone goes as it is). An isolated
+        put costs a Zenoh session tens of microseconds of CPU in its own threads and the caller's;
+        a host's nodes step together, so their publications of a step share one."""
+        batch = self._monitor_batch
+        if not batch:
+            return
+        for i in range(0, len(batch), MAX_STATUS_BATCH):
+            part = batch[i:i + MAX_STATUS_BATCH]
+            first = part[0][0]
+            try:
+                if len(part) == 1:
+                    first._pub.put(part[0][1])
+                    continue
+                pub = self._batch_pubs.get(first.name)
+                if pub is None:
+                    pub = self._batch_pubs[first.name] = self.tr.session.declare_publisher(
+                        monitor_batch_key(self.network, first.name))
+                pub.put(encode_status_batch([d for _, d in part]))
+            except Exception as exc:   # the monitor is optional
+                log.debug("%s: monitor publication failed: %s", self.label, exc)
+        batch.clear()
+
     def run(self) -> int:
         """Run every node to its end (or until stopped); returns the exit status (0)."""
         try:
@@ -776,7 +817,12 @@ class Host:
                 for p in self.procs:
                     p.attach(tr)
                     p.host_share = 1.0 / len(self.procs)
-                self._loop(tr)
+                    if len(self.procs) > 1:
+                        p.monitor_batch = self._monitor_batch
+                try:
+                    self._loop(tr)
+                finally:
+                    self.flush_monitor()
                 if self.stop_reason is not None:
                     for p in self.procs:
                         p.stopped()
@@ -824,42 +870,55 @@ class Host:
         programs = {p.name: p.program() for p in self.procs}
         waits = {p.name: Wait(0.0) for p in self.procs}
         procs = {p.name: p for p in self.procs}
+        linked = [p for p in self.procs if p.links is not None]
         cpu = time.thread_time   # this thread's CPU: what each node's own work costs
+        # when each node's next event send is due (NodeProcess.next_send_due): it changes only when
+        # the node's own code runs (a step, a receive, a send), so it is asked again only then
+        send_due = {name: -math.inf for name in procs}
         while programs:
             if self._should_stop():
                 return
             now = time.time()
-            for p in self.procs:
-                if p.links is not None and p.links.next_due() <= now:
+            for p in linked:
+                if p.links.next_due() <= now:
                     p.links.release_due(now)
+            c = None   # the thread's CPU clock read last in this pass (one read per node resumed)
             for name in list(programs):
                 w = waits[name]
                 if now >= w.deadline or (w.until is not None and w.until()):
-                    c0 = cpu()
+                    c0 = cpu() if c is None else c
+                    p = procs[name]
                     try:
                         waits[name] = next(programs[name])
+                        send_due[name] = p.next_send_due()
                     except StopIteration:
                         del programs[name], waits[name]
-                    procs[name].cpu += cpu() - c0
+                    c = cpu()
+                    p.cpu += c - c0
                     now = time.time()
+            self.flush_monitor()   # the step publications of the nodes resumed now, together
             if not programs:
                 return
-            for name, p in procs.items():   # event sends whose minimum interval has passed
-                if name in programs and p.next_send_due() <= now:
+            for name in programs:   # event sends whose minimum interval has passed
+                if send_due[name] <= now:
+                    p = procs[name]
                     c0 = cpu()
                     p.send_news()
+                    send_due[name] = p.next_send_due()
                     p.cpu += cpu() - c0
-            due = min([w.deadline for w in waits.values()]
-                      + [p.links.next_due() for p in self.procs if p.links is not None]
-                      + [p.next_send_due() for name, p in procs.items() if name in programs])
-            if tr.wait(max(0.0, min(due - time.time(), POLL))):
+            due = min(min(w.deadline for w in waits.values()), min(send_due[name] for name in programs),
+                      min((p.links.next_due() for p in linked), default=math.inf))
+            if tr.wait(max(0.0, min(due - time.time(), LOOP_POLL))):
+                c = None
                 for name, p in procs.items():
                     if tr.pending(name):
                         if name in programs:
-                            c0 = cpu()
+                            c0 = cpu() if c is None else c
                             p.receive()
                             p.send_news()   # relay at once what changed the node's belief
-                            p.cpu += cpu() - c0
+                            send_due[name] = p.next_send_due()
+                            c = cpu()
+                            p.cpu += c - c0
                         else:
                             tr.receive(name)   # after its final estimate a node fuses nothing more
                 tr.poll()
@@ -988,7 +1047,7 @@ def main(argv: list[str] | None = None) -> int:
     host: Host | None = None
     early: list[str] = []
 
-    def on_signal(signum, frame):  # only sets a flag; the loop looks at it every POLL seconds
+    def on_signal(signum, frame):  # only sets a flag; the loop looks at it every LOOP_POLL seconds at most
         name = signal.Signals(signum).name
         if host is not None:
             host.request_stop(name)
@@ -1046,11 +1105,15 @@ def main(argv: list[str] | None = None) -> int:
         import cProfile
 
         profiler = cProfile.Profile(time.thread_time)   # CPU of the loop's thread, not time spent waiting
+        cpu0, thread0 = time.process_time(), time.thread_time()
         try:
             return profiler.runcall(host.run)
         finally:
             Path(profile_dir).mkdir(parents=True, exist_ok=True)
             profiler.dump_stats(Path(profile_dir) / f"{label}.pstats")
+            (Path(profile_dir) / f"{label}.threads.json").write_text(json.dumps(
+                {"nodes": list(args.node), "process_cpu_s": time.process_time() - cpu0,
+                 "main_thread_cpu_s": time.thread_time() - thread0, "threads": thread_cpu()}))
     except (DfusionError, OSError) as exc:
         log.error("%s", exc)
         return 2
@@ -1059,6 +1122,26 @@ def main(argv: list[str] | None = None) -> int:
             lock.release()
         if watch is not None:
             watch.close()
+
+
+def thread_cpu() -> dict[str, float]:
+    """CPU seconds of every thread of this process so far, summed by thread name (Linux:
+    ``/proc/self/task/TID/stat``; empty elsewhere): the profile's view of Zenoh's own threads."""
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    try:
+        tasks = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tasks:
+        try:
+            stat = Path(f"/proc/self/task/{tid}/stat").read_text()
+        except OSError:
+            continue   # the thread ended meanwhile
+        name = stat[stat.index("(") + 1:stat.rindex(")")]
+        fields = stat[stat.rindex(")") + 2:].split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick   # utime + stime
+    return out
 
 
 def _measurements(sc: Scenario, names: list[str], source: str | None) -> dict[str, list[OwnMeasurement]]:

@@ -14,6 +14,7 @@ that exist then, a node that joins later begins alone (:func:`build_joining_node
 from __future__ import annotations
 
 import copy
+from typing import TYPE_CHECKING
 
 from collections.abc import Collection
 
@@ -21,9 +22,13 @@ from dfusion.errors import ScenarioError
 from dfusion.frontends.base import EIFFrontEnd, FrontEnd
 from dfusion.fusion.node import FusionNode
 from dfusion.fusion.tree import SpanningTree, TreeEpoch, initial_parents
-from dfusion.scenario.spec import Scenario
+from dfusion.scenario.spec import Scenario, TrackingSpec
 
-__all__ = ["build_node", "build_nodes", "build_joining_node", "build_front_end", "build_front_ends"]
+if TYPE_CHECKING:   # the multi-target builders import the tracker on first use: a single-target node program
+    from dfusion.fusion.tracking_node import TrackingNode   # loads no scipy (tests/run/test_node_process.py)
+
+__all__ = ["build_node", "build_nodes", "build_joining_node", "build_front_end", "build_front_ends",
+           "build_tracking_node", "build_tracking_nodes", "tracker_components"]
 
 
 def build_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epoch: int | None = None,
@@ -116,3 +121,50 @@ def build_front_end(sc: Scenario, name: str) -> FrontEnd | None:
 def build_front_ends(sc: Scenario) -> dict[str, FrontEnd]:
     """The front end of every node with a sensor."""
     return {name: fe for name in sorted(sc.nodes) if (fe := build_front_end(sc, name)) is not None}
+
+
+def tracker_components(spec: TrackingSpec, motion) -> dict:
+    """The tracker of ``[tracking]`` as keyword arguments of :class:`~dfusion.fusion.tracking_node.TrackingNode` (fresh objects:
+    the initiator and the merger keep state, so every node gets its own): ``associator``,
+    ``hypothesiser``, ``initiator``, ``deleter``, ``merger``, ``prior``."""
+    from dfusion.fusion.tracking_node import TrackPrior
+    from dfusion.tracking.association import GNN, JPDA
+    from dfusion.tracking.deletion import AnyDeleter, Deleter, MissDeleter, RegionDeleter, StaleDeleter
+    from dfusion.tracking.gating import GaussianHypothesiser
+    from dfusion.tracking.initiation import MofNInitiator
+    from dfusion.tracking.track_to_track import TrackToTrackAssociator
+
+    deleters: list[Deleter] = [StaleDeleter(spec.max_age)]
+    if spec.max_misses:
+        deleters.append(MissDeleter(spec.max_misses))
+    if spec.region is not None:
+        deleters.append(RegionDeleter(spec.inside, spec.region_grace))
+    m, n = spec.confirm
+    merger = (TrackToTrackAssociator(spec.merge_gate, spec.merge_confirm, spec.merge_distance,
+                                     spec.merge_distinct_for) if spec.merge else False)
+    return dict(associator=JPDA() if spec.associator == "jpda" else GNN(), hypothesiser=GaussianHypothesiser(spec.gate),
+                initiator=MofNInitiator(motion, m=m, n=n, gate=spec.gate, velocity_std=spec.velocity_std,
+                                        max_speed=spec.max_speed, max_seed_age=spec.max_seed_age),
+                deleter=AnyDeleter(*deleters), merger=merger,
+                prior=TrackPrior(spec.prior_position_std, spec.prior_velocity_std))
+
+
+def build_tracking_node(sc: Scenario, name: str, *, network_key: bytes | None = None, epoch: int | None = None,
+                        network: str = "", run: str = "") -> TrackingNode:
+    """The :class:`~dfusion.fusion.tracking_node.TrackingNode` of node ``name`` of a multi-target scenario: its tree
+    neighbours, the scenario's window and horizon, the tracker of ``[tracking]``
+    (:func:`tracker_components`)."""
+    from dfusion.fusion.tracking_node import TrackingNode
+
+    if sc.tracking is None:
+        raise ScenarioError(f"{sc.path}: not a multi-target scenario ([[targets]], [tracking])")
+    motion = sc.target.motion
+    return TrackingNode(name, sc.neighbors(name), motion, window=sc.window, horizon=sc.horizon,
+                        network_key=network_key, network=network, run=run, epoch=epoch,
+                        **tracker_components(sc.tracking, motion))
+
+
+def build_tracking_nodes(sc: Scenario, *, network_key: bytes | None = None) -> dict[str, TrackingNode]:
+    """Every node of a multi-target scenario, with epochs 1, 2, ... in name order (deterministic runs)."""
+    return {name: build_tracking_node(sc, name, network_key=network_key, epoch=i + 1)
+            for i, name in enumerate(sorted(sc.nodes))}

@@ -13,6 +13,8 @@ sensor kind               what
 ``robot_mcl``             :mod:`dfusion.scenario.robot_kinds`
 ``robot_icp``             :mod:`dfusion.scenario.robot_kinds`
 ``robot_env_camera``      :mod:`dfusion.scenario.robot_kinds`
+``detections``            :mod:`dfusion.scenario.tracking_kinds` (multi-target: a camera's view)
+``tags``                  :mod:`dfusion.scenario.tracking_kinds` (multi-target: identified targets)
 ========================  =====================================================
 
 Policies: ``fusion`` (the default, :class:`~dfusion.policies.InformationFusionPolicy`),
@@ -71,6 +73,8 @@ SENSOR_KINDS: dict[str, SensorKind | str] = {
     "robot_mcl": "dfusion.scenario.robot_kinds:ROBOT_MCL",
     "robot_icp": "dfusion.scenario.robot_kinds:ROBOT_ICP",
     "robot_env_camera": "dfusion.scenario.robot_kinds:ROBOT_ENV_CAMERA",
+    "detections": "dfusion.scenario.tracking_kinds:DETECTIONS",
+    "tags": "dfusion.scenario.tracking_kinds:TAGS",
 }
 #: Built-in policies: ``name -> factory(params)`` (imported when a scenario names one).
 POLICY_KINDS = {"fusion": _fusion_policy, "greedy": "dfusion.policies.switching:make_greedy",

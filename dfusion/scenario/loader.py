@@ -31,6 +31,7 @@ from dfusion.scenario.plugins import load_plugins
 from dfusion.fusion.guard import GuardConfig
 from dfusion.fusion.sending import MIN_SEND_INTERVAL, SEND_MODES
 from dfusion.scenario.security import security_options
+from dfusion.scenario.targets import check_multi_target, is_multi_target, load_targets, load_tracking, tracking_target
 from dfusion.scenario.spec import (
     CLUTTER_MODELS,
     COMMON_NODE_KEYS,
@@ -55,7 +56,8 @@ log = logging.getLogger(__name__)
 #: Keys of the top level of a scenario file.
 TOP_LEVEL_KEYS = frozenset({"duration", "dt", "seed", "window", "horizon", "fusion", "sends", "min_send_interval",
                             "spanning_tree", "plugins",
-                            "target", "nodes", "links", "security", "protection", "events", "radio"})
+                            "target", "nodes", "links", "security", "protection", "events", "radio",
+                            "targets", "tracking"})
 #: Keys of ``[target]`` every motion model takes (each motion adds its own, e.g. ``q``).
 TARGET_KEYS = frozenset({"motion", "initial_mean", "initial_cov_diag"})
 #: Keys of a ``[[links]]`` table.
@@ -68,8 +70,10 @@ PROTECTION_KEYS = frozenset({"enabled", "clutter_model", "network_check", "false
 _TABLES = {"target": "a table [target]", "nodes": "an array of tables [[nodes]]",
            "links": "an array of tables [[links]]", "security": "a table [security]",
            "protection": "a table [protection]", "events": "an array of tables [[events]]",
-           "radio": "a table [radio]"}
-_TABLE_LIST = "tables are [target], [[nodes]], [[links]], [[events]], [radio], [security] and [protection]"
+           "radio": "a table [radio]", "targets": "an array of tables [[targets]]",
+           "tracking": "a table [tracking]"}
+_TABLE_LIST = ("tables are [target], [[nodes]], [[links]], [[events]], [radio], [security] and [protection]; "
+               "a multi-target scenario has [[targets]] and [tracking] instead of [target]")
 
 
 def _fail(src: str, where: str, msg: str) -> ScenarioError:
@@ -112,11 +116,14 @@ def _check_top_level(src: str, raw: Mapping[str, Any]) -> None:
             if isinstance(value, dict):
                 raise _fail(src, f"[{key}]", f"unknown table{hint}; {_TABLE_LIST}")
             raise _fail(src, key, f"unknown top-level key{hint}; known: {', '.join(sorted(TOP_LEVEL_KEYS))}")
+    if isinstance(raw.get("targets"), dict):   # [targets] written for [target]
+        raise _fail(src, "[targets]", "unknown table (did you mean 'target'?); a multi-target scenario has an "
+                                      "array of tables [[targets]], one per person or robot")
     for key, what in _TABLES.items():
         value = raw.get(key)
         if value is None:
             continue
-        ok = isinstance(value, dict) if key in ("target", "security", "protection", "radio") else (
+        ok = isinstance(value, dict) if key in ("target", "security", "protection", "radio", "tracking") else (
             isinstance(value, list) and all(isinstance(v, dict) for v in value))
         if not ok:
             raise _fail(src, key, f"must be {what}, got {type(value).__name__}")
@@ -350,6 +357,8 @@ def load_scenario(
     if graph.number_of_nodes() < 2:
         raise _fail(src, "nodes", f"a scenario needs at least two fusion nodes, got {graph.number_of_nodes()}")
 
+    file_duration = raw.get("duration", 60.0)
+    shortened = duration is not None and isinstance(file_duration, (int, float)) and duration < file_duration
     duration = _num(src, "duration", raw.get("duration", 60.0) if duration is None else duration, positive=True)
     dt = _num(src, "dt", raw.get("dt", 0.1), positive=True)
     if duration < dt:
@@ -373,9 +382,16 @@ def load_scenario(
     msi = _num(src, "min_send_interval", raw.get("min_send_interval", MIN_SEND_INTERVAL)
                if min_send_interval is None else min_send_interval, nonneg=True)
 
-    target = _target(src, raw, kinds)
+    multi = is_multi_target(raw)
+    tracking = load_tracking(src, raw) if multi else None
+    target = tracking_target(tracking) if tracking is not None else _target(src, raw, kinds)
     sc = Scenario(src, duration, dt, int(s), window, horizon, fu, target, {}, {}, graph, raw, kinds=kinds,
-                  protection=_protection(src, raw, protection))
+                  protection=_protection(src, raw, protection), tracking=tracking)
+    if multi:
+        sc.targets, sc.rendezvous, warned = load_targets(src, raw, duration, dt, shortened=shortened)
+        sc.warnings.extend(warned)
+        sc.sends = se
+        check_multi_target(src, raw, sc)
     try:
         sc.security = security_options(raw.get("security"), sc.base_dir)
     except DfusionError as exc:

@@ -26,7 +26,8 @@ if TYPE_CHECKING:   # type names only: no import at run time
     from dfusion.policies.base import Policy
 
 __all__ = ["TargetSpec", "NodeSpec", "Scenario", "SensorKind", "MotionKind", "Kinds", "LazyTable", "Protection",
-           "FUSION_MODES", "COMMON_NODE_KEYS", "CLUTTER_MODELS", "LinkEvent", "EVENT_KINDS"]
+           "FUSION_MODES", "COMMON_NODE_KEYS", "CLUTTER_MODELS", "LinkEvent", "EVENT_KINDS", "TargetPath",
+           "Rendezvous", "TrackingSpec", "TARGET_KINDS", "ASSOCIATORS"]
 
 #: Values of the top-level key ``fusion``.
 FUSION_MODES = ("channel", "naive")
@@ -161,6 +162,102 @@ class TargetSpec:
     @property
     def axes(self) -> int:
         return getattr(self.motion, "axes", 2)
+
+
+#: Values of a ``[[targets]]`` table's ``kind``.
+TARGET_KINDS = ("person", "robot")
+#: Values of ``tracking.associator``.
+ASSOCIATORS = ("jpda", "gnn")
+
+
+@dataclass(frozen=True)
+class Rendezvous:
+    """A robot's path meets a person's: ``robot`` and ``person`` come within ``within`` metres
+    (closest at ``t``, ``distance`` apart), checked when the file is loaded."""
+
+    robot: str
+    person: str
+    within: float
+    t: float
+    distance: float
+
+
+@dataclass
+class TargetPath:
+    """One target of a multi-target scenario (``[[targets]]``): a person or a robot that
+    appears at ``appear`` on the first waypoint of ``path``, walks it at ``path.speed``, and
+    leaves at ``leave`` (by default when it reaches the last waypoint: a path that ends on the
+    border of the area is a border crossing)."""
+
+    name: str
+    kind: str
+    path: "WaypointPath"
+    appear: float
+    leave: float
+
+    def present(self, t: float) -> bool:
+        """Whether the target exists at ``t``."""
+        return self.appear - 1e-9 <= t <= self.leave + 1e-9
+
+    def position(self, t: float) -> np.ndarray:
+        """``(x, y)`` at ``t`` (on its path; meaningful while :meth:`present`)."""
+        return self.path.position(t)
+
+
+@dataclass(frozen=True)
+class TrackingSpec:
+    """The ``[tracking]`` table of a multi-target scenario: every node's tracker and the metrics
+    (``docs/scenarios.md``, "Multi-target scenarios"). The tracks' motion is constant
+    velocity in 2-D with acceleration noise ``q``.
+
+    Attributes
+    ----------
+    associator : ``"jpda"`` (exact, EHM) or ``"gnn"``.
+    gate : gate probability of the association and of the initiator.
+    q : acceleration noise spectral density of every track (m^2 s^-3).
+    confirm : ``(m, n)``: M-of-N confirmation of the initiator.
+    velocity_std, max_speed, max_seed_age : the initiator's velocity prior (None: none), pairing
+        speed (m/s) and seed age (s) (:class:`~dfusion.tracking.MofNInitiator`).
+    max_age : a track with no information newer than ``max_age`` seconds ends
+        (:class:`~dfusion.tracking.StaleDeleter`; a node hears of others' detections late, so
+        more than the network's delay).
+    max_misses : ``K`` consecutive misses in this node's own scans (in view) end a track (None: off).
+    region : ``(x0, x1, y0, y1)`` where targets can be (None: anywhere); a track whose estimate
+        left it ends once its newest information is ``region_grace`` seconds old.
+    merge : whether nodes merge tracks found to be one target (track-to-track association).
+    merge_gate, merge_confirm, merge_distance, merge_distinct_for : the
+        :class:`~dfusion.tracking.track_to_track.TrackToTrackAssociator`'s settings.
+    prior_position_std, prior_velocity_std : the common prior of every track (broad).
+    gospa_c, match : the metrics' GOSPA cut-off (m) and CLEAR MOT / IDF1 match distance (m).
+    """
+
+    associator: str = "jpda"
+    gate: float = 0.99
+    q: float = 0.05
+    confirm: tuple[int, int] = (3, 5)
+    velocity_std: float | None = 1.5
+    max_speed: float = 3.0
+    max_seed_age: float = 0.35
+    max_age: float = 2.0
+    max_misses: int | None = 5
+    region: tuple[float, float, float, float] | None = None
+    region_grace: float = 1.0
+    merge: bool = True
+    merge_gate: float = 0.99
+    merge_confirm: int = 5
+    merge_distance: float = 1.5
+    merge_distinct_for: float = 3.0
+    prior_position_std: float = 1.0e3
+    prior_velocity_std: float = 1.0e2
+    gospa_c: float = 2.0
+    match: float = 1.0
+
+    def inside(self, x: np.ndarray) -> bool:
+        """Whether state ``x`` is in :attr:`region` (always true without a region)."""
+        if self.region is None:
+            return True
+        x0, x1, y0, y1 = self.region
+        return bool(x0 <= x[0] <= x1 and y0 <= x[1] <= y1)
 
 
 @dataclass
@@ -339,6 +436,17 @@ class Scenario:
     sends: str = "periodic"
     #: Least seconds between two messages of a node on one link (event sends).
     min_send_interval: float = 0.05
+    #: A multi-target scenario's ``[[targets]]`` (empty for a single-target scenario).
+    targets: list[TargetPath] = field(default_factory=list)
+    #: A multi-target scenario's ``[tracking]`` (None for a single-target scenario).
+    tracking: TrackingSpec | None = None
+    #: The rendezvous of a robot with a person (``meets`` of a robot's ``[[targets]]`` table).
+    rendezvous: list[Rendezvous] = field(default_factory=list)
+
+    @property
+    def multi_target(self) -> bool:
+        """Whether this is a multi-target scenario (``[[targets]]`` and ``[tracking]``)."""
+        return self.tracking is not None
 
     @property
     def dynamic(self) -> bool:

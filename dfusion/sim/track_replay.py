@@ -51,6 +51,7 @@ from dfusion.tracking.tracker import MultiTargetTracker
 log = logging.getLogger(__name__)
 
 __all__ = ["ASSOCIATIONS", "TOPIC_KEYS", "TrackerSettings", "TrackReplay", "build_tracker", "replay_tracks",
+           "open_detection_bag",
            "truth_tracks", "parse_detection_topic"]
 
 #: Values of ``association``.
@@ -203,6 +204,18 @@ class TrackReplay:
         return "\n".join(lines)
 
 
+def open_detection_bag(bag: str | Path | Bag, topics: Sequence[DetectionTopic], truth_topics: Sequence[str] = (),
+                       origin_ns: int | None = None, tf_topic: str = TF_STATIC, msgdefs=None) -> tuple[Bag, int]:
+    """The bag of a detection replay (read with the detection and truth topics and ``tf_topic``
+    unless already read) and the time origin: ``origin_ns``, or the earliest stamp of those topics."""
+    if not isinstance(bag, Bag):
+        bag = read_bag(bag, [o.topic for o in topics] + list(truth_topics), optional=[tf_topic], msgdefs=msgdefs)
+    if origin_ns is None:
+        names = [o.topic for o in topics] + list(truth_topics)
+        origin_ns = min((m.stamp_ns for m in bag.messages if m.topic in names), default=bag.origin_ns)
+    return bag, int(origin_ns)
+
+
 def replay_tracks(bag: str | Path | Bag, topics: Sequence[DetectionTopic], *, settings: TrackerSettings | None = None,
                   frame: str = "map", truth_topics: Sequence[str] = (), origin_ns: int | None = None,
                   duration: float | None = None, tf_topic: str = TF_STATIC, gospa_c: float = 2.0,
@@ -211,11 +224,7 @@ def replay_tracks(bag: str | Path | Bag, topics: Sequence[DetectionTopic], *, se
     settings = settings or TrackerSettings()
     if not topics:
         raise ValidationError("a detection replay needs at least one detection topic")
-    if not isinstance(bag, Bag):
-        bag = read_bag(bag, [o.topic for o in topics] + list(truth_topics), optional=[tf_topic], msgdefs=msgdefs)
-    names = [o.topic for o in topics] + list(truth_topics)
-    if origin_ns is None:
-        origin_ns = min((m.stamp_ns for m in bag.messages if m.topic in names), default=bag.origin_ns)
+    bag, origin_ns = open_detection_bag(bag, topics, truth_topics, origin_ns, tf_topic, msgdefs)
     out = TrackReplay(str(bag.path), frame, int(origin_ns), sorted({o.sensor for o in topics}), settings)
     truth = truth_tracks(bag, truth_topics, frame, origin_ns, tf_topic) if truth_topics else None
     span = None

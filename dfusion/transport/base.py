@@ -76,6 +76,11 @@ class Delivery:
         The payload, identical to the bytes that were sent.
     t_sent : float
         The ``t`` the sender passed to :meth:`Transport.send`.
+    checked : bool
+        Whether the transport ran the receiver's frame check (size, header, checksum, MAC:
+        :meth:`dfusion.fusion.FusionNode.check_frame`) on exactly these bytes as they arrived and
+        it passed; the receiver may then skip those checks (``FusionNode.receive(data,
+        checked=True)``). False (the default) when no check ran.
     """
 
     t_arrival: float
@@ -83,6 +88,7 @@ class Delivery:
     dst: str
     data: bytes
     t_sent: float
+    checked: bool = False
 
 
 @dataclass

@@ -5,6 +5,7 @@ Key space of a network called ``NET`` (node names are Zenoh key chunks)::
     dfusion/NET/<src>/<dst>        fusion messages of the directed link src -> dst
     dfusion/NET/alive/<name>       liveliness token of each running node
     dfusion/NET/monitor/<name>     estimates published for the monitor (dfusion.run)
+    dfusion/NET/monitor/<name>/batch  several nodes' estimates at once (a host process, first node <name>)
 
 A :class:`ZenohTransport` serves the nodes that run in its process (usually
 one). It opens one Zenoh session in **peer** mode, configured by
@@ -28,7 +29,9 @@ Pitfalls handled here (measured in this project; ``docs/background.md#7-zenoh-wh
   space, never push genuine messages out of a full queue (:data:`MAX_QUEUE` copies and
   :data:`MAX_QUEUE_BYTES` bytes per local node, oldest dropped first, counted:
   :meth:`ZenohTransport.queue_report`) and are never counted as delivered. The size is checked
-  before the payload is copied.
+  before the payload is copied. A copy that passed is delivered with ``Delivery.checked`` set,
+  so that the node does not compute its checksum and MAC a second time
+  (``FusionNode.receive(data, checked=True)``).
 * The session is always closed: :meth:`ZenohTransport.close` (idempotent), the context
   manager, and every user of this class closes it in ``finally`` (an open
   session with callback subscribers keeps the process from exiting).
@@ -115,6 +118,12 @@ def alive_key(network: str, name: str = "*") -> str:
 def monitor_key(network: str, name: str = "*") -> str:
     """Key expression on which a node publishes its estimates for the monitor."""
     return f"{KEY_ROOT}/{network}/monitor/{name}"
+
+
+def monitor_batch_key(network: str, name: str = "*") -> str:
+    """Key expression of a host process's batches of its nodes' publications for the monitor,
+    ``name`` the first node of the batch (``dfusion.run.common.encode_status_batch``)."""
+    return f"{KEY_ROOT}/{network}/monitor/{name}/batch"
 
 
 def free_tcp_endpoints(count: int, host: str = "127.0.0.1", scheme: str = "tcp") -> list[str]:
@@ -451,6 +460,7 @@ class ZenohTransport(Transport):
                     reject(dst, "oversized", f"message of {len(sample.payload)} bytes exceeds the limit of {limit}")
                     return
                 data = sample.payload.to_bytes()
+                checked = True
                 try:
                     check(data)
                 except MessageError as exc:
@@ -460,7 +470,7 @@ class ZenohTransport(Transport):
                     reject(dst, "internal", f"check failed: {type(exc).__name__}: {exc}")
                     return
             else:
-                data = sample.payload.to_bytes()
+                data, checked = sample.payload.to_bytes(), False
             att = sample.attachment
             t_sent = math.nan
             if att is not None:
@@ -474,7 +484,7 @@ class ZenohTransport(Transport):
                     qbytes[2] += 1
                     qbytes[3] += len(old.data)
                     all_stats[(old.src, old.dst)].dropped += 1
-                queue.append(Delivery(clock(), src, dst, data, t_sent))
+                queue.append(Delivery(clock(), src, dst, data, t_sent, checked))
                 qbytes[0] += len(data)
                 qbytes[1] = max(qbytes[1], qbytes[0])
             event.set()

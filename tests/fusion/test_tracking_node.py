@@ -174,6 +174,59 @@ def test_bundles_split_under_the_size_limit():
         np.testing.assert_allclose(m1, m2, rtol=1e-12, atol=1e-12)
 
 
+def test_a_node_cut_off_from_the_sensors_does_not_merge_tracks_its_predictions_bring_together():
+    """Two people walking towards each other, seen by node a; b hears of them, then the link
+    fails. b's predictions of the two meet, but nobody has seen them together: b must not
+    decide that they are one target (its merge would be enforced on the whole network when the
+    link returns). Fresh tracks of one target under two identities still merge."""
+    m = ConstantVelocity(2, 0.01)
+    a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=False, merger=False, epoch=1)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, epoch=2)
+    s = PositionSensor(2, 0.1)
+    x, y = TrackId("a", 0), TrackId("a", 1)
+    for k in range(11):
+        t = 0.1 * k
+        a.predict(t)
+        a.observe(x, t, [t, 0.0], s, born=0.0)
+        a.observe(y, t, [6.0 - t, 0.0], s, born=0.0)
+        for _, d in a.outgoing(t):
+            b.receive(d)
+        b.predict(t)
+    for k in range(11, 40):     # the link is down from here: b only predicts; x and y meet at (3, 0) at t = 3
+        b.predict(0.1 * k)
+    assert {x, y} <= set(b.tracks) and b.stats.merges == 0
+    # fresh information of one target under two identities: merged
+    z1, z2 = TrackId("a", 2), TrackId("b", 0)
+    for k in range(40, 50):
+        t = 0.1 * k
+        b.predict(t)
+        b.observe(z1, t, [10.0, 0.1 * k], s, born=4.0)
+        if z2 not in b.ended:
+            b.observe(z2, t, [10.0, 0.1 * k], s, born=4.0)
+    assert b.stats.merges_decided == 1 and z2 not in b.tracks and z1 in b.tracks
+
+
+def test_a_node_that_does_not_see_two_people_walking_side_by_side_does_not_merge_them():
+    """a sees two people walk side by side 0.3 m apart (a camera would find them distinct: both
+    take a detection of one scan); b, a relay with fresh information from a but no sensor of its
+    own, has no such evidence: it must not merge them (a merge is enforced on every node)."""
+    m = ConstantVelocity(2, 0.01)
+    a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=False, merger=False, epoch=1)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, epoch=2)
+    s = PositionSensor(2, 0.3)
+    x, y = TrackId("a", 0), TrackId("a", 1)
+    rng = np.random.default_rng(0)
+    for k in range(40):
+        t = 0.1 * k
+        a.predict(t)
+        a.observe(x, t, [t, 0.0] + 0.3 * rng.standard_normal(2), s, born=0.0)
+        a.observe(y, t, [t, 0.3] + 0.3 * rng.standard_normal(2), s, born=0.0)
+        for _, d in a.outgoing(t):
+            b.receive(d)
+        b.predict(t)
+    assert {x, y} <= set(b.tracks) and b.stats.merges == 0
+
+
 def test_a_flood_of_ends_is_bounded():
     m = ConstantVelocity(2, 0.3)
     b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, merger=False, epoch=2, max_tracks=4)
@@ -216,7 +269,8 @@ def test_two_cameras_that_both_start_a_track_for_each_person_end_with_one_identi
     ids = {n: sorted(str(tid) for tid, _, _ in x.estimates()) for n, x in nodes.items()}
     assert ids["cam1"] == ids["cam2"] and len(ids["cam1"]) == 2, ids
     assert sum(x.stats.births for x in nodes.values()) == 4
-    assert sum(x.stats.merges_decided for x in nodes.values()) >= 1
+    # each node ends both duplicates, by a merge or by starvation (which one depends on timing: a node
+    # compares a track it has just heard of only after one of its own scans bore on it, merge_fresh)
     assert all(x.stats.merges + x.stats.deletions == 2 for x in nodes.values())
     for x in nodes.values():
         for _, mean, P in x.estimates():

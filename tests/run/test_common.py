@@ -285,3 +285,46 @@ def test_log_byte_cap_drops_and_counts_past_its_cap_but_keeps_errors():
     assert cap.dropped == 200 - 28
     assert sum("reached its cap of 1000 bytes" in line for line in lines) == 1
     assert lines[-1] == "ERROR the node stopped"
+
+
+def test_a_hosts_batch_of_publications_is_checked_one_by_one(tmp_path):
+    """A host process sends its nodes' step publications together (one Zenoh put, on
+    ``monitor/FIRST/batch``): each is authenticated and validated alone, a forged one is counted and
+    dropped without its neighbours in the batch, the first must be the key's node, garbage and an
+    oversized batch are refused on arrival."""
+    import numpy as np
+
+    from dfusion.run.common import MAX_STATUS_BATCH, Status, encode_status_batch, split_status_batch
+    from dfusion.run.monitor import Monitor
+    from dfusion.scenario import load_scenario
+    from dfusion.wire import FrameKey
+    from tests.run.test_processes import chain3
+
+    sc = load_scenario(chain3(tmp_path))
+    key, net = b"k" * 32, "net"
+    fk = FrameKey(key, net, "r")
+    pub = {(name, k): Status(name, 7, "run", k, 0.1 * k, np.arange(4.0) + k, np.eye(4)).encode(fk)
+           for name in ("a", "b", "c") for k in range(3)}
+    with pytest.raises(ValidationError):
+        encode_status_batch([])
+    with pytest.raises(ValidationError):
+        encode_status_batch([b"x"] * (MAX_STATUS_BATCH + 1))
+    assert split_status_batch(encode_status_batch([pub["a", 0], pub["b", 0]]), 4096) == [pub["a", 0], pub["b", 0]]
+    forged = pub["c", 1][:-1] + bytes([pub["c", 1][-1] ^ 1])
+    with Monitor(sc, net, network_key=key, run="r") as mon:
+        limit = mon.max_status_bytes
+        for k in range(3):
+            mon._on_sample(_Sample(f"dfusion/{net}/monitor/a/batch",
+                                   encode_status_batch([pub["a", k], pub["b", k], forged if k == 1 else pub["c", k]])),
+                           batch=True)
+        mon._on_sample(_Sample(f"dfusion/{net}/monitor/c/batch", encode_status_batch([pub["a", 2]])), batch=True)
+        mon._on_sample(_Sample(f"dfusion/{net}/monitor/a/batch", b"\x93garbage"), batch=True)
+        mon._on_sample(_Sample(f"dfusion/{net}/monitor/a/batch", bytes(limit * (MAX_STATUS_BATCH + 1) + 1)),
+                       batch=True)
+        mon._on_sample(_Sample(f"dfusion/{net}/monitor/a/batch", encode_status_batch([bytes(limit + 1)])), batch=True)
+        assert mon.poll() == 8
+        assert mon.rejections == {"unauthenticated": 1, "forged-sender": 1, "malformed": 1, "oversized": 2}, \
+            mon.rejections
+        assert mon.records["a"].have[:3].all() and mon.records["b"].have[:3].all()
+        assert list(mon.records["c"].have[:3]) == [True, False, True]
+        assert np.array_equal(mon.records["b"].mean[2], np.arange(4.0) + 2)

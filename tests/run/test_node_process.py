@@ -98,7 +98,12 @@ def test_a_camera_node_program_loads_no_scipy_plotting_simulator_or_networkx(tmp
 def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_path):
     """``python -m dfusion.run.node_process --node a --node b --node c``: one process, one Zenoh
     session, three nodes with their own loops and results; their messages go through Zenoh (each
-    node's transport counters), and each final estimate is the centralized EKF's (<= 1e-9)."""
+    node's transport counters), and each final estimate is the centralized EKF's (<= 1e-9). The
+    host sends its nodes' step publications to the monitor together (batches on
+    ``monitor/FIRST/batch``): the monitor records every step of every node."""
+    from dfusion.run.monitor import Monitor
+    from dfusion.transport.zenoh import ZenohConfig, free_tcp_endpoints
+
     scenario = tmp_path / "chain3.scenario.toml"
     scenario.write_text(CHAIN3.format(duration=4.0, window=100))
     sc = load_scenario(scenario)
@@ -107,12 +112,22 @@ def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_pat
     # (with 2 s it sometimes started late and dropped the first measurements as lost while down)
     start = time.time() + 8.0
     log = tmp_path / "host.log"
-    with log.open("w") as out:
+    net = f"host{os.getpid()}"
+    (endpoint,) = free_tcp_endpoints(1)
+    batches = []
+    with Monitor(sc, net, ZenohConfig(listen=[endpoint])) as mon, log.open("w") as out:
+        mon.session.declare_subscriber(f"dfusion/{net}/monitor/*/batch", lambda sample: batches.append(1))
         proc = subprocess.run(
             [sys.executable, "-m", "dfusion.run.node_process", "--scenario", str(scenario), "--node", "a", "--node", "b",
-             "--node", "c", "--host", "h", "--network", f"host{os.getpid()}", "--start-time", repr(start),
+             "--node", "c", "--host", "h", "--network", net, "--start-time", repr(start), "--connect", endpoint,
              "--speed", "4", "--result", str(results), "--state-dir", str(tmp_path / "state")],
             stdout=out, stderr=subprocess.STDOUT, timeout=120, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        time.sleep(0.2)
+        mon.poll()
+        assert mon.rejected == 0, mon.rejections
+        for name in "abc":   # every step of every node, from the host's batches
+            assert mon.records[name].have.all(), (name, np.flatnonzero(~mon.records[name].have))
+        assert 0 < len(batches) <= sc.steps + 1
     text = log.read_text()
     assert proc.returncode == 0, text
     assert "[h]" in text and "host h: nodes a, b, c" in text
@@ -124,6 +139,7 @@ def test_three_nodes_in_one_host_process_end_on_the_centralized_estimate(tmp_pat
         assert np.max(np.abs(np.asarray(st["mean"]) - c_final)) <= 1e-9, (name, st["mean"], c_final)
         s = st["stats"]
         assert s["messages_received"] > 0 and s["delivered"] >= s["messages_received"] and s["published"] > 0
+        assert 0 <= s["lag_ms"] <= s["max_lag_ms"]   # behind the clock at the last step, and at its worst
         epochs.add(st["epoch"])
         assert (tmp_path / "state" / f"{name}.measurements.jsonl").exists()
     assert len(epochs) == 3   # three incarnations, one per node

@@ -251,10 +251,16 @@ def test_a_check_drops_garbage_in_the_callback_before_the_queue(pair):
     assert counts == {"malformed": 5, "unauthenticated": 3, "oversized": 1}, counts
     assert a.take_rejections("a") == ({}, "")   # taken once
     (d,) = a.receive("a")
-    assert na.receive(d.data) == 0 and na.stats.messages_received == 1   # the genuine one (no blocks yet)
+    assert d.checked   # the check ran on these bytes: the node need not compute the MAC again
+    assert na.receive(d.data, checked=d.checked) == 0 and na.stats.messages_received == 1   # the genuine one
     na.count_rejections(counts, detail)
     assert na.stats.rejections == counts and na.stats.rejected_on_arrival == na.stats.messages_rejected == 9
     assert a.stats.total.delivered == 1
+    a.set_check("a", None)   # without a check a copy arrives unchecked (the node's receive checks it all)
+    b.send("b", "a", b"unchecked", 0.0)
+    assert wait_for(lambda: a.pending("a") == 1)
+    (d,) = a.receive("a")
+    assert not d.checked
 
 
 @pytest.mark.parametrize("bad", ["", "a/b", "x*", "alive", "monitor", "has space"])
