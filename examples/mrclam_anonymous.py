@@ -48,8 +48,8 @@ every node tracks all five robots, also those it never sees, under identities th
 share. Its own track takes no part in the association of its own sightings (a robot's
 camera never sees the robot itself; ``--no-exclude-self``). Lock-out recovery
 (``--no-recovery`` turns it off): anonymous, :class:`~dfusion.frontends.TeamSightingsFrontEnd`
-(k = 5 agreeing detections outside every gate re-acquire the likeliest track without recent
-information); identities known, each sighting of robot ``j`` goes through a
+(k = 5 agreeing detections outside every gate re-acquire the likeliest track if no sighting
+backed it since, ``--reacquire``); identities known, each sighting of robot ``j`` goes through a
 :class:`~dfusion.frontends.TargetTrackingFrontEnd` on track ``j`` with the single-target
 run's robust settings (``mrclam_tracking.TARGET_MONITOR``: gate 0.999, Huber, lock-out
 recovery); without recovery, the plain 0.999 gate. Anonymous tracks are mapped to robots
@@ -145,6 +145,7 @@ class Settings:
     recovery: bool = True           # network: lock-out recovery (known: the single-target robust front end;
                                     # anonymous: TeamSightingsFrontEnd), with the single-target TARGET_MONITOR
     exclude_self: bool = True       # network, anonymous: a node's own track takes no part in its association
+    reacquire: str = "likeliest"    # network, anonymous: TeamSightingsFrontEnd's candidates ("likeliest", "stale")
 
 
 def _motion(s: Settings):
@@ -302,7 +303,8 @@ def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict
         gate_probability=s.gate, huber_probability=None, drift_test=False, recover=False)
     fronts = {(o, j): TargetTrackingFrontEnd(InnovationMonitor(f"robot{o}/robot{j}", 2, monitor))
               for o in robots for j in robots if j != o} if known else {}
-    teams = {o: TeamSightingsFrontEnd(nodes[o], single.TARGET_MONITOR, velocity_std=s.sigma, window=s.track_horizon)
+    teams = {o: TeamSightingsFrontEnd(nodes[o], single.TARGET_MONITOR, velocity_std=s.sigma, window=s.track_horizon,
+                                      candidates=s.reacquire)
              for o in robots} if s.recovery and not known else {}
     view = CameraView(s.half_angle, s.min_range, s.max_range)
     eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
@@ -560,6 +562,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "bundles (rows 'network')")
     ap.add_argument("--no-recovery", action="store_true",
                     help="network: the plain 0.999 gate, no lock-out recovery (known) or re-acquisition (anonymous)")
+    ap.add_argument("--reacquire", choices=("likeliest", "stale"), default="likeliest",
+                    help="network, anonymous: a lock-out re-acquires the likeliest track if it is stale (default), "
+                         "or the likeliest stale track")
     ap.add_argument("--no-exclude-self", action="store_true",
                     help="network, anonymous: a node's own track takes part in the association of its sightings")
     ap.add_argument("--json", type=Path, default=None, help="write both runs and the table as JSON")
@@ -569,7 +574,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     s = Settings(associator=args.associator, motion=args.motion, recovery=not args.no_recovery,
-                 exclude_self=not args.no_exclude_self)
+                 exclude_self=not args.no_exclude_self, reacquire=args.reacquire)
 
     def progress(msg: str) -> None:
         print(msg, flush=True)

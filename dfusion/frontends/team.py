@@ -20,11 +20,16 @@ initiator nothing ever takes them. :class:`TeamSightingsFrontEnd` feeds the node
    ``(z_i - z)^T (R_i + R + D(t - t_i))^-1 (z_i - z) <= gamma``, where ``D(dt) = dt^2
    sigma_v^2 I`` is the spread of a target moving with velocity standard deviation
    ``velocity_std`` (a run of clutter is unlikely to agree: the clutter density is low).
-3. **The lost track** is the likeliest of the tracks holding no information since the first
-   of these detections (no sighting of it here, none from any neighbour: a track backed by
-   someone's sightings over the span is following a target), ``argmax_k N(c; m_k, P_k +
-   R_c)`` with ``c``, ``R_c`` the information-weighted mean of the detections and its
-   covariance. None: nothing is done (counted).
+3. **The lost track.** With ``c``, ``R_c`` the information-weighted mean of the detections and
+   its covariance, the likeliest track ``argmax_k N(c; m_k, P_k + R_c)`` among the tracks that
+   took no detection of this scan here (a target is detected once per scan), ``candidates =
+   "likeliest"`` (default): it is re-acquired only if it holds no information since the first
+   of these detections (no sighting of it here, none from any neighbour); a track backed by
+   someone's sightings over the span is following its target, and the detections are taken
+   to be this node's error (its pose), as the single-target recovery does not recover a
+   belief its neighbours back (counted in ``backed``). ``candidates = "stale"``: the likeliest
+   of the tracks without information since the first detection (none: counted in
+   ``no_candidate``).
 4. **Re-acquisition**: the track's belief of the position at the scan's time is widened to
    cover the jump, process noise ``delta delta^T + R_c`` on the position block
    (``delta = c - m_k``; :meth:`FusionNode.add_process_noise`, as the single-target
@@ -59,7 +64,8 @@ class TeamStats:
     unexplained: int = 0            # detections outside every track's gate
     lockouts: int = 0               # runs of agreeing unexplained detections
     reacquisitions: int = 0         # lock-outs recovered (a track widened and given the detection)
-    no_candidate: int = 0           # lock-outs with every track backed by recent information
+    no_candidate: int = 0           # lock-outs with every track backed by recent information ("stale")
+    backed: int = 0                 # lock-outs whose likeliest track was backed by recent information
     events: list[tuple[float, TrackId, float]] = field(default_factory=list)   # (t, track, jump in m)
 
 
@@ -72,12 +78,16 @@ class TeamSightingsFrontEnd:
     settings : the lock-out test's settings (its gate ``gamma`` and run length ``k``).
     velocity_std : m/s, the spread of a target's motion between agreeing detections.
     window : s, how long an unexplained detection is kept.
+    candidates : ``"likeliest"`` or ``"stale"``: which track a lock-out re-acquires (module docstring).
     """
 
     def __init__(self, node: TrackingNode, settings: MonitorSettings = MonitorSettings(), *,
-                 velocity_std: float = 0.1, window: float = 20.0) -> None:
+                 velocity_std: float = 0.1, window: float = 20.0, candidates: str = "likeliest") -> None:
         if not (math.isfinite(velocity_std) and velocity_std > 0 and math.isfinite(window) and window > 0):
             raise ValidationError(f"velocity_std and window must be finite and > 0, got {velocity_std!r}, {window!r}")
+        if candidates not in ("likeliest", "stale"):
+            raise ValidationError(f"candidates must be 'likeliest' or 'stale', got {candidates!r}")
+        self.candidates = candidates
         self.node = node
         self.gamma = settings.gate(2)
         self.run_length = settings.run_length()
@@ -103,6 +113,8 @@ class TeamSightingsFrontEnd:
             if all(_d2(Z[j] - m[:2], P[:2, :2] + R) > self.gamma for m, P in est.values()):
                 unexplained.append(j)
         node.process(scan, exclude=skip)
+        took = {tid for tid, (_, P) in est.items()     # the tracks that took a detection of this scan
+                if np.trace(node.tracks[tid].estimate(t)[1][:2, :2]) < (1.0 - 1e-6) * np.trace(P[:2, :2])}
         self.pending = [p for p in self.pending if t - p[0] <= self.window]
         for j in unexplained:   # (an excluded track is never re-acquired from this scan)
             self.stats.unexplained += 1
@@ -115,19 +127,24 @@ class TeamSightingsFrontEnd:
             self.stats.lockouts += 1
             members = [self.pending[i] for i in agree] + [(t, z, R)]
             self.pending = [p for i, p in enumerate(self.pending) if i not in set(agree)]
-            self._reacquire(t, z, R, members, skip)
+            self._reacquire(t, z, R, members, skip | took)
 
     def _reacquire(self, t: float, z: Array, R: Array, members: list[tuple[float, Array, Array]],
                    skip: set[TrackId]) -> None:
+        """Re-acquire the lost track of ``members`` (agreeing unexplained detections, the newest
+        ``(z, R)`` at ``t``); ``skip``: tracks excluded from this scan or that took a detection of it."""
         node = self.node
         t_first = min(m[0] for m in members)
         Om = sum(spd_inverse(Ri, "detection noise") for _, _, Ri in members)
         R_c = spd_inverse(Om, "cluster information")
         c = R_c @ sum(spd_inverse(Ri, "detection noise") @ zi for _, zi, Ri in members)
+        def stale(f) -> bool:
+            newest = f.newest_information_time()
+            return newest is None or newest < t_first - 1e-9
+
         best, best_ll = None, -math.inf
         for tid, f in sorted(node.tracks.items()):
-            newest = f.newest_information_time()
-            if tid in skip or (newest is not None and newest >= t_first - 1e-9) or t < f.filter.oldest_time:
+            if tid in skip or t < f.filter.oldest_time or (self.candidates == "stale" and not stale(f)):
                 continue
             m, P = f.estimate(t)
             S = symmetrize(P[:2, :2] + R_c)
@@ -136,6 +153,9 @@ class TeamSightingsFrontEnd:
                 best, best_ll = tid, ll
         if best is None:
             self.stats.no_candidate += 1
+            return
+        if not stale(node.tracks[best]):
+            self.stats.backed += 1
             return
         f = node.tracks[best]
         m, _ = f.estimate(t)

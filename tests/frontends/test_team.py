@@ -73,3 +73,24 @@ def test_an_excluded_track_takes_no_detection():
     node.predict(1.0)
     node.process(Scan(1.0, np.array([[0.05, 0.0]]), PositionSensor(2, 0.1), 1e-4, 0.9))
     assert node.tracks[A].newest_information_time() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("candidates", ["likeliest", "stale"])
+def test_detections_off_a_track_that_is_backed_reacquire_nothing(candidates):
+    """This node's detections of B are 3 m off (its own pose error, say) while another sensor keeps
+    B's track on its target: the lock-out is declared, but B is backed ('likeliest': its likeliest
+    track is B, backed; 'stale': no track is without information), so nothing moves."""
+    rng = np.random.default_rng(5)
+    node = _node()
+    front = TeamSightingsFrontEnd(node, candidates=candidates)
+    for k in range(1, 11):
+        t = 0.5 * k
+        node.predict(t)
+        node.observe(B, t, TRUTH[B] + rng.normal(0, 0.05, 2), PositionSensor(2, 0.05))   # the other sensor
+        z = np.array([TRUTH[A] + rng.normal(0, 0.1, 2), TRUTH[B] + [0.0, 3.0] + rng.normal(0, 0.1, 2)])
+        front.process(Scan(t, z, PositionSensor(2, 0.1), 1e-4, 0.9))
+    assert front.stats.lockouts >= 1 and front.stats.reacquisitions == 0
+    assert (front.stats.backed if candidates == "likeliest" else front.stats.no_candidate) == front.stats.lockouts
+    assert np.linalg.norm(node.tracks[B].estimate()[0][:2] - TRUTH[B]) < 0.3
+    with pytest.raises(ValidationError, match="candidates"):
+        TeamSightingsFrontEnd(node, candidates="any")
