@@ -48,8 +48,8 @@ every node tracks all five robots, also those it never sees, under identities th
 share. Its own track takes no part in the association of its own sightings (a robot's
 camera never sees the robot itself; ``--no-exclude-self``). Lock-out recovery
 (``--no-recovery`` turns it off): anonymous, :class:`~dfusion.frontends.TeamSightingsFrontEnd`
-(k = 5 agreeing detections outside every gate re-acquire the likeliest track if no sighting
-backed it since, ``--reacquire``); identities known, each sighting of robot ``j`` goes through a
+(k = 5 agreeing detections outside every gate re-acquire the likeliest track that no sighting
+backed since, ``--reacquire``); identities known, each sighting of robot ``j`` goes through a
 :class:`~dfusion.frontends.TargetTrackingFrontEnd` on track ``j`` with the single-target
 run's robust settings (``mrclam_tracking.TARGET_MONITOR``: gate 0.999, Huber, lock-out
 recovery); without recovery, the plain 0.999 gate. Anonymous tracks are mapped to robots
@@ -145,7 +145,7 @@ class Settings:
     recovery: bool = True           # network: lock-out recovery (known: the single-target robust front end;
                                     # anonymous: TeamSightingsFrontEnd), with the single-target TARGET_MONITOR
     exclude_self: bool = True       # network, anonymous: a node's own track takes no part in its association
-    reacquire: str = "likeliest"    # network, anonymous: TeamSightingsFrontEnd's candidates ("likeliest", "stale")
+    reacquire: str = "stale"        # network, anonymous: TeamSightingsFrontEnd's candidates ("stale", "likeliest")
 
 
 def _motion(s: Settings):
@@ -562,9 +562,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "bundles (rows 'network')")
     ap.add_argument("--no-recovery", action="store_true",
                     help="network: the plain 0.999 gate, no lock-out recovery (known) or re-acquisition (anonymous)")
-    ap.add_argument("--reacquire", choices=("likeliest", "stale"), default="likeliest",
-                    help="network, anonymous: a lock-out re-acquires the likeliest track if it is stale (default), "
-                         "or the likeliest stale track")
+    ap.add_argument("--reacquire", choices=("stale", "likeliest"), default="stale",
+                    help="network, anonymous: a lock-out re-acquires the likeliest stale track (default), or the "
+                         "likeliest track if it is stale")
     ap.add_argument("--no-exclude-self", action="store_true",
                     help="network, anonymous: a node's own track takes part in the association of its sightings")
     ap.add_argument("--json", type=Path, default=None, help="write both runs and the table as JSON")

@@ -21,15 +21,15 @@ initiator nothing ever takes them. :class:`TeamSightingsFrontEnd` feeds the node
    sigma_v^2 I`` is the spread of a target moving with velocity standard deviation
    ``velocity_std`` (a run of clutter is unlikely to agree: the clutter density is low).
 3. **The lost track.** With ``c``, ``R_c`` the information-weighted mean of the detections and
-   its covariance, the likeliest track ``argmax_k N(c; m_k, P_k + R_c)`` among the tracks that
-   took no detection of this scan here (a target is detected once per scan), ``candidates =
-   "likeliest"`` (default): it is re-acquired only if it holds no information since the first
-   of these detections (no sighting of it here, none from any neighbour); a track backed by
-   someone's sightings over the span is following its target, and the detections are taken
-   to be this node's error (its pose), as the single-target recovery does not recover a
-   belief its neighbours back (counted in ``backed``). ``candidates = "stale"``: the likeliest
-   of the tracks without information since the first detection (none: counted in
-   ``no_candidate``).
+   its covariance, ``candidates = "stale"`` (default): the likeliest track ``argmax_k N(c;
+   m_k, P_k + R_c)`` of those holding no information since the first of these detections (no
+   sighting of it here, none from any neighbour: a track backed by someone's sightings over
+   the span is following a target); none: nothing is done (``no_candidate``).
+   ``candidates = "likeliest"``: the likeliest of the tracks that took no detection of this
+   scan here (a target is detected once per scan), re-acquired only if it holds no
+   information since the first detection; if it does, the detections are taken to be this
+   node's own error (its pose), as the single-target recovery does not recover a belief its
+   neighbours back (``backed``).
 4. **Re-acquisition**: the track's belief of the position at the scan's time is widened to
    cover the jump, process noise ``delta delta^T + R_c`` on the position block
    (``delta = c - m_k``; :meth:`FusionNode.add_process_noise`, as the single-target
@@ -65,7 +65,7 @@ class TeamStats:
     lockouts: int = 0               # runs of agreeing unexplained detections
     reacquisitions: int = 0         # lock-outs recovered (a track widened and given the detection)
     no_candidate: int = 0           # lock-outs with every track backed by recent information ("stale")
-    backed: int = 0                 # lock-outs whose likeliest track was backed by recent information
+    backed: int = 0                 # lock-outs whose likeliest track was backed by recent information ("likeliest")
     events: list[tuple[float, TrackId, float]] = field(default_factory=list)   # (t, track, jump in m)
 
 
@@ -78,11 +78,11 @@ class TeamSightingsFrontEnd:
     settings : the lock-out test's settings (its gate ``gamma`` and run length ``k``).
     velocity_std : m/s, the spread of a target's motion between agreeing detections.
     window : s, how long an unexplained detection is kept.
-    candidates : ``"likeliest"`` or ``"stale"``: which track a lock-out re-acquires (module docstring).
+    candidates : ``"stale"`` or ``"likeliest"``: which track a lock-out re-acquires (module docstring).
     """
 
     def __init__(self, node: TrackingNode, settings: MonitorSettings = MonitorSettings(), *,
-                 velocity_std: float = 0.1, window: float = 20.0, candidates: str = "likeliest") -> None:
+                 velocity_std: float = 0.1, window: float = 20.0, candidates: str = "stale") -> None:
         if not (math.isfinite(velocity_std) and velocity_std > 0 and math.isfinite(window) and window > 0):
             raise ValidationError(f"velocity_std and window must be finite and > 0, got {velocity_std!r}, {window!r}")
         if candidates not in ("likeliest", "stale"):
