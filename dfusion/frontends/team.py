@@ -32,7 +32,7 @@ initiator nothing ever takes them. :class:`TeamSightingsFrontEnd` feeds the node
    neighbours back (``backed``).
 4. **Re-acquisition**: the track's belief of the position at the scan's time is widened to
    cover the jump, process noise ``delta delta^T + R_c`` on the position block
-   (``delta = c - m_k``; :meth:`FusionNode.add_process_noise`, as the single-target
+   (``delta = c - m_k``; :meth:`dfusion.fusion.FusionNode.add_process_noise`, as the single-target
    recovery), and the newest detection is fused into it (:meth:`TrackingNode.observe`).
    Process noise is not exchanged information: nothing is double counted; each node
    recovers its own belief, and the neighbours follow the fixes it then shares.
