@@ -4,6 +4,7 @@ r"""MRCLAM as a multi-target problem: every robot tracks every other robot from 
 Usage::
 
     python examples/mrclam_anonymous.py DATASET_DIR [--duration S] [--associator gnn|jpda] [--json OUT]
+    python examples/mrclam_anonymous.py DATASET_DIR --network [--no-recovery] [--no-exclude-self] ...
 
 ``DATASET_DIR`` is an MRCLAM dataset directory (``MRCLAM_Dataset6``; where to get it:
 ``tests/data/mrclam/README.md``; the 180 s slice ``tests/data/mrclam`` runs as is).
@@ -36,6 +37,23 @@ in time order (each converted from its own robot's estimated pose; a robot's own
 in its camera's view, being closer than the minimum range): the centralized reference that a
 network of robots fusing their tracks would approach, and the like-for-like comparison with
 the single-target result of ``examples/mrclam_tracking.py``, which fuses four observers.
+
+**The network** (``--network``, rows ``network``): every robot a
+:class:`~dfusion.fusion.TrackingNode` of the chain 1 - 2 - 3 - 4 - 5, fed only its own
+robot's sighting scans (with its own pose covariance), every node adding the same five start
+tracks (:meth:`TrackingNode.add_track`: the start position, 0.3 m, zero velocity with
+``sigma``), bundles exchanged every 0.5 s in process (no delay), no initiator, no deleter,
+no merges (the team is known). A node associates its scans with its **fused** tracks, so
+every node tracks all five robots, also those it never sees, under identities the nodes
+share. Its own track takes no part in the association of its own sightings (a robot's
+camera never sees the robot itself; ``--no-exclude-self``). Lock-out recovery
+(``--no-recovery`` turns it off): anonymous, :class:`~dfusion.frontends.TeamSightingsFrontEnd`
+(k = 5 agreeing detections outside every gate re-acquire the likeliest track that no sighting
+backed since, ``--reacquire``); identities known, each sighting of robot ``j`` goes through a
+:class:`~dfusion.frontends.TargetTrackingFrontEnd` on track ``j`` with the single-target
+run's robust settings (``mrclam_tracking.TARGET_MONITOR``: gate 0.999, Huber, lock-out
+recovery); without recovery, the plain 0.999 gate. Anonymous tracks are mapped to robots
+once for the whole network (the nodes share the identities).
 
 The **identities-known** run is the same tracker with the identity given: one tracker per
 (observer, tracked robot) with that robot's track only, fed only the sightings of that
@@ -89,11 +107,13 @@ import mrclam_tracking as single  # noqa: E402  (the single-target example: its 
 
 from dfusion.datasets import read_mrclam  # noqa: E402
 from dfusion.errors import DfusionError  # noqa: E402
-from dfusion.estimation.innovation import InnovationMonitor  # noqa: E402
+from dfusion.estimation.innovation import InnovationMonitor, MonitorSettings  # noqa: E402
+from dfusion.frontends import TargetTrackingFrontEnd, TeamSightingsFrontEnd  # noqa: E402
+from dfusion.fusion import TrackingNode  # noqa: E402
 from dfusion.localization import LandmarkEKF  # noqa: E402
 from dfusion.metrics import TrackingFrame, identity_metrics, label_agreement  # noqa: E402
-from dfusion.models import (ConstantVelocity, LandmarkRangeBearing, MeanRevertingVelocity, Unicycle,  # noqa: E402
-                            VelocityOdometry)
+from dfusion.models import (ConstantVelocity, LandmarkRangeBearing, MeanRevertingVelocity,  # noqa: E402
+                            TargetRangeBearing, Unicycle, VelocityOdometry)
 from dfusion.tracking import (GNN, JPDA, CameraView, GaussianHypothesiser, MultiTargetTracker, NoDeleter,  # noqa: E402
                               NoInitiator, TrackId, sightings_scan)
 
@@ -119,13 +139,58 @@ class Settings:
     eval_dt: float = 0.5            # s
     match_threshold: float = 1.0    # m, CLEAR MOT / label agreement / on-target
     associator: str = "gnn"
+    exchange_period: float = 0.5    # s, network: every node sends its bundles to its tree neighbours
+    track_horizon: float = 20.0     # s, network: each track's delayed-state window (FusionNode horizon)
+    tree: tuple = ((1, 2), (2, 3), (3, 4), (4, 5))   # network: the chain 1 - 2 - 3 - 4 - 5
+    recovery: bool = True           # network: lock-out recovery (known: the single-target robust front end;
+                                    # anonymous: TeamSightingsFrontEnd), with the single-target TARGET_MONITOR
+    exclude_self: bool = True       # network, anonymous: a node's own track takes no part in its association
+    reacquire: str = "stale"        # network, anonymous: TeamSightingsFrontEnd's candidates ("stale", "likeliest")
+
+
+def _motion(s: Settings):
+    return ConstantVelocity(2, s.q) if s.motion == "cv" else MeanRevertingVelocity(2, s.sigma, s.tau)
 
 
 def _tracker(s: Settings, origin: str) -> MultiTargetTracker:
-    motion = ConstantVelocity(2, s.q) if s.motion == "cv" else MeanRevertingVelocity(2, s.sigma, s.tau)
     assoc = JPDA() if s.associator == "jpda" else GNN()
-    return MultiTargetTracker(motion, assoc, NoInitiator(), NoDeleter(), origin=origin,
+    return MultiTargetTracker(_motion(s), assoc, NoInitiator(), NoDeleter(), origin=origin,
                               hypothesiser=GaussianHypothesiser(s.gate, detections_in_view=True))
+
+
+def _localizers(ds, observers) -> tuple[dict, dict]:
+    """The landmark map and each observer's self-localization (``examples/mrclam_tracking.py``'s)."""
+    lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
+    ekfs = {}
+    for o in observers:
+        log = ds.robots[o]
+        odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
+        ekfs[o] = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
+                              monitor=InnovationMonitor(f"robot{o}/pose", 2, single.POSE_MONITOR))
+    return lm, ekfs
+
+
+def _camera_frames(ds, observers) -> list[tuple[float, int, int, int]]:
+    """Every camera frame of the observers in time order: ``(time, observer, first row, end row)``."""
+    frames = []
+    for o in observers:
+        log = ds.robots[o]
+        frame_t, first = np.unique(log.meas_t, return_index=True)
+        frames += [(float(t), o, int(a), int(b)) for t, a, b in zip(frame_t, first, list(first[1:]) + [log.meas_t.size])]
+    frames.sort()
+    return frames
+
+
+def _localize(ekf, log, lm: dict, s: Settings, t: float, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """The observer's pose EKF at frame time ``t`` after the frame's landmark sightings (rows ``a:b``);
+    returns the frame's rows and their subjects."""
+    ekf.predict(t)
+    rows = np.arange(a, b)
+    subj = log.meas_subject[rows]
+    for i in rows[subj > 5]:   # landmarks: the robot's own localization
+        sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
+        ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
+    return rows, subj
 
 
 def run_observer(ds, observer: int, s: Settings, known: bool, duration: float) -> dict:
@@ -144,13 +209,7 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
     ``min_range``). Returns ``{"t": (E,), "tracks": {label: (E, 2) positions}, "frames", "sightings",
     "taken": [(robot sighted, track label or None) per lone sighting], "observers"}``.
     """
-    lm = {int(i): xy for i, xy in zip(*ds.landmark_array())}
-    ekfs = {}
-    for o in observers:
-        log = ds.robots[o]
-        odo = VelocityOdometry(log.odom_t, log.odom, Unicycle(single.DEFAULTS["std_v"], single.DEFAULTS["std_w"]))
-        ekfs[o] = LandmarkEKF(odo, 0.0, log.truth_at(0.0), np.diag([0.05**2] * 3),
-                              monitor=InnovationMonitor(f"robot{o}/pose", 2, single.POSE_MONITOR))
+    lm, ekfs = _localizers(ds, observers)
     P0 = np.diag([s.prior_std**2] * 2 + [s.prior_velocity_std**2] * 2)
     starts = {j: np.r_[ds.robots[j].truth_at(0.0)[:2], 0.0, 0.0] for j in tracked}
     if known:
@@ -164,12 +223,7 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
     view = CameraView(s.half_angle, s.min_range, s.max_range)
     eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
     out = {j: np.empty((eval_t.size, 2)) for j in tracked}
-    frames = []                                  # (time, observer, first row, end row)
-    for o in observers:
-        log = ds.robots[o]
-        frame_t, first = np.unique(log.meas_t, return_index=True)
-        frames += [(float(t), o, int(a), int(b)) for t, a, b in zip(frame_t, first, list(first[1:]) + [log.meas_t.size])]
-    frames.sort()
+    frames = _camera_frames(ds, observers)
     ie = 0
     n_frames = n_sightings = 0
     taken: list[tuple[int, int | None]] = []
@@ -188,12 +242,7 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
             break
         record(t - 1e-6)          # evaluation times before this frame
         log, ekf = ds.robots[o], ekfs[o]
-        ekf.predict(t)
-        rows = np.arange(a, b)
-        subj = log.meas_subject[rows]
-        for i in rows[subj > 5]:   # landmarks: the robot's own localization
-            sensor = LandmarkRangeBearing(lm[int(log.meas_subject[i])], s.range_std, s.bearing_std)
-            ekf.update(t, np.array([log.meas_range[i], log.meas_bearing[i]]), sensor)
+        rows, subj = _localize(ekf, log, lm, s, t, a, b)
         seen = rows[np.isin(subj, tracked)]
         if not seen.size:
             continue
@@ -216,6 +265,123 @@ def run_tracker(ds, observers: list[int], tracked: list[int], s: Settings, known
             "observers": list(observers)}
 
 
+def run_network(ds, s: Settings, known: bool, duration: float) -> dict[int, dict]:
+    """Every robot a :class:`~dfusion.fusion.TrackingNode` of a tree (``s.tree``), tracking all five
+    robots (the same five start tracks at every node, :meth:`TrackingNode.add_track`) from its own
+    sightings only and exchanging track bundles with its tree neighbours every ``s.exchange_period``
+    seconds (in process, no delay).
+
+    Anonymous: each camera frame's robot sightings are one scan (:func:`sightings_scan`, the robot's
+    own pose covariance) that the node associates with its **fused** tracks
+    (:meth:`TrackingNode.process`). Identities known: each sighting of robot ``j`` is a position fix
+    of track ``j`` (its per-detection covariance as the sensor's noise), through a
+    :class:`~dfusion.frontends.TargetTrackingFrontEnd` on that track's fusion: the same 0.999 gate
+    against the fused estimate (``s.recovery``: the single-target run's robust updates and
+    lock-out recovery, ``mrclam_tracking.TARGET_MONITOR``).
+
+    Returns per node the dict of :func:`run_tracker` (every node tracks all five robots).
+    """
+    robots = sorted(ds.robots)
+    names = {o: f"robot{o}" for o in robots}
+    nbrs: dict[int, list[str]] = {o: [] for o in robots}
+    for a, b in s.tree:
+        nbrs[a].append(names[b])
+        nbrs[b].append(names[a])
+    lm, ekfs = _localizers(ds, robots)
+    P0 = np.diag([s.prior_std**2] * 2 + [s.prior_velocity_std**2] * 2)
+    tids = {j: TrackId("start", j) for j in robots}
+    motion = _motion(s)
+    nodes = {}
+    for o in robots:
+        nodes[o] = TrackingNode(names[o], nbrs[o], motion, associator=JPDA() if s.associator == "jpda" else GNN(),
+                                hypothesiser=GaussianHypothesiser(s.gate, detections_in_view=True),
+                                initiator=NoInitiator(), deleter=False, merger=False, window=None,
+                                horizon=s.track_horizon, epoch=o)
+        for j in robots:
+            nodes[o].add_track(tids[j], 0.0, np.r_[ds.robots[j].truth_at(0.0)[:2], 0.0, 0.0], P0)
+    monitor = single.TARGET_MONITOR if s.recovery else MonitorSettings(
+        gate_probability=s.gate, huber_probability=None, drift_test=False, recover=False)
+    fronts = {(o, j): TargetTrackingFrontEnd(InnovationMonitor(f"robot{o}/robot{j}", 2, monitor))
+              for o in robots for j in robots if j != o} if known else {}
+    teams = {o: TeamSightingsFrontEnd(nodes[o], single.TARGET_MONITOR, velocity_std=s.sigma, window=s.track_horizon,
+                                      candidates=s.reacquire)
+             for o in robots} if s.recovery and not known else {}
+    view = CameraView(s.half_angle, s.min_range, s.max_range)
+    eval_t = np.round(s.eval_dt * np.arange(1, int(math.floor(duration / s.eval_dt + 1e-9)) + 1), 9)
+    send_t = np.round(s.exchange_period * np.arange(1, int(math.floor(duration / s.exchange_period + 1e-9)) + 1), 9)
+    out = {o: {j: np.empty((eval_t.size, 2)) for j in robots} for o in robots}
+    frames = _camera_frames(ds, robots)
+    ticks = sorted([(float(t), 0) for t in send_t] + [(float(t), 1) for t in eval_t])
+    counts = {o: {"frames": 0, "sightings": 0} for o in robots}
+    taken: dict[int, list[tuple[int, int | None]]] = {o: [] for o in robots}
+    ik = ie = 0
+
+    def tick(upto: float) -> None:
+        nonlocal ik, ie
+        while ik < len(ticks) and ticks[ik][0] <= upto + 1e-9:
+            t, kind = ticks[ik]
+            ik += 1
+            if kind == 0:                       # every node sends, then every bundle is delivered
+                bundles = []
+                for o in robots:
+                    nodes[o].predict(t)
+                    bundles += nodes[o].outgoing(t)
+                for dst, data in bundles:
+                    nodes[int(dst[5:])].receive(data)
+            else:
+                for o in robots:
+                    nodes[o].predict(t)
+                    for j in robots:
+                        out[o][j][ie] = nodes[o].tracks[tids[j]].estimate()[0][:2]
+                ie += 1
+
+    for t, o, a, b in frames:
+        if t > duration:
+            break
+        tick(t - 1e-6)
+        log, ekf = ds.robots[o], ekfs[o]
+        rows, subj = _localize(ekf, log, lm, s, t, a, b)
+        seen = rows[np.isin(subj, robots) & (subj != o)]
+        if not seen.size:
+            continue
+        node = nodes[o]
+        node.predict(t)
+        counts[o]["frames"] += 1
+        counts[o]["sightings"] += seen.size
+        if known:
+            for i in seen:
+                j = int(log.meas_subject[i])
+                fix = TargetRangeBearing(ekf.x, ekf.P, (log.meas_range[i], log.meas_bearing[i]), s.range_std,
+                                         s.bearing_std).position_fix()
+                fronts[(o, j)].assess(node.tracks[tids[j]], t, fix)
+            if seen.size == 1:
+                taken[o].append((int(log.meas_subject[seen[0]]), int(log.meas_subject[seen[0]])))
+            continue
+        scan = sightings_scan(t, log.meas_range[seen], log.meas_bearing[seen], ekf.x, ekf.P, s.range_std,
+                              s.bearing_std, view=view, detection_probability=s.detection_probability,
+                              clutter_density=s.clutter_density, source=names[o])
+        before = {j: np.trace(node.tracks[tids[j]].estimate(t)[1][:2, :2]) for j in robots}
+        own = (tids[o],) if s.exclude_self else ()     # a robot's camera never sees the robot itself
+        if o in teams:
+            n_events = len(teams[o].stats.events)
+            teams[o].process(scan, exclude=own)
+        else:
+            node.process(scan, exclude=own)
+        if seen.size == 1:     # which track took the lone sighting: the one whose covariance at t shrank
+            took = [j for j in robots if np.trace(node.tracks[tids[j]].estimate(t)[1][:2, :2]) < 0.999 * before[j]]
+            if o in teams and len(teams[o].stats.events) > n_events:    # re-acquired by a widened track
+                took = [teams[o].stats.events[-1][1].serial]
+            taken[o].append((int(log.meas_subject[seen[0]]), took[0] if took else None))
+    tick(math.inf)
+    return {o: {"t": eval_t, "tracks": out[o], "frames": counts[o]["frames"], "sightings": counts[o]["sightings"],
+                "taken": taken[o], "observers": [o], "node": nodes[o],
+                "recovery": ({**{k: v for k, v in vars(teams[o].stats).items() if k != "events"},
+                              "events": [(round(te, 3), tid.serial, round(jump, 2))
+                                         for te, tid, jump in teams[o].stats.events]} if o in teams else
+                             {str(j): fronts[(o, j)].health() for j in robots if j != o} if known else {})}
+            for o in robots}
+
+
 def track_mapping(res: dict) -> dict[int, int]:
     """Each track (by its start label) -> the robot it followed: the one-to-one assignment of
     tracks to robots maximizing the number of lone sightings of a robot that the track took
@@ -231,14 +397,19 @@ def track_mapping(res: dict) -> dict[int, int]:
     return {labels[a]: labels[b] for a, b in zip(r, c)}
 
 
-def evaluate(ds, runs: dict[int, dict], s: Settings, known: bool) -> dict:
+def evaluate(ds, runs: dict[int, dict], s: Settings, known: bool, shared_mapping: bool = False) -> dict:
     """RMSE, on-target share and identity switches per (observer, tracked robot); label agreement per robot.
 
     Identities known: the track of robot ``j`` is the one started for it. Anonymous: each
     observer's tracks are mapped to the robots once for the whole run (:func:`track_mapping`);
-    the track of robot ``j`` is the one mapped to it. The label agreement compares the tracks'
-    start labels (the names the team shares from the common prior).
+    the track of robot ``j`` is the one mapped to it (``shared_mapping``: one mapping for all
+    observers, from the lone sightings of all of them: the network, whose nodes share the
+    tracks' identities). The label agreement compares the tracks' start labels (the names the
+    team shares from the common prior).
     """
+    if shared_mapping and not known:
+        first = next(iter(runs.values()))
+        pooled = track_mapping({"tracks": first["tracks"], "taken": [x for r in runs.values() for x in r["taken"]]})
     pairs: dict[str, dict] = {}
     by_robot: dict[int, dict[int, np.ndarray]] = {}
     mappings = {}
@@ -246,7 +417,7 @@ def evaluate(ds, runs: dict[int, dict], s: Settings, known: bool) -> dict:
     truth = {j: ds.robots[j].truth_at(t_all)[:, :2] for j in ds.robots}
     for o, res in runs.items():
         t = res["t"]
-        mapping = {j: j for j in res["tracks"]} if known else track_mapping(res)
+        mapping = {j: j for j in res["tracks"]} if known else pooled if shared_mapping else track_mapping(res)
         mappings[str(o)] = {str(k): v for k, v in mapping.items()}
         tracks = {mapping[lab]: est for lab, est in res["tracks"].items()}
         by_robot[o] = tracks
@@ -317,8 +488,32 @@ def run(dataset: Path, s: Settings, *, known: bool, duration: float | None = Non
     return res
 
 
-def combine(anon: dict, known: dict) -> list[dict]:
-    """One row per (observer, tracked robot): both runs side by side."""
+def run_net(dataset: Path, s: Settings, *, known: bool, duration: float | None = None, progress=None) -> dict:
+    """The network (:func:`run_network`), anonymous or identities known; the evaluation (one mapping
+    of tracks to robots for the whole network: the nodes share the identities)."""
+    t_wall = time.perf_counter()
+    ds = read_mrclam(dataset, duration=duration)
+    end = ds.duration if duration is None else min(duration, ds.duration)
+    runs = run_network(ds, s, known, end)
+    stats = {}
+    for o, r in runs.items():
+        node = r.pop("node")
+        stats[str(o)] = {"bundles_sent": node.stats.bundles_sent, "bytes_sent": node.stats.bytes_sent,
+                         "bundles_rejected": node.stats.bundles_rejected,
+                         "track_messages_rejected": node.stats.track_messages_rejected,
+                         "recovery": r.pop("recovery")}
+    if progress:
+        progress(f"{'known' if known else 'anonymous'}: the network ({len(runs)} TrackingNodes, tree "
+                 f"{'-'.join(f'{a}{b}' for a, b in s.tree)}): {time.perf_counter() - t_wall:.1f} s")
+    res = evaluate(ds, runs, s, known, shared_mapping=True)
+    res.update({"mode": "identities known" if known else "anonymous", "duration": end, "network": stats,
+                "runtime_s": time.perf_counter() - t_wall})
+    return res
+
+
+def combine(anon: dict, known: dict, group: str | None = None) -> list[dict]:
+    """One row per (observer, tracked robot): both runs side by side. ``group``: ``"robots"`` (each robot
+    alone) and ``"team"`` by default, or the name of every row (``"network"``)."""
     rows = []
     for key, a in sorted(anon["pairs"].items(), key=lambda kv: (str(kv[1]["observer"]), kv[1]["target"])):
         k = known["pairs"][key]
@@ -326,7 +521,8 @@ def combine(anon: dict, known: dict) -> list[dict]:
         none = {"agreement": None, "compared": None}
         la = none if team else anon["label_agreement"][str(a["target"])]
         lk = none if team else known["label_agreement"][str(a["target"])]
-        rows.append({"observer": a["observer"], "target": a["target"], "sightings": a["sightings"],
+        rows.append({"group": group or ("team" if team else "robots"),
+                     "observer": a["observer"], "target": a["target"], "sightings": a["sightings"],
                      "rmse_known": k["rmse"], "rmse_anonymous": a["rmse"], "ratio": a["rmse"] / k["rmse"],
                      "rmse_anonymous_start_label": a["rmse_start_label"],
                      "on_target_known": k["on_target"], "on_target_anonymous": a["on_target"],
@@ -341,10 +537,10 @@ def combine(anon: dict, known: dict) -> list[dict]:
 def print_table(rows: list[dict], anon: dict, known: dict) -> None:
     print(f"\nMRCLAM, anonymous robot sightings against identities known ({anon['duration']:.1f} s; every robot "
           f"tracks the four others from its own sightings; evaluation every 0.5 s)")
-    print(f"{'obs':>5}{'target':>7}{'sightings':>10}{'RMSE known':>12}{'RMSE anon':>11}{'ratio':>7}{'(start label)':>14}"
+    print(f"{'group':>8}{'obs':>5}{'target':>7}{'sightings':>10}{'RMSE known':>12}{'RMSE anon':>11}{'ratio':>7}{'(start label)':>14}"
           f"{'on target k/a':>15}{'switches k/a':>14}{'assoc. right':>13}{'label agreement k/a (compared)':>33}")
     for r in rows:
-        print(f"{r['observer']:>5}{r['target']:>7}{r['sightings']:>10}{r['rmse_known']:>12.3f}{r['rmse_anonymous']:>11.3f}"
+        print(f"{r['group']:>8}{r['observer']:>5}{r['target']:>7}{r['sightings']:>10}{r['rmse_known']:>12.3f}{r['rmse_anonymous']:>11.3f}"
               f"{r['ratio']:>7.3f}{r['rmse_anonymous_start_label']:>14.3f}"
               f"{r['on_target_known']:>8.2f}/{r['on_target_anonymous']:<6.2f}"
               f"{r['switches_known']:>8}/{r['switches_anonymous']:<5}"
@@ -361,24 +557,36 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--associator", choices=("gnn", "jpda"), default="gnn")
     ap.add_argument("--motion", choices=("ou", "cv"), default="ou",
                     help="ou (default): Ornstein-Uhlenbeck velocity; cv: constant velocity q = 1e-4")
+    ap.add_argument("--network", action="store_true",
+                    help="the network instead: every robot a TrackingNode of the chain 1-2-3-4-5 exchanging track "
+                         "bundles (rows 'network')")
+    ap.add_argument("--no-recovery", action="store_true",
+                    help="network: the plain 0.999 gate, no lock-out recovery (known) or re-acquisition (anonymous)")
+    ap.add_argument("--reacquire", choices=("stale", "likeliest"), default="stale",
+                    help="network, anonymous: a lock-out re-acquires the likeliest stale track (default), or the "
+                         "likeliest track if it is stale")
+    ap.add_argument("--no-exclude-self", action="store_true",
+                    help="network, anonymous: a node's own track takes part in the association of its sightings")
     ap.add_argument("--json", type=Path, default=None, help="write both runs and the table as JSON")
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    s = Settings(associator=args.associator, motion=args.motion)
+    s = Settings(associator=args.associator, motion=args.motion, recovery=not args.no_recovery,
+                 exclude_self=not args.no_exclude_self, reacquire=args.reacquire)
 
     def progress(msg: str) -> None:
         print(msg, flush=True)
 
+    go = run_net if args.network else run
     try:
-        known = run(args.dataset, s, known=True, duration=args.duration, progress=progress)
-        anon = run(args.dataset, s, known=False, duration=args.duration, progress=progress)
+        known = go(args.dataset, s, known=True, duration=args.duration, progress=progress)
+        anon = go(args.dataset, s, known=False, duration=args.duration, progress=progress)
     except (DfusionError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    rows = combine(anon, known)
+    rows = combine(anon, known, "network" if args.network else None)
     print_table(rows, anon, known)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,7 @@ if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first us
     from dfusion.frontends.icp import ICPFrontEnd
     from dfusion.frontends.mcl import MCLFrontEnd
     from dfusion.frontends.target import TargetTrackingFrontEnd, network_support
+    from dfusion.frontends.team import TeamSightingsFrontEnd, TeamStats
     from dfusion.frontends.wsn import WSNFrontEnd, WSNStats
 
 __all__ = [
@@ -36,6 +37,8 @@ __all__ = [
     "MCLFrontEnd",
     "TargetTrackingFrontEnd",
     "network_support",
+    "TeamSightingsFrontEnd",
+    "TeamStats",
     "WSNFrontEnd",
     "WSNStats",
 ]
@@ -60,6 +63,8 @@ _WHERE = {
     "MCLFrontEnd": ("dfusion.frontends.mcl", 'MCLFrontEnd'),
     "TargetTrackingFrontEnd": ("dfusion.frontends.target", 'TargetTrackingFrontEnd'),
     "network_support": ("dfusion.frontends.target", 'network_support'),
+    "TeamSightingsFrontEnd": ("dfusion.frontends.team", 'TeamSightingsFrontEnd'),
+    "TeamStats": ("dfusion.frontends.team", 'TeamStats'),
     "WSNFrontEnd": ("dfusion.frontends.wsn", 'WSNFrontEnd'),
     "WSNStats": ("dfusion.frontends.wsn", 'WSNStats'),
 }

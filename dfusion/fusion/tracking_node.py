@@ -22,6 +22,15 @@ initiator's; a node that hears of the track first in a message creates it with t
 prior at the same ``t_b`` (carried in every bundle) and fuses what arrives. The prior is
 common information, never exchanged: each track's network is a single-target network.
 
+**Tracks every node knows from the start** (:meth:`TrackingNode.add_track`: a team of known
+size, a registered tag): their common prior is a given ``(t_b, mean, cov)`` instead of
+:class:`TrackPrior`. Every node must add such a track identically (same identity, time, mean
+and covariance) before it takes or hears anything of it: it is then common information, as
+:class:`TrackPrior` is, and the track is exact against a Kalman filter from that prior. A node
+that hears of the track in a bundle without having added it creates it with
+:class:`TrackPrior` at the same ``t_b`` (it lacks the given prior's information: conservative,
+not exact).
+
 **Association.** A scan at ``t`` (one sensor, one time; scans of a node in time order) is
 associated with every track holding information at ``t`` (its fused estimate at ``t``, a
 window state); a track's factor ``(Lambda, y)`` (:func:`dfusion.tracking.track_update_information`,
@@ -80,7 +89,7 @@ from dfusion.fusion.bundle import (MAX_TRACKS_PER_BUNDLE, TrackBundle, TrackEnd,
 from dfusion.fusion.node import HOLD, MAX_AHEAD, FusionNode
 from dfusion.fusion.stats import LOG_INTERVAL, RejectionLog
 from dfusion.fusion.tree import SpanningTree
-from dfusion.linalg import Array, symmetrize
+from dfusion.linalg import Array, as_spd, as_vector, symmetrize
 from dfusion.models.base import MeasurementModel, MotionModel
 from dfusion.tracking.association import GNN, DataAssociator
 from dfusion.tracking.deletion import CovarianceDeleter, Deleter
@@ -154,6 +163,7 @@ class _TrackView:
     recent: list[int] = field(default_factory=list)
     confirmed: bool = True
     seen: float | None = None          # newest time this node's own data bore on the track (in view, or observed)
+    given_prior: bool = False          # added by add_track: its prior is informative from the start
 
     def estimate(self) -> tuple[Array, Array]:
         return self.node.estimate()
@@ -260,8 +270,10 @@ class TrackingNode:
         """Birth time of a live track (the time of its common prior)."""
         return self._views[track].born
 
-    def _track(self, tid: TrackId, born: float) -> FusionNode | None:
-        """The fusion of ``tid``, created with the common prior at ``born`` if new (``None``: over ``max_tracks``)."""
+    def _track(self, tid: TrackId, born: float,
+               prior: tuple[float, Array, Array] | None = None) -> FusionNode | None:
+        """The fusion of ``tid``, created with the common prior at ``born`` (or ``prior``) if new
+        (``None``: over ``max_tracks``)."""
         node = self.tracks.get(tid)
         if node is not None:
             return node
@@ -271,13 +283,37 @@ class TrackingNode:
         links = sorted(self.links)
         tree = SpanningTree(self.name, links) if self.links_change else None
         node = FusionNode(self.name, links if self.links_change else self.neighbors, self.motion,
-                          prior=self.prior.at(born, self.motion.dim), epoch=self.epoch, tree=tree, peers=self.peers,
-                          **self._track_options)
+                          prior=prior or self.prior.at(born, self.motion.dim), epoch=self.epoch, tree=tree,
+                          peers=self.peers, **self._track_options)
         if self.time is not None and self.time > node.latest_time:
             node.predict(self.time)
         self.tracks[tid] = node
-        self._views[tid] = _TrackView(tid, node, float(born))
+        self._views[tid] = _TrackView(tid, node, float(born), given_prior=prior is not None)
         return node
+
+    def add_track(self, track: TrackId, t: float, mean: ArrayLike, cov: ArrayLike) -> None:
+        """A track every node knows from the start (a team of known size, a registered tag):
+        its common prior is ``(t, mean, cov)`` instead of :class:`TrackPrior`, and it takes part
+        in the association and :meth:`estimates` from the start. Every node must add it
+        identically, before it takes or hears anything of it (module docstring)."""
+        if not isinstance(track, TrackId):
+            raise ValidationError(f"track must be a TrackId, got {track!r}")
+        if track in self.tracks or track in self.ended:
+            raise ValidationError(f"{self.name}: track {track} is already known here")
+        n = self.motion.dim
+        t = float(t)
+        if not np.isfinite(t):
+            raise TimeError(f"track {track}: prior time must be finite, got {t!r}")
+        m = as_vector(mean, n, "track prior mean")
+        P = as_spd(cov, n, "track prior covariance")
+        if self._track(track, t, (t, m, P)) is None:
+            raise ValidationError(f"{self.name}: at most {self.max_tracks} tracks")
+        if track.origin == self.name:   # never issue this identity again
+            self.issuer.issued = max(self.issuer.issued, track.serial + 1)
+
+    def _informed(self, tid: TrackId) -> bool:
+        """Whether a track holds information: measurements (own or received), or a given prior."""
+        return self._views[tid].given_prior or self.tracks[tid].newest_information_time() is not None
 
     def _drop(self, tid: TrackId) -> FusionNode | None:
         self._views.pop(tid, None)
@@ -286,9 +322,8 @@ class TrackingNode:
         return self.tracks.pop(tid, None)
 
     def estimates(self) -> list[tuple[TrackId, Array, Array]]:
-        """``(track, mean, cov)`` of every track holding information, at the node's newest time."""
-        return [(tid, *node.estimate()) for tid, node in sorted(self.tracks.items())
-                if node.newest_information_time() is not None]
+        """``(track, mean, cov)`` of every track holding information (or a given prior), at the node's newest time."""
+        return [(tid, *node.estimate()) for tid, node in sorted(self.tracks.items()) if self._informed(tid)]
 
     # ------------------------------------------------------------------------------ local data
     def predict(self, t: float) -> None:
@@ -318,9 +353,11 @@ class TrackingNode:
         view = self._views[track]
         view.seen = t if view.seen is None else max(view.seen, t)
 
-    def process(self, scan: Scan) -> list[TrackId]:
+    def process(self, scan: Scan, *, exclude: Iterable[TrackId] = ()) -> list[TrackId]:
         """Associate one scan of this node's sensors with the fused tracks, fuse it, start
-        tracks from what no track explains; returns the tracks started. Scans in time order."""
+        tracks from what no track explains; returns the tracks started. Scans in time order.
+        ``exclude``: tracks the scan cannot have seen (a robot's camera never sees the robot
+        itself): they take no part in the association."""
         t = float(scan.time)
         if self._scan_time is not None and t < self._scan_time - 1e-9:
             raise TimeError(f"{self.name}: scan at t={t} is older than the previous scan ({self._scan_time})")
@@ -328,8 +365,9 @@ class TrackingNode:
         if self.time is None or t > self.time:
             self.predict(t)
         ids, views = [], []
+        skip = set(exclude)
         for tid, node in sorted(self.tracks.items()):
-            if node.newest_information_time() is None or t < node.filter.oldest_time:
+            if tid in skip or not self._informed(tid) or t < node.filter.oldest_time:
                 continue
             node.predict(t)   # a state at t (t is in the window)
             ids.append(tid)
@@ -419,7 +457,7 @@ class TrackingNode:
             return
         live = {tid: node.estimate() for tid, node in self.tracks.items()
                 if self._views[tid].seen is not None and self.time - self._views[tid].seen <= self.merge_fresh
-                and node.newest_information_time() is not None}
+                and self._informed(tid)}
         for a, b in self.merger.check(live, self.time):
             if a in self.tracks and b in self.tracks:
                 keep, gone = self.survivor(a, b)

@@ -276,3 +276,77 @@ def test_two_cameras_that_both_start_a_track_for_each_person_end_with_one_identi
         for _, mean, P in x.estimates():
             err = min(np.linalg.norm(mean[:2] - (p[:2] + p[2:] * x.time)) for p in people)
             assert err < 3 * 0.2 * np.sqrt(2 / 10), err
+
+
+def test_tracks_added_with_a_given_prior_are_exact_against_filterpy_from_that_prior():
+    """A team of known size: both nodes add the same two tracks with the same given prior
+    (add_track); each observes them (known association) at its own times; after the links
+    settle both nodes hold each track as filterpy's Kalman filter from that prior over every
+    measurement of it, to 1e-9. An anonymous scan is associated with a given track before
+    any measurement of it; a node that did not add a track creates it with TrackPrior."""
+    from filterpy.kalman import KalmanFilter
+
+    from dfusion.tracking import Scan
+    from tests.helpers.fusion_harness import Q_PSD, cv_F, cv_Q
+
+    motion = ConstantVelocity(2, Q_PSD)
+    a = TrackingNode("a", ["b"], motion, prior=PRIOR, deleter=False, merger=False, epoch=1)
+    b = TrackingNode("b", ["a"], motion, prior=PRIOR, deleter=False, merger=False, epoch=2)
+    priors = {TrackId("team", 1): (np.array([1.0, 2.0, 0.1, 0.0]), np.diag([0.09, 0.09, 0.01, 0.01])),
+              TrackId("team", 2): (np.array([8.0, -3.0, 0.0, -0.2]), np.diag([0.25, 0.16, 0.04, 0.02]))}
+    for node in (a, b):
+        for tid, (m0, P0) in priors.items():
+            node.add_track(tid, 0.0, m0, P0)
+    assert [t for t, _, _ in a.estimates()] == sorted(priors)     # estimates before any measurement
+    with pytest.raises(ValidationError, match="already known"):
+        a.add_track(TrackId("team", 1), 0.0, *priors[TrackId("team", 1)])
+    rng = np.random.default_rng(7)
+    meas = {tid: [] for tid in priors}
+    for k in range(1, 16):
+        for node, dt, std in ((a, 0.0, 0.3), (b, 0.05, 0.5)):
+            t = round(0.2 * k + dt, 9)
+            node.predict(t)
+            for tid, (m0, _) in priors.items():
+                if rng.random() < 0.7:
+                    z = m0[:2] + m0[2:] * t + rng.normal(0, std, 2)
+                    node.observe(tid, t, z, PositionSensor(2, std))
+                    meas[tid].append((t, z, std))
+        for src, dst in ((a, b), (b, a)):
+            for _, d in src.outgoing(0.2 * k):
+                dst.receive(d)
+    t_end = 3.5
+    for _ in range(3):
+        for src, dst in ((a, b), (b, a)):
+            src.predict(t_end)
+            for _, d in src.outgoing(t_end):
+                dst.receive(d)
+    for tid, (m0, P0) in priors.items():
+        kf = KalmanFilter(dim_x=4, dim_z=2)
+        kf.x, kf.P = m0.reshape(4, 1).copy(), P0.copy()
+        kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
+        t_prev = 0.0
+        for t, z, std in sorted(meas[tid], key=lambda x: x[0]) + [(t_end, None, None)]:
+            if t > t_prev:
+                kf.F, kf.Q = cv_F(t - t_prev), cv_Q(t - t_prev)
+                kf.predict()
+                t_prev = t
+            if z is not None:
+                kf.R = std**2 * np.eye(2)
+                kf.update(z.reshape(2, 1))
+        for node in (a, b):
+            mean, P = node.tracks[tid].estimate(t_end)
+            assert rel(mean, kf.x.ravel()) < 1e-9 and rel(P, kf.P) < 1e-9, (node.name, str(tid))
+    # anonymous: a fresh node's given track takes a detection near its prior before any measurement
+    c = TrackingNode("c", ["a"], motion, prior=PRIOR, deleter=False, merger=False, epoch=3, initiator=None)
+    c.add_track(TrackId("team", 1), 0.0, *priors[TrackId("team", 1)])
+    c.predict(0.1)
+    c.process(Scan(0.1, np.array([[1.05, 2.0]]), PositionSensor(2, 0.2), 1e-4, 0.9))
+    assert c.tracks[TrackId("team", 1)].newest_information_time() == pytest.approx(0.1)
+    # a bundle of a track c did not add: created with TrackPrior (broad), not the given prior
+    a2 = TrackingNode("a", ["c"], motion, prior=PRIOR, deleter=False, merger=False, epoch=4)
+    a2.add_track(TrackId("team", 2), 0.0, *priors[TrackId("team", 2)])
+    a2.observe(TrackId("team", 2), 0.1, [8.0, -3.0], PositionSensor(2, 0.3))
+    for _, d in a2.outgoing(0.1):
+        c.receive(d)
+    _, P_c = c.tracks[TrackId("team", 2)].estimate()
+    assert P_c[2, 2] > 50.0 and c.stats.tracks_heard == 1
