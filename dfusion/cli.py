@@ -307,7 +307,7 @@ def _run(args: argparse.Namespace) -> int:
 #: ``dfusion run`` flags that do not apply to a multi-target scenario, and their defaults.
 _NOT_FOR_TRACKING = {"fusion": None, "sends": None, "min_send_interval": None, "nodes_per_process": 1, "restart": [],
                      "foxglove": None, "emulate_links": True, "no_supervise": False, "chaos_dir": None, "csv": None,
-                     "tls_dir": None, "tls_ca": None, "tls_cert": None, "tls_key": None}
+                     "tls_dir": None, "tls_ca": None, "tls_cert": None, "tls_key": None, "speed": 1.0}
 
 
 def _run_tracking(sc, args: argparse.Namespace) -> int:

@@ -139,3 +139,6 @@ def test_flags_that_do_not_apply_to_a_multi_target_run_are_refused_in_one_line(t
     assert main(["run", str(path), "-q", "--nodes-per-process", "2"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "--nodes-per-process is not available for a multi-target scenario" in err, err
+    assert main(["run", str(path), "-q", "--speed", "10"]) == 2     # lockstep: no real-time pacing to speed up
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--speed is not available for a multi-target scenario" in err, err
