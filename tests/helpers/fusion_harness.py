@@ -34,13 +34,15 @@ def cv_Q(dt: float, q: float = Q_PSD) -> np.ndarray:
     return q * np.block([[dt**3 / 3 * I, dt**2 / 2 * I], [dt**2 / 2 * I, dt * I]])
 
 
-def central_kalman(measurements, t_end):
-    """filterpy KalmanFilter on all (t, z, std) measurements in time order."""
+def central_kalman(measurements, t_end, prior=None):
+    """filterpy KalmanFilter on all (t, z, std) measurements in time order, from ``prior``
+    ``(t0, x0, P0)`` (default: the harness's ``(0, 0, P0 I)``)."""
+    t0, x0, Pp = prior if prior is not None else (0.0, np.zeros(4), np.eye(4) * P0)
     kf = KalmanFilter(dim_x=4, dim_z=2)
-    kf.x = np.zeros((4, 1))
-    kf.P = np.eye(4) * P0
+    kf.x = np.asarray(x0, float).reshape(4, 1)
+    kf.P = np.array(Pp, dtype=float)
     kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
-    t_prev = 0.0
+    t_prev = t0
     for t, z, std in sorted(measurements, key=lambda m: m[0]):
         if t > t_prev:
             kf.F, kf.Q = cv_F(t - t_prev), cv_Q(t - t_prev)

@@ -9,34 +9,18 @@ from dataclasses import dataclass, field
 
 import networkx as nx
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from dfusion.fusion.tracking_node import TrackingNode, TrackPrior
 from dfusion.models import ConstantVelocity, PositionSensor
 from dfusion.tracking import TrackId
-from tests.helpers.fusion_harness import Q_PSD, cv_F, cv_Q
+from tests.helpers.fusion_harness import Q_PSD, central_kalman
 
 PRIOR = TrackPrior(position_std=50.0, velocity_std=10.0)
 
 
 def track_kalman(measurements, born: float, t_end: float, prior: TrackPrior = PRIOR):
     """filterpy KalmanFilter from the common prior at ``born`` over ``(t, z, std)`` in time order, to ``t_end``."""
-    _, x0, P0 = prior.at(born, 4)
-    kf = KalmanFilter(dim_x=4, dim_z=2)
-    kf.x, kf.P = x0.reshape(4, 1), P0.copy()
-    kf.H = np.hstack([np.eye(2), np.zeros((2, 2))])
-    t_prev = born
-    for t, z, std in sorted(measurements, key=lambda m: m[0]):
-        if t > t_prev:
-            kf.F, kf.Q = cv_F(t - t_prev), cv_Q(t - t_prev)
-            kf.predict()
-            t_prev = t
-        kf.R = std**2 * np.eye(2)
-        kf.update(np.asarray(z, float).reshape(2, 1))
-    if t_end > t_prev:
-        kf.F, kf.Q = cv_F(t_end - t_prev), cv_Q(t_end - t_prev)
-        kf.predict()
-    return kf.x.ravel(), kf.P
+    return central_kalman(measurements, t_end, prior.at(born, 4))
 
 
 @dataclass
