@@ -34,7 +34,11 @@ restarted node go on past the serials it issued before.
 
 **Merges** (track-to-track association, :class:`~dfusion.tracking.track_to_track.TrackToTrackAssociator`).
 Two tracks found to be one target merge into the one born first (then: the smaller identity),
-the rule every node applies the same way. A node that merges ``g`` into ``k`` (deciding itself,
+the rule every node applies the same way. A node decides a merge only of tracks its own scans hit
+within the associator's ``distinct_for`` seconds: the evidence that two tracks are two targets
+(both took a detection of one scan) is a node's own, so a node that does not see the pair (two
+people passing each other in another camera's view) leaves the decision to the nodes that do,
+and hears of it. A node that merges ``g`` into ``k`` (deciding itself,
 or told by a neighbour) moves **its own** information of ``g`` into ``k`` (as own information at
 the same state times, shared from then on over ``k``'s channels), drops what it received for
 ``g`` and records the end; every node does the same when it hears. Afterwards each
@@ -145,6 +149,7 @@ class _TrackView:
     consecutive_misses: int = 0
     recent: list[int] = field(default_factory=list)
     confirmed: bool = True
+    seen_here: float | None = None     # time of this node's newest own scan that hit the track
 
     def estimate(self) -> tuple[Array, Array]:
         return self.node.estimate()
@@ -329,6 +334,7 @@ class TrackingNode:
                 self._views[tid].record(hit, window=1)
             if hit:
                 hit_ids.append(tid)
+                self._views[tid].seen_here = t
         if self.merger is not None and len(hit_ids) > 1:
             self.merger.distinct(hit_ids, t)
         if ids:
@@ -391,8 +397,11 @@ class TrackingNode:
     def _merge_duplicates(self) -> None:
         if self.merger is None or self.time is None:
             return
+        # only tracks this node's own scans hit lately: where its scans could have seen two of them as distinct
+        recent = self.time - self.merger.distinct_for
         live = {tid: node.estimate() for tid, node in self.tracks.items()
-                if node.newest_information_time() is not None}
+                if node.newest_information_time() is not None and self._views[tid].seen_here is not None
+                and self._views[tid].seen_here >= recent}
         for a, b in self.merger.check(live, self.time):
             if a in self.tracks and b in self.tracks:
                 keep, gone = self.survivor(a, b)

@@ -172,3 +172,30 @@ def test_bundles_split_under_the_size_limit():
     assert len(b.estimates()) == 40
     for (tid, m1, P1), (_, m2, P2) in zip(a.estimates(), b.estimates()):
         np.testing.assert_allclose(m1, m2, rtol=1e-12, atol=1e-12)
+
+
+def test_a_node_that_does_not_see_two_close_targets_does_not_merge_them():
+    """Two people walk side by side 0.25 m apart in node a's view only; a's scans detect both in
+    every scan (two targets), b has no sensor and holds a's two tracks as received. b must not
+    declare them one target (its merger has no evidence either way), nor may a."""
+    from dfusion.tracking import GNN, Scan
+    from dfusion.tracking.track_to_track import TrackToTrackAssociator
+    m = ConstantVelocity(2, 0.05)
+    sensor = PositionSensor(2, 0.3)
+    a = TrackingNode("a", ["b"], m, associator=GNN(), deleter=False, merger=TrackToTrackAssociator(confirm=3),
+                     epoch=1, window=20)
+    b = TrackingNode("b", ["a"], m, associator=GNN(), deleter=False, merger=TrackToTrackAssociator(confirm=3),
+                     epoch=2, window=20)
+    rng = np.random.default_rng(4)
+    for k in range(1, 41):
+        t = round(0.1 * k, 9)
+        people = np.array([[1.0 * t, 0.0], [1.0 * t, 0.25]])
+        a.process(Scan(t, people + 0.02 * rng.standard_normal((2, 2)), sensor, 1e-3, 0.9))
+        b.predict(t)
+        for _, d in a.outgoing(t):
+            b.receive(d)
+        for _, d in b.outgoing(t):
+            a.receive(d)
+    assert a.stats.births == 2 and len(a.tracks) == 2
+    assert len(b.tracks) == 2, [str(x) for x in b.tracks]
+    assert a.stats.merges == 0 and b.stats.merges == 0
