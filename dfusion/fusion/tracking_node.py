@@ -49,7 +49,12 @@ older than ``k``'s window start cannot be moved: counted in ``stats.merge_outsid
 
 **Deletions.** A track a node's deleter ends is deleted at that node, recorded, and announced;
 every node that hears deletes it too. The deleter sees the fused track (its estimate, and as
-``last_hit`` the newest time anyone gave it information), so all nodes reach the same verdict.
+``last_hit`` the newest time anyone gave it information; as ``seen_here`` the newest time this
+node's own scans hit or started it), so all nodes reach the same verdict, a node far from the
+track's observers later by the links' latency: rules on the fused track whose verdict does not
+come early there (:class:`~dfusion.tracking.deletion.ObserverStaleDeleter`, which leaves
+staleness to the nodes that see the track; ``RegionDeleter``; ``StaleDeleter`` or
+``CovarianceDeleter`` with a margin above the latency).
 
 **Ends are reliable.** An end is sent to every neighbour in the next bundle, and again to a
 neighbour whenever it sends a message for an ended track (it missed the news); messages for an
@@ -303,6 +308,8 @@ class TrackingNode:
         if t > node.latest_time:
             self.predict(t)
         node.update(t, z, sensor)
+        view = self._views[track]
+        view.seen_here = t if view.seen_here is None else max(view.seen_here, t)
 
     def process(self, scan: Scan) -> list[TrackId]:
         """Associate one scan of this node's sensors with the fused tracks, fuse it, start
@@ -356,6 +363,7 @@ class TrackingNode:
         if w.min() < 0:   # a direction the initiator knows less about than the broad prior: keep the prior there
             L = symmetrize((V * np.maximum(w, 0.0)) @ V.T)
         node.add_local_information(track.time, L, track.filter.eta - Omega0 @ mean0)
+        self._views[track.id].seen_here = track.time
         self.stats.births += 1
         return track.id
 
@@ -427,6 +435,8 @@ class TrackingNode:
             if t > target.latest_time:
                 target.predict(t)
             target.add_local_information(t, L, y)
+        seen = [v for v in (self._views[gone].seen_here, self._views[keep].seen_here) if v is not None]
+        self._views[keep].seen_here = max(seen) if seen else None   # this node saw the target under either
         self._drop(gone)
         self.stats.merges += 1
         self.stats.merges_decided += int(decided)

@@ -199,3 +199,44 @@ def test_a_node_that_does_not_see_two_close_targets_does_not_merge_them():
     assert a.stats.births == 2 and len(a.tracks) == 2
     assert len(b.tracks) == 2, [str(x) for x in b.tracks]
     assert a.stats.merges == 0 and b.stats.merges == 0
+
+
+def test_staleness_is_judged_by_the_nodes_that_see_a_track():
+    """a sees a person until t = 1; its bundles reach b 0.3 s late. With ObserverStaleDeleter
+    (0.2 s) b, which does not see the person, never ends the track while a still sees it (a
+    StaleDeleter of 0.2 s at b would: b's newest information is always 0.3 s old); a ends it
+    0.2 s after its last detection and b hears."""
+    from dfusion.tracking import ObserverStaleDeleter, StaleDeleter
+    m = ConstantVelocity(2, 0.05)
+    s = PositionSensor(2, 0.3)
+    tid = TrackId("a", 0)
+
+    def run(deleter_b):
+        a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=ObserverStaleDeleter(0.2, 1.0), merger=False, epoch=1,
+                         window=20)
+        b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=deleter_b, merger=False, epoch=2, window=20)
+        flight, ended_at = [], None
+        for k in range(1, 26):
+            t = round(0.1 * k, 9)
+            a.predict(t)
+            b.predict(t)
+            for at, d in [f for f in flight if f[0] <= t + 1e-9]:
+                b.receive(d)
+            flight = [f for f in flight if f[0] > t + 1e-9]
+            if t <= 1.0:
+                a.observe(tid, t, [1.0 * t, 2.0], s, born=0.1)
+            flight += [(t + 0.3, d) for _, d in a.outgoing(t)]
+            for _, d in b.outgoing(t):
+                a.receive(d)
+            if tid in a.ended and ended_at is None:
+                ended_at = t
+            if t <= 1.0 and b.stats.deletions_decided:
+                return a, b, ended_at, t
+        return a, b, ended_at, None
+
+    a, b, ended_at, early = run(ObserverStaleDeleter(0.2, 1.0))
+    assert early is None and b.stats.deletions_decided == 0
+    assert ended_at == pytest.approx(1.3) and a.stats.deletions_decided == 1
+    assert tid not in b.tracks and tid in b.ended
+    _, b2, _, early = run(StaleDeleter(0.2))
+    assert early is not None and early <= 1.0       # the naive rule ends a track that is still seen
