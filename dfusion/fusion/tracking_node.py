@@ -286,13 +286,21 @@ class TrackingNode:
     # ------------------------------------------------------------------------------ local data
     def predict(self, t: float) -> None:
         """Bring every track to ``t``; then the deleter and the track-to-track association run."""
+        if self._advance(t):
+            self._end_and_merge()
+
+    def _advance(self, t: float) -> bool:
+        """Bring every track to ``t`` (no deletion, no merge); whether the node's time moved."""
         t = float(t)
         if self.time is not None and t <= self.time:
-            return
+            return False
         self.time = t
         for node in self.tracks.values():
             node.predict(t)
         self._expire_ends(t)
+        return True
+
+    def _end_and_merge(self) -> None:
         self._delete_ended()
         self._merge_duplicates()
 
@@ -313,13 +321,16 @@ class TrackingNode:
 
     def process(self, scan: Scan) -> list[TrackId]:
         """Associate one scan of this node's sensors with the fused tracks, fuse it, start
-        tracks from what no track explains; returns the tracks started. Scans in time order."""
+        tracks from what no track explains; returns the tracks started. Scans in time order.
+        A scan newer than the node's time brings the tracks to it, and the deleter and the
+        merger run after the scan (:meth:`predict` runs them at once)."""
         t = float(scan.time)
         if self._scan_time is not None and t < self._scan_time - 1e-9:
             raise TimeError(f"{self.name}: scan at t={t} is older than the previous scan ({self._scan_time})")
         self._scan_time = t
-        if self.time is None or t > self.time:
-            self.predict(t)
+        # the tracks come to t, the scan is associated, and only then the deleter and the merger run
+        # (as a centralized tracker's do): a track is not ended just before the detection that shows it is there
+        advanced = self._advance(t)
         ids, views = [], []
         for tid, node in sorted(self.tracks.items()):
             if node.newest_information_time() is None or t < node.filter.oldest_time:
@@ -349,6 +360,8 @@ class TrackingNode:
         else:
             claimed = np.zeros(len(scan.detections), dtype=bool)
         started = [self._birth(track) for track in self.initiator.initiate(scan, scan.detections[~claimed], self.issuer)]
+        if advanced:
+            self._end_and_merge()
         return [tid for tid in started if tid is not None]
 
     def _birth(self, track: Track) -> TrackId | None:

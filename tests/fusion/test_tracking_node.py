@@ -240,3 +240,19 @@ def test_staleness_is_judged_by_the_nodes_that_see_a_track():
     assert tid not in b.tracks and tid in b.ended
     _, b2, _, early = run(StaleDeleter(0.2))
     assert early is not None and early <= 1.0       # the naive rule ends a track that is still seen
+
+
+def test_a_track_is_not_deleted_just_before_the_scan_that_detects_it():
+    """Detections at 0.1 .. 0.5 s, four misses, a detection at 1.0 s: with StaleDeleter(0.45) the
+    track's newest information is 0.5 s old at 1.0 s before the scan, 0 after it. As a centralized
+    tracker's, the deleter runs after the scan: the track lives on, under its identity."""
+    from dfusion.tracking import GNN, MofNInitiator, Scan, StaleDeleter
+    m = ConstantVelocity(2, 0.05)
+    sensor = PositionSensor(2, 0.1)
+    a = TrackingNode("a", [], m, associator=GNN(), initiator=MofNInitiator(m, m=3, n=5), deleter=StaleDeleter(0.45),
+                     merger=False, epoch=1, window=20)
+    for k in list(range(1, 6)) + list(range(10, 13)):
+        t = round(0.1 * k, 9)
+        a.process(Scan(t, np.array([[1.0 * t, 0.0]]), sensor, 1e-3, 0.9))
+    assert a.stats.births == 1 and a.stats.deletions == 0
+    assert [str(tid) for tid, _, _ in a.estimates()] == ["a#0"]
