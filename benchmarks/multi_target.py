@@ -41,8 +41,8 @@ from dfusion.fusion.tracking_node import TrackingNode
 from dfusion.metrics import gospa, identity_metrics
 from dfusion.models import ConstantVelocity
 from dfusion.sim.plaza import CameraView, PlazaConfig, PlazaWorld, plaza_cameras, simulate_plaza
-from dfusion.tracking import (GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, RegionDeleter,
-                              StaleDeleter, TrackHistory)
+from dfusion.tracking import (GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, ObserverDeleter,
+                              RegionDeleter, StaleDeleter, TrackHistory)
 from dfusion.tracking.track_to_track import TrackToTrackAssociator
 from dfusion.viz import plot_identity_timeline, plot_tracks_topdown, record_tracks_mcap
 
@@ -55,9 +55,11 @@ STONESOUP = "stonesoup==1.9.1"
 NODE = "central"        # the one (centralized) node of every tracker's history
 #: The decentralized network's settings (chosen once, for every seed, layout and link delay).
 DELAYS = (0.0, 0.2)     # link delays (s) of the decentralized runs and of Stone Soup's network
-NET_MAX_AGE = 0.9       # s without information from any node before a fused track is deleted (> the tree's latency)
+NET_MAX_AGE = 0.45      # s since the fused track's newest information, judged by the nodes that saw it lately
+NET_OBSERVER = 1.0      # s: a node whose own scans hit a track within this judges its staleness
+NET_FALLBACK_AGE = 1.5  # s: every node ends a track whose newest information is this old (no observer left)
 NET_WINDOW = 12         # delayed states per track (1.2 s at 10 Hz: a message of two hops at 0.2 s fits)
-NET_CONFIRM = 5         # consecutive close checks before two tracks are declared one person
+NET_CONFIRM = 2         # consecutive close checks before two tracks are declared one person
 NET_MERGE_DISTANCE = 1.5
 FUSION = "fusion"       # the fusion node of Stone Soup's network
 
@@ -237,8 +239,9 @@ def run_stonesoup_network(world: PlazaWorld, delay: float) -> tuple[TrackHistory
 
 
 def camera_tree(names: list[str]) -> list[tuple[str, str]]:
-    """The decentralized network's tree: a star around the middle camera (with three cameras,
-    the chain cam1 - cam2 - cam3; with six, cam2 of the top row and every other camera)."""
+    """The decentralized network's tree: a star around a middle camera (with three cameras, the
+    chain cam1 - cam2 - cam3; with six, cam2, the middle of the row y in [0, 17] m, linked to
+    every other camera)."""
     hub = names[(len(names) - 1) // 2] if len(names) <= 3 else names[1]
     return [(hub, x) for x in names if x != hub]
 
@@ -259,9 +262,13 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
     camera's scans, on :func:`camera_tree`; every frame every node sends each neighbour a bundle,
     delivered ``delay`` seconds later (in-process: a queue ordered by arrival time; a message
     that arrives at a frame's time is received before that frame's scans, or, with no delay,
-    right after every node has sent). Deletion by rules on the fused track (no information from
-    any node for ``NET_MAX_AGE`` s, or out of the plaza with no information for 0.15 s), the
-    same at every node."""
+    right after every node has sent). Deletion by rules on the fused track, the same at every
+    node: no information from any node for ``NET_MAX_AGE`` s, judged by the nodes whose own
+    scans hit the track within ``NET_OBSERVER`` s (``ObserverDeleter``: a node far from the
+    track hears its information late by the tree's latency and leaves the verdict to them), or
+    for ``NET_FALLBACK_AGE`` s by any node; or out of the plaza with no information for 0.15 s
+    (``RegionDeleter``, judged by every node: at the border, where people leave). The
+    initiator, the associator and the gate are the centralized tracker's."""
     c = world.config
     motion = ConstantVelocity(2, Q)
     names = [v.name for v in c.cameras]
@@ -270,7 +277,8 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
     whole = CameraView("plaza", 0.0, c.width, 0.0, c.height)
     nodes = [TrackingNode(n, nbrs[n], motion, associator=JPDA() if association == "jpda" else GNN(),
                           initiator=MofNInitiator(motion, m=3, n=5, gate=GATE, velocity_std=VELOCITY_STD),
-                          deleter=AnyDeleter(StaleDeleter(NET_MAX_AGE), RegionDeleter(whole.contains)),
+                          deleter=AnyDeleter(ObserverDeleter(StaleDeleter(NET_MAX_AGE), NET_OBSERVER),
+                                             StaleDeleter(NET_FALLBACK_AGE), RegionDeleter(whole.contains)),
                           merger=TrackToTrackAssociator(gate=GATE, confirm=NET_CONFIRM, max_distance=NET_MERGE_DISTANCE),
                           window=NET_WINDOW, epoch=i + 1)
              for i, n in enumerate(names)]

@@ -52,9 +52,9 @@ every node that hears deletes it too. The deleter sees the fused track (its esti
 ``last_hit`` the newest time anyone gave it information; as ``seen_here`` the newest time this
 node's own scans hit or started it), so all nodes reach the same verdict, a node far from the
 track's observers later by the links' latency: rules on the fused track whose verdict does not
-come early there (:class:`~dfusion.tracking.deletion.ObserverStaleDeleter`, which leaves
-staleness to the nodes that see the track; ``RegionDeleter``; ``StaleDeleter`` or
-``CovarianceDeleter`` with a margin above the latency).
+come early there: :class:`~dfusion.tracking.deletion.ObserverDeleter` around the rules on the
+age of the last hit (``StaleDeleter``, ``RegionDeleter``) leaves them to the nodes that see the
+track; or a margin above the latency.
 
 **Ends are reliable.** An end is sent to every neighbour in the next bundle, and again to a
 neighbour whenever it sends a message for an ended track (it missed the news); messages for an

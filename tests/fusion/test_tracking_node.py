@@ -202,17 +202,17 @@ def test_a_node_that_does_not_see_two_close_targets_does_not_merge_them():
 
 
 def test_staleness_is_judged_by_the_nodes_that_see_a_track():
-    """a sees a person until t = 1; its bundles reach b 0.3 s late. With ObserverStaleDeleter
-    (0.2 s) b, which does not see the person, never ends the track while a still sees it (a
+    """a sees a person until t = 1; its bundles reach b 0.3 s late. With ObserverDeleter
+    (StaleDeleter(0.2 s)) b, which does not see the person, never ends the track while a still sees it (a
     StaleDeleter of 0.2 s at b would: b's newest information is always 0.3 s old); a ends it
     0.2 s after its last detection and b hears."""
-    from dfusion.tracking import ObserverStaleDeleter, StaleDeleter
+    from dfusion.tracking import ObserverDeleter, StaleDeleter
     m = ConstantVelocity(2, 0.05)
     s = PositionSensor(2, 0.3)
     tid = TrackId("a", 0)
 
     def run(deleter_b):
-        a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=ObserverStaleDeleter(0.2, 1.0), merger=False, epoch=1,
+        a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=ObserverDeleter(StaleDeleter(0.2), 1.0), merger=False, epoch=1,
                          window=20)
         b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=deleter_b, merger=False, epoch=2, window=20)
         flight, ended_at = [], None
@@ -234,12 +234,14 @@ def test_staleness_is_judged_by_the_nodes_that_see_a_track():
                 return a, b, ended_at, t
         return a, b, ended_at, None
 
-    a, b, ended_at, early = run(ObserverStaleDeleter(0.2, 1.0))
+    a, b, ended_at, early = run(ObserverDeleter(StaleDeleter(0.2), 1.0))
     assert early is None and b.stats.deletions_decided == 0
     assert ended_at == pytest.approx(1.3) and a.stats.deletions_decided == 1
     assert tid not in b.tracks and tid in b.ended
     _, b2, _, early = run(StaleDeleter(0.2))
     assert early is not None and early <= 1.0       # the naive rule ends a track that is still seen
+    with pytest.raises(ValidationError, match="needs a Deleter"):
+        ObserverDeleter(0.2)
 
 
 def test_a_track_is_not_deleted_just_before_the_scan_that_detects_it():
