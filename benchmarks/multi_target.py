@@ -24,9 +24,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import gc
-import heapq
 import importlib
-import itertools
 import os
 import subprocess
 import sys
@@ -41,6 +39,7 @@ from dfusion.fusion.tracking_node import TrackingNode
 from dfusion.metrics import gospa, identity_metrics
 from dfusion.models import ConstantVelocity
 from dfusion.sim.plaza import CameraView, PlazaConfig, PlazaWorld, plaza_cameras, simulate_plaza
+from dfusion.sim.tracking_network import TrackingNetworkRun, run_tracking_network
 from dfusion.tracking import (GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, ObserverDeleter,
                               RegionDeleter, StaleDeleter, TrackHistory)
 from dfusion.tracking.track_to_track import TrackToTrackAssociator
@@ -246,23 +245,12 @@ def camera_tree(names: list[str]) -> list[tuple[str, str]]:
     return [(hub, x) for x in names if x != hub]
 
 
-@dataclass
-class NetworkRun:
-    """What a decentralized run measured besides the tracks."""
-
-    node_cpu: np.ndarray        # (frames, nodes) CPU seconds of each node per frame
-    bytes_per_frame: float      # bytes sent by all nodes per frame
-    merges: int                 # merges decided (all nodes)
-    deletions: int              # deletions decided (all nodes)
-
-
 def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda") -> tuple[TrackHistory, np.ndarray,
-                                                                                           NetworkRun]:
+                                                                                           TrackingNetworkRun]:
     """One :class:`~dfusion.fusion.tracking_node.TrackingNode` per camera, each fed only its own
     camera's scans, on :func:`camera_tree`; every frame every node sends each neighbour a bundle,
-    delivered ``delay`` seconds later (in-process: a queue ordered by arrival time; a message
-    that arrives at a frame's time is received before that frame's scans, or, with no delay,
-    right after every node has sent). Deletion by rules on the fused track, the same at every
+    delivered ``delay`` seconds later (:func:`dfusion.sim.tracking_network.run_tracking_network`:
+    in-process, lossless, in order). Deletion by rules on the fused track, the same at every
     node: no information from any node for ``NET_MAX_AGE`` s, judged by the nodes whose own
     scans hit the track within ``NET_OBSERVER`` s (``ObserverDeleter``: a node far from the
     track hears its information late by the tree's latency and leaves the verdict to them), or
@@ -282,44 +270,12 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
                           merger=TrackToTrackAssociator(gate=GATE, confirm=NET_CONFIRM, max_distance=NET_MERGE_DISTANCE),
                           window=NET_WINDOW, epoch=i + 1)
              for i, n in enumerate(names)]
-    index = {n: i for i, n in enumerate(names)}
-    history = TrackHistory()
-    node_cpu = np.zeros((len(world.times), len(nodes)))
-    in_flight: list = []
-    order = itertools.count()
-
-    def deliver(t: float) -> None:
-        while in_flight and in_flight[0][0] <= t + 1e-9:
-            _, _, dst, data = heapq.heappop(in_flight)
-            t0 = time.process_time()
-            nodes[dst].receive(data)
-            node_cpu[k, dst] += time.process_time() - t0
-
-    for k in range(len(world.times)):
-        t = float(world.times[k])
-        scans = world.scans(k)
-        deliver(t)
-        for i, (node, scan) in enumerate(zip(nodes, scans)):
-            t0 = time.process_time()
-            node.process(scan)
-            node_cpu[k, i] += time.process_time() - t0
-        for i, node in enumerate(nodes):
-            t0 = time.process_time()
-            out = node.outgoing(t)
-            node_cpu[k, i] += time.process_time() - t0
-            for dst, data in out:
-                heapq.heappush(in_flight, (t + delay, next(order), index[dst], data))
-        deliver(t)
-        for node in nodes:
-            history.record(node.name, t, node.estimates())
-    frames = max(len(world.times), 1)
-    run = NetworkRun(node_cpu, sum(x.stats.bytes_sent for x in nodes) / frames,
-                     sum(x.stats.merges_decided for x in nodes), sum(x.stats.deletions_decided for x in nodes))
-    return history, node_cpu.sum(axis=1), run
+    run = run_tracking_network(world, nodes, delay)
+    return run.history, run.network_cpu, run
 
 
 def trackers(cameras: int, stonesoup: bool) -> dict:
-    """The trackers of a layout: name -> function(world) -> (TrackHistory, CPU s per frame, NetworkRun or None).
+    """The trackers of a layout: name -> function(world) -> (TrackHistory, CPU s per frame, TrackingNetworkRun or None).
     The networks (dfusion decentralized, Stone Soup's sensor nodes + fusion node) need several cameras."""
     out = {"dfusion JPDA": lambda w: (*run_dfusion(w, "jpda"), None),
            "dfusion GNN": lambda w: (*run_dfusion(w, "gnn"), None)}
@@ -359,7 +315,6 @@ class Row:
     targets: float
     agreement: float | None = None      # network label agreement (several nodes)
     node_cpu_ms: float | None = None    # this node's CPU per frame (decentralized)
-    bytes_per_frame: float | None = None
 
 
 def evaluate(layout: str, seed: int, name: str, run, world: PlazaWorld) -> tuple[list[Row], TrackHistory]:
@@ -379,8 +334,7 @@ def evaluate(layout: str, seed: int, name: str, run, world: PlazaWorld) -> tuple
         mean = parts.mean(axis=0)
         rows.append(Row(layout, seed, name, node, *mean, ids.idf1, ids.mota, ids.switches, 1e3 * float(np.mean(cpu)),
                         float(np.mean([len(t) for t in world.truth])), agreement,
-                        None if net is None else 1e3 * float(np.mean(net.node_cpu[:, i])),
-                        None if net is None else net.bytes_per_frame))
+                        None if net is None else 1e3 * float(np.mean(net.node_cpu[:, i]))))
     return rows, history
 
 
