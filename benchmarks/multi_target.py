@@ -274,14 +274,17 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
     return run.history, run.network_cpu, run
 
 
-def trackers(cameras: int, stonesoup: bool) -> dict:
+def trackers(cameras: int, stonesoup: bool, gnn: bool = True) -> dict:
     """The trackers of a layout: name -> function(world) -> (TrackHistory, CPU s per frame, TrackingNetworkRun or None).
-    The networks (dfusion decentralized, Stone Soup's sensor nodes + fusion node) need several cameras."""
-    out = {"dfusion JPDA": lambda w: (*run_dfusion(w, "jpda"), None),
-           "dfusion GNN": lambda w: (*run_dfusion(w, "gnn"), None)}
+    The networks (dfusion decentralized, Stone Soup's sensor nodes + fusion node) need several cameras;
+    ``gnn=False`` leaves out the centralized GNN trackers."""
+    out = {"dfusion JPDA": lambda w: (*run_dfusion(w, "jpda"), None)}
+    if gnn:
+        out["dfusion GNN"] = lambda w: (*run_dfusion(w, "gnn"), None)
     if stonesoup:
         out["Stone Soup JPDA (EHM)"] = lambda w: (*run_stonesoup(w, "jpda"), None)
-        out["Stone Soup GNN"] = lambda w: (*run_stonesoup(w, "gnn"), None)
+        if gnn:
+            out["Stone Soup GNN"] = lambda w: (*run_stonesoup(w, "gnn"), None)
     if cameras > 1:
         for d in DELAYS:
             out[decentralized_name(d)] = lambda w, d=d: run_decentralized(w, d)
@@ -493,6 +496,8 @@ def main() -> int:
                     help="camera layouts (1, 3 or 6 views; the networks run on layouts of several cameras)")
     ap.add_argument("--no-stonesoup", action="store_true", help="dfusion only")
     ap.add_argument("--no-scaling", action="store_true", help="skip the table of CPU against the number of people")
+    ap.add_argument("--no-gnn", action="store_true",
+                    help="leave out the centralized GNN trackers (the networks are compared with the JPDA ones)")
     ap.add_argument("--strict", action="store_true", help="exit status 1 when a goal is not met")
     ap.add_argument("--figures", type=Path, metavar="DIR",
                     help="save the top-down view, the identity timeline (PNG) and the tracks (MCAP) of every "
@@ -508,7 +513,7 @@ def main() -> int:
     rows = []
     for ncam in args.cameras:
         layout = "1 view" if ncam == 1 else f"{ncam} cameras"
-        runs = trackers(ncam, not args.no_stonesoup)
+        runs = trackers(ncam, not args.no_stonesoup, not args.no_gnn)
         for seed in range(seeds):
             world = simulate_plaza(PlazaConfig(n_people=args.people, duration=duration, seed=seed,
                                                cameras=plaza_cameras(ncam)))
