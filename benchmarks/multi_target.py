@@ -378,10 +378,11 @@ def summary(rows: list[Row], strict: bool) -> bool:
             if not rs:
                 continue
             ratios = [r.gospa / ref[r.seed].gospa for r in rs if r.seed in ref]
-            cpu_ratio = np.median([r.cpu_ms / ref[r.seed].cpu_ms for r in rs if r.seed in ref]) if ref else float("nan")
+            cpu_ratio = (f"{np.median([r.cpu_ms / ref[r.seed].cpu_ms for r in rs if r.seed in ref]):.2f}" if ref
+                         else "- (no Stone Soup run)")
             print(f"| {layout} | {name} | {np.mean([r.gospa for r in rs]):.3f} | "
-                  f"{' / '.join(f'{x:.2f}' for x in ratios)} | {min(r.idf1 for r in rs):.3f} | "
-                  f"{sum(r.switches for r in rs)} | {np.mean([r.cpu_ms for r in rs]):.2f} | {cpu_ratio:.2f} |")
+                  f"{' / '.join(f'{x:.2f}' for x in ratios) or '-'} | {min(r.idf1 for r in rs):.3f} | "
+                  f"{sum(r.switches for r in rs)} | {np.mean([r.cpu_ms for r in rs]):.2f} | {cpu_ratio} |")
             if name == "dfusion JPDA" and ref:
                 good_gospa = max(ratios) <= 0.95
                 good_switches = all(r.switches <= ref[r.seed].switches for r in rs)
