@@ -251,12 +251,13 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
     camera's scans, on :func:`camera_tree`; every frame every node sends each neighbour a bundle,
     delivered ``delay`` seconds later (:func:`dfusion.sim.tracking_network.run_tracking_network`:
     in-process, lossless, in order). Deletion by rules on the fused track, the same at every
-    node: no information from any node for ``NET_MAX_AGE`` s, judged by the nodes whose own
+    node: no information from any node for ``NET_MAX_AGE`` s, or out of the plaza with no
+    information for 0.15 s (``StaleDeleter``, ``RegionDeleter``), judged by the nodes whose own
     scans hit the track within ``NET_OBSERVER`` s (``ObserverDeleter``: a node far from the
-    track hears its information late by the tree's latency and leaves the verdict to them), or
-    for ``NET_FALLBACK_AGE`` s by any node; or out of the plaza with no information for 0.15 s
-    (``RegionDeleter``, judged by every node: at the border, where people leave). The
-    initiator, the associator and the gate are the centralized tracker's."""
+    track hears its information late by the tree's latency, and would end a track whose
+    estimate strays over the border while its person walks along it); any node ends a track
+    with no information for ``NET_FALLBACK_AGE`` s. The initiator, the associator and the gate
+    are the centralized tracker's."""
     c = world.config
     motion = ConstantVelocity(2, Q)
     names = [v.name for v in c.cameras]
@@ -265,8 +266,9 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
     whole = CameraView("plaza", 0.0, c.width, 0.0, c.height)
     nodes = [TrackingNode(n, nbrs[n], motion, associator=JPDA() if association == "jpda" else GNN(),
                           initiator=MofNInitiator(motion, m=3, n=5, gate=GATE, velocity_std=VELOCITY_STD),
-                          deleter=AnyDeleter(ObserverDeleter(StaleDeleter(NET_MAX_AGE), NET_OBSERVER),
-                                             StaleDeleter(NET_FALLBACK_AGE), RegionDeleter(whole.contains)),
+                          deleter=AnyDeleter(ObserverDeleter(AnyDeleter(StaleDeleter(NET_MAX_AGE),
+                                                                        RegionDeleter(whole.contains)), NET_OBSERVER),
+                                             StaleDeleter(NET_FALLBACK_AGE)),
                           merger=TrackToTrackAssociator(gate=GATE, confirm=NET_CONFIRM, max_distance=NET_MERGE_DISTANCE),
                           window=NET_WINDOW, epoch=i + 1)
              for i, n in enumerate(names)]

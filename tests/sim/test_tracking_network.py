@@ -52,8 +52,8 @@ def network(world):
     nbrs = {"cam1": ["cam2"], "cam2": ["cam1", "cam3"], "cam3": ["cam2"]}
     plaza = CameraView("plaza", 0.0, world.config.width, 0.0, world.config.height)
     return [TrackingNode(n, nbrs[n], motion, associator=GNN(), initiator=MofNInitiator(motion, velocity_std=1.5),
-                         deleter=AnyDeleter(ObserverDeleter(StaleDeleter(0.45)), StaleDeleter(1.5),
-                                            RegionDeleter(plaza.contains)),
+                         deleter=AnyDeleter(ObserverDeleter(AnyDeleter(StaleDeleter(0.45), RegionDeleter(plaza.contains))),
+                                            StaleDeleter(1.5)),
                          merger=TrackToTrackAssociator(confirm=2), window=12, epoch=i + 1)
             for i, n in enumerate(names)]
 
