@@ -40,7 +40,7 @@ from dfusion.metrics import gospa, identity_metrics
 from dfusion.models import ConstantVelocity
 from dfusion.sim.plaza import CameraView, PlazaConfig, PlazaWorld, plaza_cameras, simulate_plaza
 from dfusion.sim.tracking_network import TrackingNetworkRun, run_tracking_network
-from dfusion.tracking import (GNN, JPDA, AnyDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, ObserverDeleter,
+from dfusion.tracking import (GNN, JPDA, AnyDeleter, CovarianceDeleter, MissDeleter, MofNInitiator, MultiTargetTracker, ObserverDeleter,
                               RegionDeleter, StaleDeleter, TrackHistory)
 from dfusion.tracking.track_to_track import TrackToTrackAssociator
 from dfusion.viz import plot_identity_timeline, plot_tracks_topdown, record_tracks_mcap
@@ -57,6 +57,8 @@ DELAYS = (0.0, 0.2)     # link delays (s) of the decentralized runs and of Stone
 NET_MAX_AGE = 0.45      # s since the fused track's newest information, judged by the nodes that saw it lately
 NET_OBSERVER = 1.0      # s: a node whose own scans hit a track within this judges its staleness
 NET_FALLBACK_AGE = 1.5  # s: every node ends a track whose newest information is this old (no observer left)
+NET_REGION_GRACE = 0.6  # s: every node ends a track out of the plaza with no information for this (> the latency)
+NET_MAX_TRACE = 1.0     # m^2: every node ends a track whose fused position covariance has a larger trace
 NET_WINDOW = 12         # delayed states per track (1.2 s at 10 Hz: a message of two hops at 0.2 s fits)
 NET_CONFIRM = 2         # consecutive close checks before two tracks are declared one person
 NET_MERGE_DISTANCE = 1.5
@@ -257,7 +259,11 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
     track hears its information late by the tree's latency, and would end a track whose
     estimate strays over the border while its person walks along it); any node ends a track
     with no information for ``NET_FALLBACK_AGE`` s. The initiator, the associator and the gate
-    are the centralized tracker's."""
+    are the centralized tracker's. Every node also ends a track out of the plaza with no
+    information for ``NET_REGION_GRACE`` s (above the latency) and a track whose fused position
+    covariance has a trace above ``NET_MAX_TRACE``: a track's newest information counts the
+    PDA factors of scans that probably missed it, so a track lost outside every view, fed
+    by clutter in its growing gate, never looks stale; its covariance shows it."""
     c = world.config
     motion = ConstantVelocity(2, Q)
     names = [v.name for v in c.cameras]
@@ -268,7 +274,9 @@ def run_decentralized(world: PlazaWorld, delay: float, association: str = "jpda"
                           initiator=MofNInitiator(motion, m=3, n=5, gate=GATE, velocity_std=VELOCITY_STD),
                           deleter=AnyDeleter(ObserverDeleter(AnyDeleter(StaleDeleter(NET_MAX_AGE),
                                                                         RegionDeleter(whole.contains)), NET_OBSERVER),
-                                             StaleDeleter(NET_FALLBACK_AGE)),
+                                             StaleDeleter(NET_FALLBACK_AGE),
+                                             RegionDeleter(whole.contains, grace=NET_REGION_GRACE),
+                                             CovarianceDeleter(NET_MAX_TRACE)),
                           merger=TrackToTrackAssociator(gate=GATE, confirm=NET_CONFIRM, max_distance=NET_MERGE_DISTANCE),
                           window=NET_WINDOW, epoch=i + 1)
              for i, n in enumerate(names)]
@@ -387,11 +395,11 @@ def summary(rows: list[Row], strict: bool) -> bool:
                   f"{sum(r.switches for r in rs)} | {np.mean([r.cpu_ms for r in rs]):.2f} | {cpu_ratio} |")
             if name == "dfusion JPDA" and ref:
                 good_gospa = max(ratios) <= 0.95
-                good_switches = all(r.switches <= ref[r.seed].switches for r in rs)
+                good_switches = all(r.switches <= ref[r.seed].switches for r in rs if r.seed in ref)
                 ok &= good_gospa and good_switches
                 goals.append(f"goal ({layout}): dfusion JPDA GOSPA <= 0.95 x Stone Soup JPDA on every seed: "
                       f"{'PASS' if good_gospa else 'FAIL'}; identity switches <= Stone Soup JPDA's on every seed "
-                      f"({' / '.join(f'{r.switches} vs {ref[r.seed].switches}' for r in rs)}): "
+                      f"({' / '.join(f'{r.switches} vs {ref[r.seed].switches}' for r in rs if r.seed in ref)}): "
                       f"{'PASS' if good_switches else 'FAIL'}")
     print("\n".join(["", *goals]))
     return ok

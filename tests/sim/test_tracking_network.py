@@ -14,7 +14,7 @@ from dfusion.fusion.tracking_node import TrackingNode
 from dfusion.models import ConstantVelocity
 from dfusion.sim.plaza import CameraView, PlazaConfig, plaza_cameras, simulate_plaza
 from dfusion.sim.tracking_network import run_tracking_network
-from dfusion.tracking import GNN, AnyDeleter, MofNInitiator, ObserverDeleter, RegionDeleter, StaleDeleter
+from dfusion.tracking import GNN, AnyDeleter, CovarianceDeleter, MofNInitiator, ObserverDeleter, RegionDeleter, StaleDeleter
 from dfusion.tracking.track_to_track import TrackToTrackAssociator
 
 C = 2.0
@@ -53,7 +53,8 @@ def network(world):
     plaza = CameraView("plaza", 0.0, world.config.width, 0.0, world.config.height)
     return [TrackingNode(n, nbrs[n], motion, associator=GNN(), initiator=MofNInitiator(motion, velocity_std=1.5),
                          deleter=AnyDeleter(ObserverDeleter(AnyDeleter(StaleDeleter(0.45), RegionDeleter(plaza.contains))),
-                                            StaleDeleter(1.5)),
+                                            StaleDeleter(1.5), RegionDeleter(plaza.contains, grace=0.6),
+                                            CovarianceDeleter(1.0)),
                          merger=TrackToTrackAssociator(confirm=2), window=12, epoch=i + 1)
             for i, n in enumerate(names)]
 
