@@ -43,7 +43,11 @@ restarted node go on past the serials it issued before.
 
 **Merges** (track-to-track association, :class:`~dfusion.tracking.track_to_track.TrackToTrackAssociator`).
 Two tracks found to be one target merge into the one born first (then: the smaller identity),
-the rule every node applies the same way. A node that merges ``g`` into ``k`` (deciding itself,
+the rule every node applies the same way. A node decides a merge only of tracks its own scans hit
+within the associator's ``distinct_for`` seconds: the evidence that two tracks are two targets
+(both took a detection of one scan) is a node's own, so a node that does not see the pair (two
+people passing each other in another camera's view) leaves the decision to the nodes that do,
+and hears of it. A node that merges ``g`` into ``k`` (deciding itself,
 or told by a neighbour) moves **its own** information of ``g`` into ``k`` (as own information at
 the same state times, shared from then on over ``k``'s channels), drops what it received for
 ``g`` and records the end; every node does the same when it hears. Afterwards each
@@ -60,7 +64,12 @@ the nodes that see (``tests/fusion/test_tracking_node.py``).
 
 **Deletions.** A track a node's deleter ends is deleted at that node, recorded, and announced;
 every node that hears deletes it too. The deleter sees the fused track (its estimate, and as
-``last_hit`` the newest time anyone gave it information), so all nodes reach the same verdict.
+``last_hit`` the newest time anyone gave it information; as ``seen_here`` the newest time this
+node's own scans hit or started it), so all nodes reach the same verdict, a node far from the
+track's observers later by the links' latency: rules on the fused track whose verdict does not
+come early there: :class:`~dfusion.tracking.deletion.ObserverDeleter` around the rules on the
+age of the last hit (``StaleDeleter``, ``RegionDeleter``) leaves them to the nodes that see the
+track; or a margin above the latency.
 
 **Ends are reliable.** An end is sent to every neighbour in the next bundle, and again to a
 neighbour whenever it sends a message for an ended track (it missed the news); messages for an
@@ -164,6 +173,7 @@ class _TrackView:
     confirmed: bool = True
     seen: float | None = None          # newest time this node's own data bore on the track (in view, or observed)
     given_prior: bool = False          # added by add_track: its prior is informative from the start
+    seen_here: float | None = None     # time of this node's newest own scan that hit the track
 
     def estimate(self) -> tuple[Array, Array]:
         return self.node.estimate()
@@ -328,13 +338,21 @@ class TrackingNode:
     # ------------------------------------------------------------------------------ local data
     def predict(self, t: float) -> None:
         """Bring every track to ``t``; then the deleter and the track-to-track association run."""
+        if self._advance(t):
+            self._end_and_merge()
+
+    def _advance(self, t: float) -> bool:
+        """Bring every track to ``t`` (no deletion, no merge); whether the node's time moved."""
         t = float(t)
         if self.time is not None and t <= self.time:
-            return
+            return False
         self.time = t
         for node in self.tracks.values():
             node.predict(t)
         self._expire_ends(t)
+        return True
+
+    def _end_and_merge(self) -> None:
         self._delete_ended()
         self._merge_duplicates()
 
@@ -352,18 +370,22 @@ class TrackingNode:
         node.update(t, z, sensor)
         view = self._views[track]
         view.seen = t if view.seen is None else max(view.seen, t)
+        view.seen_here = t if view.seen_here is None else max(view.seen_here, t)
 
     def process(self, scan: Scan, *, exclude: Iterable[TrackId] = ()) -> list[TrackId]:
         """Associate one scan of this node's sensors with the fused tracks, fuse it, start
         tracks from what no track explains; returns the tracks started. Scans in time order.
         ``exclude``: tracks the scan cannot have seen (a robot's camera never sees the robot
-        itself): they take no part in the association."""
+        itself): they take no part in the association.
+        A scan newer than the node's time brings the tracks to it, and the deleter and the
+        merger run after the scan (:meth:`predict` runs them at once)."""
         t = float(scan.time)
         if self._scan_time is not None and t < self._scan_time - 1e-9:
             raise TimeError(f"{self.name}: scan at t={t} is older than the previous scan ({self._scan_time})")
         self._scan_time = t
-        if self.time is None or t > self.time:
-            self.predict(t)
+        # the tracks come to t, the scan is associated, and only then the deleter and the merger run
+        # (as a centralized tracker's do): a track is not ended just before the detection that shows it is there
+        advanced = self._advance(t)
         ids, views = [], []
         skip = set(exclude)
         for tid, node in sorted(self.tracks.items()):
@@ -387,6 +409,7 @@ class TrackingNode:
                 self._views[tid].seen = t
             if hit:
                 hit_ids.append(tid)
+                self._views[tid].seen_here = t
         if self.merger is not None and len(hit_ids) > 1:
             self.merger.distinct(hit_ids, t)
         if ids:
@@ -394,6 +417,8 @@ class TrackingNode:
         else:
             claimed = np.zeros(len(scan.detections), dtype=bool)
         started = [self._birth(track) for track in self.initiator.initiate(scan, scan.detections[~claimed], self.issuer)]
+        if advanced:
+            self._end_and_merge()
         return [tid for tid in started if tid is not None]
 
     def _birth(self, track: Track) -> TrackId | None:
@@ -408,6 +433,7 @@ class TrackingNode:
         if w.min() < 0:   # a direction the initiator knows less about than the broad prior: keep the prior there
             L = symmetrize((V * np.maximum(w, 0.0)) @ V.T)
         node.add_local_information(track.time, L, track.filter.eta - Omega0 @ mean0)
+        self._views[track.id].seen_here = track.time
         self.stats.births += 1
         return track.id
 
@@ -483,6 +509,8 @@ class TrackingNode:
             if t > target.latest_time:
                 target.predict(t)
             target.add_local_information(t, L, y)
+        seen = [v for v in (self._views[gone].seen_here, self._views[keep].seen_here) if v is not None]
+        self._views[keep].seen_here = max(seen) if seen else None   # this node saw the target under either
         self._drop(gone)
         self.stats.merges += 1
         self.stats.merges_decided += int(decided)

@@ -7,8 +7,8 @@ from dfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:  # the names, for type checkers and IDEs; imported on first use at run time
     from dfusion.tracking.association import GNN, JPDA, Association, DataAssociator, ehm_marginals, gated_clusters
-    from dfusion.tracking.deletion import (AnyDeleter, CovarianceDeleter, Deleter, MissDeleter, NoDeleter, RegionDeleter,
-                                          StaleDeleter)
+    from dfusion.tracking.deletion import (AnyDeleter, CovarianceDeleter, Deleter, MissDeleter, NoDeleter,
+                                           ObserverDeleter, RegionDeleter, StaleDeleter)
     from dfusion.tracking.gating import GaussianHypothesiser, Hypotheses, Hypothesiser
     from dfusion.tracking.history import TrackHistory, TruthPaths
     from dfusion.tracking.initiation import Initiator, MofNInitiator, NoInitiator, two_point_state
@@ -28,6 +28,7 @@ _WHERE = {
     "MissDeleter": ("dfusion.tracking.deletion", "MissDeleter"),
     "CovarianceDeleter": ("dfusion.tracking.deletion", "CovarianceDeleter"),
     "StaleDeleter": ("dfusion.tracking.deletion", "StaleDeleter"),
+    "ObserverDeleter": ("dfusion.tracking.deletion", "ObserverDeleter"),
     "RegionDeleter": ("dfusion.tracking.deletion", "RegionDeleter"),
     "AnyDeleter": ("dfusion.tracking.deletion", "AnyDeleter"),
     "NoDeleter": ("dfusion.tracking.deletion", "NoDeleter"),

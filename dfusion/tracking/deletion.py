@@ -10,6 +10,17 @@ r"""Deleters: when a confirmed track ends.
 * :class:`StaleDeleter`: when the track's last hit is more than ``max_age`` seconds older
   than its state (it left every view, or every sensor stopped seeing it; Stone Soup's
   ``UpdateTimeDeleter`` rule).
+* :class:`ObserverDeleter`: another deleter's rule for a network, where a node's tracks
+  carry every node's information (:class:`~dfusion.fusion.tracking_node.TrackingNode`; a
+  track's ``last_hit`` is the newest information from any node), applied only by a node whose
+  own scans hit (or started) the track within ``within`` seconds (``track.seen_here``). The
+  other nodes hear the same information later by the links' latency, so a rule on the age of
+  the last hit (:class:`StaleDeleter`, the grace of :class:`RegionDeleter`) would give its
+  verdict early there and, announced, end a track its observers still see; they leave the
+  verdict to the observers and hear of the deletion. The node that saw a track last is an
+  observer when its information stops (for rules whose verdict comes within ``within`` of the
+  last hit), so every track is still ended by the rule, whatever the latency. In a
+  centralized tracker every hit is the tracker's own: the rule is the inner deleter's.
 * :class:`RegionDeleter`: when the track's estimated position has left the region where
   targets can be (the surveillance region, e.g. the union of a node's views) and its last
   scan in view was a miss: a target that walks out of a plaza is gone after one missed
@@ -30,7 +41,8 @@ from dfusion.errors import ValidationError
 from dfusion.linalg import Array
 from dfusion.tracking.track import Track
 
-__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "RegionDeleter", "AnyDeleter", "NoDeleter"]
+__all__ = ["Deleter", "MissDeleter", "CovarianceDeleter", "StaleDeleter", "ObserverDeleter", "RegionDeleter",
+           "AnyDeleter", "NoDeleter"]
 
 
 class Deleter(ABC):
@@ -78,6 +90,26 @@ class StaleDeleter(Deleter):
     def should_delete(self, track: Track) -> bool:
         last = track.born if track.last_hit is None else track.last_hit
         return track.time - last > self.max_age
+
+
+class ObserverDeleter(Deleter):
+    """Apply ``deleter`` only when this node's own scans hit (or started) the track within
+    ``within`` seconds (``time - seen_here <= within``; module docstring). ``within`` must
+    exceed the age of the last hit at which ``deleter`` ends a track (e.g. a ``StaleDeleter``'s
+    ``max_age``), or the node that saw the track last no longer judges it then."""
+
+    def __init__(self, deleter: Deleter, within: float = 1.0) -> None:
+        if not isinstance(deleter, Deleter):
+            raise ValidationError(f"ObserverDeleter needs a Deleter, got {deleter!r}")
+        if not (math.isfinite(within) and within > 0):
+            raise ValidationError(f"within must be positive and finite, got {within!r}")
+        self.deleter, self.within = deleter, float(within)
+
+    def should_delete(self, track: Track) -> bool:
+        seen = getattr(track, "seen_here", None)
+        if seen is None or track.time - seen > self.within + 1e-9:
+            return False
+        return self.deleter.should_delete(track)
 
 
 class RegionDeleter(Deleter):

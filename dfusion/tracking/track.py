@@ -84,6 +84,12 @@ class Track:
     recent: list[int] = field(default_factory=list)
     last_hit: float | None = None
 
+    @property
+    def seen_here(self) -> float | None:
+        """Time of the newest hit by this tracker's own scans: every hit of a tracker's track is its own
+        (a fusion node's tracks also hold its neighbours' information: ``TrackingNode``)."""
+        return self.last_hit
+
     def predict(self, t: float) -> None:
         """Bring the state forward to ``t`` (no change when ``t`` equals the track's time)."""
         dt = t - self.time

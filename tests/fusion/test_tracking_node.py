@@ -350,3 +350,89 @@ def test_tracks_added_with_a_given_prior_are_exact_against_filterpy_from_that_pr
         c.receive(d)
     _, P_c = c.tracks[TrackId("team", 2)].estimate()
     assert P_c[2, 2] > 50.0 and c.stats.tracks_heard == 1
+
+
+def test_a_node_that_does_not_see_two_close_targets_does_not_merge_them():
+    """Two people walk side by side 0.25 m apart in node a's view only; a's scans detect both in
+    every scan (two targets), b has no sensor and holds a's two tracks as received. b must not
+    declare them one target (its merger has no evidence either way), nor may a."""
+    from dfusion.tracking import GNN, Scan
+    from dfusion.tracking.track_to_track import TrackToTrackAssociator
+    m = ConstantVelocity(2, 0.05)
+    sensor = PositionSensor(2, 0.3)
+    a = TrackingNode("a", ["b"], m, associator=GNN(), deleter=False, merger=TrackToTrackAssociator(confirm=3),
+                     epoch=1, window=20)
+    b = TrackingNode("b", ["a"], m, associator=GNN(), deleter=False, merger=TrackToTrackAssociator(confirm=3),
+                     epoch=2, window=20)
+    rng = np.random.default_rng(4)
+    for k in range(1, 41):
+        t = round(0.1 * k, 9)
+        people = np.array([[1.0 * t, 0.0], [1.0 * t, 0.25]])
+        a.process(Scan(t, people + 0.02 * rng.standard_normal((2, 2)), sensor, 1e-3, 0.9))
+        b.predict(t)
+        for _, d in a.outgoing(t):
+            b.receive(d)
+        for _, d in b.outgoing(t):
+            a.receive(d)
+    assert a.stats.births == 2 and len(a.tracks) == 2
+    assert len(b.tracks) == 2, [str(x) for x in b.tracks]
+    assert a.stats.merges == 0 and b.stats.merges == 0
+
+
+def test_staleness_is_judged_by_the_nodes_that_see_a_track():
+    """a sees a person until t = 1; its bundles reach b 0.3 s late. With ObserverDeleter
+    (StaleDeleter(0.2 s)) b, which does not see the person, never ends the track while a still sees it (a
+    StaleDeleter of 0.2 s at b would: b's newest information is always 0.3 s old); a ends it
+    0.2 s after its last detection and b hears."""
+    from dfusion.tracking import ObserverDeleter, StaleDeleter
+    m = ConstantVelocity(2, 0.05)
+    s = PositionSensor(2, 0.3)
+    tid = TrackId("a", 0)
+
+    def run(deleter_b):
+        a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=ObserverDeleter(StaleDeleter(0.2), 1.0), merger=False, epoch=1,
+                         window=20)
+        b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=deleter_b, merger=False, epoch=2, window=20)
+        flight, ended_at = [], None
+        for k in range(1, 26):
+            t = round(0.1 * k, 9)
+            a.predict(t)
+            b.predict(t)
+            for at, d in [f for f in flight if f[0] <= t + 1e-9]:
+                b.receive(d)
+            flight = [f for f in flight if f[0] > t + 1e-9]
+            if t <= 1.0:
+                a.observe(tid, t, [1.0 * t, 2.0], s, born=0.1)
+            flight += [(t + 0.3, d) for _, d in a.outgoing(t)]
+            for _, d in b.outgoing(t):
+                a.receive(d)
+            if tid in a.ended and ended_at is None:
+                ended_at = t
+            if t <= 1.0 and b.stats.deletions_decided:
+                return a, b, ended_at, t
+        return a, b, ended_at, None
+
+    a, b, ended_at, early = run(ObserverDeleter(StaleDeleter(0.2), 1.0))
+    assert early is None and b.stats.deletions_decided == 0
+    assert ended_at == pytest.approx(1.3) and a.stats.deletions_decided == 1
+    assert tid not in b.tracks and tid in b.ended
+    _, b2, _, early = run(StaleDeleter(0.2))
+    assert early is not None and early <= 1.0       # the naive rule ends a track that is still seen
+    with pytest.raises(ValidationError, match="needs a Deleter"):
+        ObserverDeleter(0.2)
+
+
+def test_a_track_is_not_deleted_just_before_the_scan_that_detects_it():
+    """Detections at 0.1 .. 0.5 s, four misses, a detection at 1.0 s: with StaleDeleter(0.45) the
+    track's newest information is 0.5 s old at 1.0 s before the scan, 0 after it. As a centralized
+    tracker's, the deleter runs after the scan: the track lives on, under its identity."""
+    from dfusion.tracking import GNN, MofNInitiator, Scan, StaleDeleter
+    m = ConstantVelocity(2, 0.05)
+    sensor = PositionSensor(2, 0.1)
+    a = TrackingNode("a", [], m, associator=GNN(), initiator=MofNInitiator(m, m=3, n=5), deleter=StaleDeleter(0.45),
+                     merger=False, epoch=1, window=20)
+    for k in list(range(1, 6)) + list(range(10, 13)):
+        t = round(0.1 * k, 9)
+        a.process(Scan(t, np.array([[1.0 * t, 0.0]]), sensor, 1e-3, 0.9))
+    assert a.stats.births == 1 and a.stats.deletions == 0
+    assert [str(tid) for tid, _, _ in a.estimates()] == ["a#0"]
