@@ -376,6 +376,30 @@ class TrajectoryInformation:
         means.reverse()
         return means
 
+    def covariance_bounds(self, idx: list[int]) -> tuple[Array, Array]:
+        r"""Bounds ``(lower, upper)`` (stacks, in the order of ``idx``) on the smoothed covariances of
+        the states ``idx``, from the cached forward terms and gains (valid after :meth:`smoothed_means`
+        from ``min(idx)`` or earlier, nothing changed since): in the Loewner order
+        ``P_k - G_k P^-_{k+1} G_k^T  <=  P^s_k  <=  P_k``. The RTS recursion (module docstring)
+        gives ``P^s_k = (P_k - G_k P^-_{k+1} G_k^T) + G_k P^s_{k+1} G_k^T``: the first term is the
+        covariance of ``x_k`` given ``x_{k+1}`` and the information up to ``x_k``, the second is
+        positive semi-definite, hence the lower bound; and ``P^s_k = P_k - G_k (P^-_{k+1} -
+        P^s_{k+1}) G_k^T`` with ``P^s_{k+1} <= P^-_{k+1}`` (information only shrinks a
+        covariance), hence the upper one (Rauch, Tung & Striebel 1965; Saerkkae, *Bayesian
+        Filtering and Smoothing*, 2013, Theorem 8.2). Both are exact (``P^s``) at the newest
+        state. O(len(idx)): for a test that needs a smoothed covariance only against thresholds
+        (:mod:`dfusion.fusion.guard`), without the O(m) covariance pass of :meth:`smoothed`."""
+        cache = self._cache
+        m = len(cache)
+        upper = np.array([cache[k].cov for k in idx])
+        older = [i for i, k in enumerate(idx) if k < m - 1]
+        lower = upper.copy()
+        if older:
+            G = np.array([cache[idx[i] + 1]._gain for i in older])
+            Pp = np.array([cache[idx[i] + 1].pred_cov for i in older])
+            lower[older] = upper[older] - G @ Pp @ G.transpose(0, 2, 1)
+        return lower, upper
+
     def blocks(self) -> tuple[list[Array], list[Array], list[Array]]:
         """Assembled ``(D, U, eta)``: diagonal and super-diagonal blocks and vector."""
         m = len(self.L)

@@ -93,6 +93,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dfusion.errors import ValidationError
+from dfusion.estimation.delayed_state import CovarianceBounds
 from dfusion.linalg import Array, chi2_isf
 
 log = logging.getLogger(__name__)
@@ -109,6 +110,9 @@ NEGLIGIBLE = 1e-9
 #: The part of ``y`` outside the range of ``Lambda`` may shift the receiver's mean by this many
 #: standard deviations (squared) at most: more is information no measurement can produce.
 RANGE_TOL = 1e-6
+#: Bounds on the covariances decide a threshold test only when they clear it by this fraction of
+#: the quadratic form at the upper bound (:func:`_thresholds_from_bounds`).
+BOUND_RTOL = 1e-8
 
 
 #: ``chi2_isf`` values by ``(alpha, dof)``, shared by the guards of a process (the nodes of a host).
@@ -208,12 +212,17 @@ def split_blocks(entries: list[tuple[float, Array, Array]],
     return add, other
 
 
-def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
-                          mu1: list[Array], eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
+def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array],
+                          P0: list[Array] | CovarianceBounds, mu1: list[Array],
+                          eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
     """``(D^2, dof)`` of the blocks ``entries`` as joint pseudo-measurements (module docstring).
 
     ``mu0, P0``: the belief's smoothed means and covariances at the blocks' times before
-    they are added; ``mu1``: the means after. Returns ``(inf, dof)`` if some ``y`` is not
+    they are added; ``mu1``: the means after. ``P0`` enters only two threshold tests (a
+    direction negligible, ``y`` out of range), so it may be given as
+    :class:`~dfusion.estimation.delayed_state.CovarianceBounds`: the tests are then decided from
+    the bounds, and the exact covariances computed only when the bounds do not decide them
+    (:func:`_thresholds_from_bounds`; the same verdicts). Returns ``(inf, dof)`` if some ``y`` is not
     in the range of its ``Lambda``. All blocks at once: one stacked eigendecomposition
     ``Lambda_t = V_t diag(l_t) V_t^T`` and masks for the directions kept (positive, and not
     negligible), which gives per block exactly the terms of a loop over the blocks. One block
@@ -222,7 +231,7 @@ def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[A
     """
     if not entries:
         return 0.0, 0
-    if len(entries) == 1:
+    if len(entries) == 1 and not isinstance(P0, CovarianceBounds):
         return _statistic_one(entries[0], mu0[0], P0[0], mu1[0], eigen)
     return _statistic_stacked(entries, mu0, P0, mu1)
 
@@ -254,21 +263,54 @@ def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1
     return stat, dof
 
 
-def _statistic_stacked(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
-                       mu1: list[Array]) -> tuple[float, int]:
+def _thresholds_from_bounds(w: Array, V: Array, out: Array, pos: Array,
+                            bounds: CovarianceBounds) -> tuple[Array, Array] | None:
+    """``(bad, use)`` of :func:`_statistic_stacked` decided from bounds ``lower <= P0 <= upper``
+    on the covariances before, or None when the bounds do not decide every comparison.
+
+    Both tests compare a quadratic form of ``P0`` with a threshold: ``out^T P0 out > RANGE_TOL``
+    and ``l_i v_i^T P0 v_i > NEGLIGIBLE`` (``l_i > 0``). A quadratic form ``x^T P x`` is
+    monotone in the Loewner order, so ``q(lower) <= q(P0) <= q(upper)``: the bounds decide a
+    comparison when both ends are on the same side. A margin of ``BOUND_RTOL |x|^2 max_i
+    upper_ii`` (the covariances' size; the rounding of the smoother and of the bounds is about
+    ``1e-16`` of it) keeps the decision the one that ``P0`` as the smoother computes it gives;
+    a comparison inside the margin is left to the exact ``P0`` (:meth:`CovarianceBounds.exact`)."""
+    lo, hi = bounds.lower, bounds.upper
+    r_lo = (out.transpose(0, 2, 1) @ lo @ out).reshape(-1)
+    r_hi = (out.transpose(0, 2, 1) @ hi @ out).reshape(-1)
+    s_lo = w * np.sum(V * (lo @ V), axis=1)
+    s_hi = w * np.sum(V * (hi @ V), axis=1)
+    size = BOUND_RTOL * np.max(np.abs(np.diagonal(hi, axis1=1, axis2=2)), axis=1)   # of the covariances
+    r_tol = size * np.sum(out * out, axis=(1, 2))
+    s_tol = size[:, None] * np.abs(w)
+    bad = r_lo - r_tol > RANGE_TOL
+    if not np.all(bad | (r_hi + r_tol <= RANGE_TOL)):
+        return None
+    use = pos & (s_lo - s_tol > NEGLIGIBLE)
+    if not np.all(use | ~pos | (s_hi + s_tol <= NEGLIGIBLE)):
+        return None
+    return bad, use
+
+
+def _statistic_stacked(entries: list[tuple[float, Array, Array]], mu0: list[Array],
+                       P0: list[Array] | CovarianceBounds, mu1: list[Array]) -> tuple[float, int]:
     """:func:`information_statistic` of any number of blocks, on stacked arrays."""
     L = np.array([e[1] for e in entries])
     y = np.array([e[2] for e in entries])[:, :, None]
-    C0 = np.array(P0)
     w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
     Vt = V.transpose(0, 2, 1)
     scale = np.max(np.abs(w), axis=1, keepdims=True)
     pos = (w > EIG_RTOL * scale) & (scale > 0)
     Vy = (Vt @ y)[:, :, 0]                                       # V^T y
     out = y - V @ np.where(pos, Vy, 0.0)[:, :, None]             # the part of y outside the range
-    bad = (out.transpose(0, 2, 1) @ C0 @ out).reshape(-1) > RANGE_TOL
-    signal = w * np.sum(V * (C0 @ V), axis=1)                    # l_i v_i^T P0 v_i
-    use = pos & (signal > NEGLIGIBLE)
+    decided = _thresholds_from_bounds(w, V, out, pos, P0) if isinstance(P0, CovarianceBounds) else None
+    if decided is not None:
+        bad, use = decided
+    else:
+        C0 = np.array(P0.exact() if isinstance(P0, CovarianceBounds) else P0)
+        bad = (out.transpose(0, 2, 1) @ C0 @ out).reshape(-1) > RANGE_TOL
+        signal = w * np.sum(V * (C0 @ V), axis=1)                # l_i v_i^T P0 v_i
+        use = pos & (signal > NEGLIGIBLE)
     if bad.any():
         i = int(np.argmax(bad))
         return math.inf, int(use[:i].sum()) + int(pos[i].sum())

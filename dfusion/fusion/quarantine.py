@@ -48,8 +48,8 @@ class GuardedLinks:
             f.add_information_batch(other, validate=False)
         if not add:
             return 0.0, 0, 0
-        mu0, P0, mu1 = f.add_information_moments(add)
-        stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
+        mu0, P0, mu1 = f.add_information_moments(add, exact_covariances=False)   # (bounds: the statistic
+        stat, dof = information_statistic(add, mu0, P0, mu1, eigen)             # asks for P0 if they do not decide)
         return stat, dof, len(add)
 
     def _deferred_test(self, block: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array) -> tuple[float, int, int]:
@@ -107,7 +107,7 @@ class GuardedLinks:
         f = self.filter
         try:
             with f.trial():
-                mu0, P0, mu1 = f.add_information_moments(add)
+                mu0, P0, mu1 = f.add_information_moments(add, exact_covariances=False)
                 stat, dof = information_statistic(add, mu0, P0, mu1)
         except DfusionError:
             stat, dof = math.inf, 1
