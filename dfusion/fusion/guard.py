@@ -99,7 +99,7 @@ from dfusion.linalg import Array, chi2_isf
 log = logging.getLogger(__name__)
 
 __all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "block_eigen", "information_statistic", "split_blocks",
-           "HEALTH_STATES"]
+           "split_blocks_eigen", "HEALTH_STATES"]
 
 HEALTH_STATES = ("ok", "degraded", "lost")
 
@@ -201,20 +201,43 @@ def split_blocks(entries: list[tuple[float, Array, Array]],
         if sc == 0.0:
             return ([e], []) if any(e[2].tolist()) else ([], [])
     w = np.linalg.eigvalsh(np.array([e[1] for e in entries]))
+    a, o = _split_rows(entries, w)
+    return [entries[i] for i in a], [entries[i] for i in o]
+
+
+def _split_rows(entries: list[tuple[float, Array, Array]], w: Array) -> tuple[list[int], list[int]]:
+    """:func:`split_blocks` by rows, from the stacked eigenvalues ``w`` (ascending) of the blocks."""
     scale = np.max(np.abs(w), axis=1)
     psd = w[:, 0] >= -EIG_RTOL * scale
     add, other = [], []
-    for e, sc, ok in zip(entries, scale.tolist(), psd.tolist()):
+    for i, (sc, ok) in enumerate(zip(scale.tolist(), psd.tolist())):
         if sc > 0.0:
-            (add if ok else other).append(e)
-        elif np.any(e[2]):
-            add.append(e)   # y without Lambda: tested (rounding passes, more fails: out of range)
+            (add if ok else other).append(i)
+        elif any(entries[i][2].tolist()):
+            add.append(i)   # y without Lambda: tested (rounding passes, more fails: out of range)
     return add, other
+
+
+def split_blocks_eigen(entries: list[tuple[float, Array, Array]]) -> tuple[list, list, tuple[Array, Array] | None]:
+    """:func:`split_blocks` of several blocks with one stacked eigendecomposition for the split and
+    the statistic: ``(additions, others, (l, V))``, ``l, V`` the stacked eigenvalues and vectors
+    of the additions (``Lambda_t = V_t diag(l_t) V_t^T``, of ``(Lambda + Lambda^T) / 2``: the
+    decomposition :func:`information_statistic` computes), for its ``stacked`` argument. The
+    eigenvalues of ``numpy.linalg.eigh`` instead of ``eigvalsh`` decide the split: the same
+    LAPACK routine (``syevd``) with the vectors, which can move an eigenvalue by a rounding
+    error, against a threshold of ``EIG_RTOL = 1e-9`` of the largest."""
+    if not entries:
+        return [], [], None
+    L = np.array([e[1] for e in entries])
+    w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    a, o = _split_rows(entries, w)
+    return [entries[i] for i in a], [entries[i] for i in o], ((w[a], V[a]) if a else None)
 
 
 def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array],
                           P0: list[Array] | CovarianceBounds, mu1: list[Array],
-                          eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
+                          eigen: tuple[list[float], Array] | None = None,
+                          stacked: tuple[Array, Array] | None = None) -> tuple[float, int]:
     """``(D^2, dof)`` of the blocks ``entries`` as joint pseudo-measurements (module docstring).
 
     ``mu0, P0``: the belief's smoothed means and covariances at the blocks' times before
@@ -227,13 +250,14 @@ def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[A
     ``Lambda_t = V_t diag(l_t) V_t^T`` and masks for the directions kept (positive, and not
     negligible), which gives per block exactly the terms of a loop over the blocks. One block
     is computed on 4 x 4 matrices and Python floats instead (``eigen``: its
-    :func:`block_eigen`, if known).
+    :func:`block_eigen`, if known). ``stacked``: the stacked decomposition of ``entries``, if
+    known (:func:`split_blocks_eigen`).
     """
     if not entries:
         return 0.0, 0
     if len(entries) == 1 and not isinstance(P0, CovarianceBounds):
         return _statistic_one(entries[0], mu0[0], P0[0], mu1[0], eigen)
-    return _statistic_stacked(entries, mu0, P0, mu1)
+    return _statistic_stacked(entries, mu0, P0, mu1, stacked)
 
 
 def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array,
@@ -293,11 +317,15 @@ def _thresholds_from_bounds(w: Array, V: Array, out: Array, pos: Array,
 
 
 def _statistic_stacked(entries: list[tuple[float, Array, Array]], mu0: list[Array],
-                       P0: list[Array] | CovarianceBounds, mu1: list[Array]) -> tuple[float, int]:
+                       P0: list[Array] | CovarianceBounds, mu1: list[Array],
+                       stacked: tuple[Array, Array] | None = None) -> tuple[float, int]:
     """:func:`information_statistic` of any number of blocks, on stacked arrays."""
-    L = np.array([e[1] for e in entries])
     y = np.array([e[2] for e in entries])[:, :, None]
-    w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    if stacked is None:
+        L = np.array([e[1] for e in entries])
+        w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    else:
+        w, V = stacked
     Vt = V.transpose(0, 2, 1)
     scale = np.max(np.abs(w), axis=1, keepdims=True)
     pos = (w > EIG_RTOL * scale) & (scale > 0)
