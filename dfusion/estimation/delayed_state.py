@@ -558,14 +558,15 @@ class DelayedStateEIF:
             tr = self._traj
             if exact_covariances:
                 means0, covs0 = tr.smoothed(k0)
-                mu0, cov_out = [means0[k - k0] for k in idx], [covs0[k - k0] for k in idx]
+                cov_out = [covs0[k - k0] for k in idx]
             else:
-                mu0 = tr.smoothed_means_at(k0, idx)
+                means0 = tr.smoothed_means(k0)
                 lower, upper = tr.covariance_bounds(idx)
                 cov_out = CovarianceBounds(lower, upper, tr, tr.snapshot(), [k - k0 for k in idx], k0)
             for k, (_, Lam, y) in zip(idx, entries):
                 tr.add_information(k, Lam, y)
-            out = (mu0, cov_out, tr.smoothed_means_at(k0, idx))
+            means1 = tr.smoothed_means(k0)
+            out = ([means0[k - k0] for k in idx], cov_out, [means1[k - k0] for k in idx])
             self._enforce_window()
         return out
 

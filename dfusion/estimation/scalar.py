@@ -7,7 +7,7 @@ the same arithmetic is done here on Python floats, in code generated once per ``
 every loop unrolled (no numpy call inside; measured on 4 states: 14.6 against 42 us for
 the fold with the conversions to and from arrays, ``benchmarks/hop_cpu.py``).
 
-Three kernels, each the algorithm of the numpy path, so that the results differ by rounding
+Two kernels, each the algorithm of the numpy path, so that the results differ by rounding
 only (LAPACK orders its sums differently and may use fused multiply-adds):
 
 * :func:`predict_kernel`: ``mu^- = F mu + c``, ``P^- = F P F^T + Q`` (the prediction of the
@@ -24,10 +24,6 @@ only (LAPACK orders its sums differently and may use fused multiply-adds):
   ``dgetrf``) and back substitution; then ``P`` is symmetrized, ``(P + P^T) / 2``, and
   tested by a Cholesky factorization (each pivot ``> 0``, as LAPACK's ``dpotrf``; NaN
   fails). Golub & Van Loan, *Matrix Computations* (4th ed.), algorithms 3.4.1 and 4.2.1.
-* :func:`smooth_means_kernel`: the mean recursion of the RTS smoother over a run of states
-  (``TrajectoryInformation.smoothed_means``, for the consistency test of
-  :mod:`dfusion.fusion.guard`): three numpy calls a state (a product and two sums) against
-  about 1 us of float arithmetic.
 
 A kernel returns ``None`` instead of raising when the result is not usable (a zero pivot,
 a value that is not finite, a covariance that is not positive definite): the caller then
@@ -126,34 +122,12 @@ def fold_source(n: int) -> str:
     return "\n".join(out)
 
 
-def smooth_means_source(n: int) -> str:
-    """Source of ``smooth(means, preds, gains, mu) -> means`` for an ``n``-state: the mean recursion
-    of the RTS smoother, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})`` (Rauch, Tung & Striebel,
-    AIAA J. 1965), over the states in the order given (newest first), from ``mu`` (the smoothed
-    mean of the state after the first one); ``means[i]``, ``preds[i]``, ``gains[i]``: the filtered
-    mean of a state, the prediction's mean of the state after it and the smoother gain between
-    them. Returns the smoothed means in the same order."""
-    N = range(n)
-    u = ", ".join(f"u{i}" for i in N)
-    out = ["def smooth(means, preds, gains, mu):", f"    ({u},) = mu", "    out = []",
-           "    for m, p, G in zip(means, preds, gains):", "    " + _unpack("G", n, "g"),
-           f"        ({', '.join(f'm{i}' for i in N)},) = m", f"        ({', '.join(f'p{i}' for i in N)},) = p"]
-    e = out.append
-    for i in N:
-        e(f"        d{i} = u{i} - p{i}")
-    for i in N:
-        e(f"        u{i} = m{i} + (" + " + ".join(f"g{i}_{j} * d{j}" for j in N) + ")")
-    e(f"        out.append([{u}])")
-    e("    return out")
-    return "\n".join(out)
-
-
 def _compile(name: str, n: int) -> Callable:
-    """The function ``name`` (``"predict"``, ``"fold"`` or ``"smooth"``) for an ``n``-state, compiled
-    from its generated source; ``1 <= n <= MAX_N``."""
+    """The function ``name`` (``"predict"`` or ``"fold"``) for an ``n``-state, compiled from its
+    generated source; ``1 <= n <= MAX_N``."""
     if not 1 <= n <= MAX_N:
         raise ValueError(f"the scalar path takes 1 to {MAX_N} states, not {n}")
-    source = {"predict": predict_source, "fold": fold_source, "smooth": smooth_means_source}[name](n)
+    source = predict_source(n) if name == "predict" else fold_source(n)
     space = dict(_GLOBALS)
     exec(compile(source, f"<dfusion.estimation.scalar.{name}{n}>", "exec"), space)   # noqa: S102 - generated above
     return space[name]
@@ -169,9 +143,3 @@ def predict_kernel(n: int) -> Callable:
 def fold_kernel(n: int) -> Callable:
     """The compiled :func:`fold_source` for ``1 <= n <= MAX_N`` (compiled once, then cached)."""
     return _compile("fold", n)
-
-
-@functools.cache
-def smooth_means_kernel(n: int) -> Callable:
-    """The compiled :func:`smooth_means_source` for ``1 <= n <= MAX_N`` (compiled once, then cached)."""
-    return _compile("smooth", n)

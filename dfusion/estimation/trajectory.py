@@ -59,7 +59,7 @@ import numpy as np
 
 from dfusion.errors import NotPositiveDefiniteError
 from dfusion.estimation.scalar import MAX_N as _SCALAR_MAX_N
-from dfusion.estimation.scalar import fold_kernel, predict_kernel, smooth_means_kernel
+from dfusion.estimation.scalar import fold_kernel, predict_kernel
 from dfusion.linalg import Array, symmetrize
 
 # numpy.linalg's compiled kernels called directly: the same LAPACK routines as
@@ -132,7 +132,6 @@ class _Filtered:
     # the smoother gain G_{k-1} = P_{k-1} F_{k-1}^T (P^-_k)^-1 into this state: it depends on the
     # states before x_k only, like the prediction, so it is valid as long as this entry is
     _gain: Array | None = None
-    _gain_list: list | None = None   # the same gain as nested lists (the scalar path's smoothing)
 
 
 class TrajectoryInformation:
@@ -250,7 +249,7 @@ class TrajectoryInformation:
             elif self._kept is not None:
                 kept, self._kept = self._kept, None
                 entry = self._filtered(k, kept.pred_mean, kept.pred_cov)
-                entry._gain, entry._gain_list = kept._gain, kept._gain_list
+                entry._gain = kept._gain
                 cache.append(entry)
             else:
                 prev = cache[k - 1]
@@ -348,11 +347,8 @@ class TrajectoryInformation:
             if not ok.all():
                 bad = missing[int(np.argmin(ok))] + 1
                 raise NotPositiveDefiniteError(f"the predicted covariance of window state {bad} is not positive definite")
-            lists = Gt.transpose(0, 2, 1).tolist() if self._scalar else None
             for i, k in enumerate(missing):   # a copy each: a view would keep the whole stack alive
                 cache[k + 1]._gain = Gt[i].T.copy()
-                if lists is not None:
-                    cache[k + 1]._gain_list = lists[i]
         return [cache[k + 1]._gain for k in range(k_from, m - 1)]
 
     def smoothed(self, k_from: int) -> tuple[list[Array], list[Array]]:
@@ -376,53 +372,32 @@ class TrajectoryInformation:
 
     def smoothed_means(self, k_from: int) -> list[Array]:
         """Smoothed means of states ``k_from .. m-1``: the mean recursion of :meth:`smoothed`
-        without the covariances, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})``; for a small
-        state on Python floats (:func:`dfusion.estimation.scalar.smooth_means_kernel`: the same
-        recursion, so the means differ from :meth:`smoothed`'s by rounding only).
+        without the covariances, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})``.
 
         The result is kept until the trajectory changes: a later call reads it, and one from an
         older state continues the recursion where it stopped (the same operations on the same
         values as a pass from the newest state: the same bits). A node's consistency test
         (:meth:`dfusion.estimation.DelayedStateEIF.add_information_moments`) computes the means
         after one message and, when nothing happened in between, needs them before the next."""
-        means, k_kept = self._smoothed_means(k_from)
-        return [np.array(x, dtype=float) for x in means[k_from - k_kept:]]
-
-    def smoothed_means_at(self, k_from: int, idx: list[int]) -> list[Array]:
-        """:meth:`smoothed_means` from ``k_from`` at the states ``idx`` only (each ``>= k_from``)."""
-        means, k_kept = self._smoothed_means(k_from)
-        return [np.array(means[k - k_kept], dtype=float) for k in idx]
-
-    def _smoothed_means(self, k_from: int) -> tuple[list, int]:
-        """``(means of states k .. m-1, k)`` for some ``k <= k_from``: lists on the scalar path,
-        arrays otherwise (kept in ``_means``; read them, never write into them)."""
         m = len(self.L)
         kept = self._means
         if kept is not None and kept[0] <= k_from:
-            return kept[1], kept[0]
+            return kept[1][k_from - kept[0]:]
         self._forward(m)
         cache = self._cache
         G = self.gains(k_from)
         if kept is not None:
-            top, after = kept[0], kept[1]
+            top, means = kept[0], kept[1][::-1]   # (newest first, as the recursion builds it)
+            mu = means[-1]
         else:
-            mu = self.latest()[0]
-            top, after = m - 1, [mu.tolist() if self._scalar else mu]
-        ks = range(top - 1, k_from - 1, -1)
-        if self._scalar:
-            new = smooth_means_kernel(self.n)(
-                [cache[k].mean.tolist() for k in ks], [cache[k + 1].pred_mean.tolist() for k in ks],
-                [cache[k + 1]._gain_list if cache[k + 1]._gain_list is not None else G[k - k_from].tolist()
-                 for k in ks], after[0])
-        else:
-            new, mu = [], after[0]
-            for k in ks:
-                mu = cache[k].mean + G[k - k_from] @ (mu - cache[k + 1].pred_mean)
-                new.append(mu)
-        new.reverse()
-        means = new + after
+            top, mu = m - 1, self.latest()[0]
+            means = [mu]
+        for k in range(top - 1, k_from - 1, -1):
+            mu = cache[k].mean + G[k - k_from] @ (mu - cache[k + 1].pred_mean)
+            means.append(mu)
+        means.reverse()
         self._means = (k_from, means)
-        return means, k_from
+        return means[:]
 
     def covariance_bounds(self, idx: list[int]) -> tuple[Array, Array]:
         r"""Bounds ``(lower, upper)`` (stacks, in the order of ``idx``) on the smoothed covariances of
