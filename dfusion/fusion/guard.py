@@ -20,6 +20,11 @@ the smoothed means at the blocks' times before (``mu0``) and after (``mu1``) add
 (the identity ``nu^T S^-1 nu = (z - H mu0)^T R^-1 (z - H mu1)`` of a Kalman update,
 applied to the stacked pseudo-measurement; ``mu1 - mu0`` is the joint update of the
 trajectory, so the correlations between the blocks' times are accounted for). The
+smoothed covariances before, ``P0``, enter only the two threshold tests below (a
+direction negligible, a value out of range): they are decided from bounds
+``P_k - G_k P^-_{k+1} G_k^T <= P0 <= P_k`` that the smoother's cached terms give without
+its covariance pass, and the exact ``P0`` is computed only when the bounds do not decide
+(:func:`_thresholds_from_bounds`: the same verdicts). The
 message *fails* when ``D^2 > chi2^-1_{sum r}(1 - alpha)``; ``alpha`` (default 1e-3)
 is the false-alarm probability *per message*, whatever the number of blocks.
 
