@@ -116,7 +116,7 @@ NEGLIGIBLE = 1e-9
 #: standard deviations (squared) at most: more is information no measurement can produce.
 RANGE_TOL = 1e-6
 #: Bounds on the covariances decide a threshold test only when they clear it by this fraction of
-#: the quadratic form at the upper bound (:func:`_thresholds_from_bounds`).
+#: ``|x|^2 tr(upper)``, ``x`` the quadratic form's vector (:func:`_thresholds_from_bounds`).
 BOUND_RTOL = 1e-8
 
 
@@ -299,25 +299,32 @@ def _thresholds_from_bounds(w: Array, V: Array, out: Array, pos: Array,
 
     Both tests compare a quadratic form of ``P0`` with a threshold: ``out^T P0 out > RANGE_TOL``
     and ``l_i v_i^T P0 v_i > NEGLIGIBLE`` (``l_i > 0``). A quadratic form ``x^T P x`` is
-    monotone in the Loewner order, so ``q(lower) <= q(P0) <= q(upper)``: the bounds decide a
-    comparison when both ends are on the same side. A margin of ``BOUND_RTOL |x|^2 max_i
-    upper_ii`` (the covariances' size; the rounding of the smoother and of the bounds is about
-    ``1e-16`` of it) keeps the decision the one that ``P0`` as the smoother computes it gives;
-    a comparison inside the margin is left to the exact ``P0`` (:meth:`CovarianceBounds.exact`)."""
+    monotone in the Loewner order, so ``q(lower) <= q(P0) <= q(upper)``, and ``q(upper) <=
+    |x|^2 tr(upper)`` (``upper`` is positive semi-definite): the bounds decide a comparison when
+    both ends are on the same side. A margin of ``BOUND_RTOL |x|^2 tr(upper)`` (the covariances'
+    size; the rounding of the smoother and of the bounds is about ``1e-16`` of it) keeps the
+    decision the one that ``P0`` as the smoother computes it gives; a comparison inside the
+    margin is left to the exact ``P0`` (:meth:`CovarianceBounds.exact`). The cheap forms are
+    tried first: ``|out|^2 tr(upper)`` for the range (``out`` is rounding for a sound block),
+    the lower bound alone for the directions kept."""
     lo, hi = bounds.lower, bounds.upper
-    r_lo = (out.transpose(0, 2, 1) @ lo @ out).reshape(-1)
-    r_hi = (out.transpose(0, 2, 1) @ hi @ out).reshape(-1)
-    s_lo = w * np.sum(V * (lo @ V), axis=1)
-    s_hi = w * np.sum(V * (hi @ V), axis=1)
-    size = BOUND_RTOL * np.max(np.abs(np.diagonal(hi, axis1=1, axis2=2)), axis=1)   # of the covariances
-    r_tol = size * np.sum(out * out, axis=(1, 2))
-    s_tol = size[:, None] * np.abs(w)
-    bad = r_lo - r_tol > RANGE_TOL
-    if not np.all(bad | (r_hi + r_tol <= RANGE_TOL)):
-        return None
-    use = pos & (s_lo - s_tol > NEGLIGIBLE)
-    if not np.all(use | ~pos | (s_hi + s_tol <= NEGLIGIBLE)):
-        return None
+    tr = np.trace(hi, axis1=1, axis2=2)                          # >= the largest eigenvalue
+    oo = np.sum(out * out, axis=(1, 2))                          # |out|^2
+    if float(np.max(oo * tr)) * (1.0 + BOUND_RTOL) <= RANGE_TOL:
+        bad = np.zeros(len(tr), dtype=bool)                      # (q(upper) <= |out|^2 tr(upper))
+    else:
+        r_lo = (out.transpose(0, 2, 1) @ lo @ out).reshape(-1)
+        r_hi = (out.transpose(0, 2, 1) @ hi @ out).reshape(-1)
+        r_tol = BOUND_RTOL * oo * tr
+        bad = r_lo - r_tol > RANGE_TOL
+        if not np.all(bad | (r_hi + r_tol <= RANGE_TOL)):
+            return None
+    s_tol = BOUND_RTOL * tr[:, None] * np.abs(w)                 # (|v_i| = 1)
+    use = pos & (w * np.sum(V * (lo @ V), axis=1) - s_tol > NEGLIGIBLE)
+    if not np.all(use | ~pos):
+        s_hi = w * np.sum(V * (hi @ V), axis=1)
+        if not np.all(use | ~pos | (s_hi + s_tol <= NEGLIGIBLE)):
+            return None
     return bad, use
 
 
