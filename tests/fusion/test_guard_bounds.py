@@ -12,13 +12,14 @@ removals, blocks between two states)."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from dfusion.estimation.delayed_state import CovarianceBounds, DelayedStateEIF
-from dfusion.fusion.guard import NEGLIGIBLE, block_eigen, information_statistic, split_blocks, \
-    split_blocks_eigen
+from dfusion.fusion.guard import NEGLIGIBLE, block_eigen, information_statistic, split_blocks
+from dfusion.fusion.quarantine import GuardedLinks
 from dfusion.models import ConstantVelocity, PositionSensor
 
 
@@ -124,19 +125,9 @@ def _exact_test(f: DelayedStateEIF, entries: list) -> tuple[float, int]:
 
 
 def _bounded_test(f: DelayedStateEIF, entries: list) -> tuple[float, int]:
-    """The test as FusionNode._add_tested does it now."""
-    eigen = stacked = None
-    if len(entries) == 1:
-        eigen = block_eigen(entries[0][1])
-        add, other = split_blocks(entries, eigen)
-    else:
-        add, other, stacked = split_blocks_eigen(entries)
-    if other:
-        f.add_information_batch(other, validate=False)
-    if not add:
-        return 0.0, 0
-    mu0, P0, mu1 = f.add_information_moments(add, exact_covariances=False)
-    return information_statistic(add, mu0, P0, mu1, eigen, stacked)
+    """The test as a node does it now (FusionNode._add_tested, on this filter)."""
+    stat, dof, _ = GuardedLinks._add_tested(SimpleNamespace(filter=f), entries)
+    return stat, dof
 
 
 @pytest.mark.parametrize("seed", range(8))
