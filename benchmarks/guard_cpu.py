@@ -1,15 +1,19 @@
 """CPU of the consistency test of neighbours' messages (``dfusion.fusion.guard``), per received message.
 
-Two copies of the same network (a chain of ``--nodes`` nodes, position sensors at 10 Hz, sends
-every 0.5 s, window ``--window`` states) are run in lockstep on the same data: one with the
-current test, one with the implementation before 2026-11-25 (reproduced below: a smoothing
-pass without cached gains before and after the message, one eigendecomposition per block in
-``split_blocks`` and in the statistic). Each step the copy that goes first alternates, so
-the load of a shared machine hits both alike. Printed: median and mean CPU (``process_time``)
-of ``FusionNode.receive`` per message for both, their ratio, and the largest difference
-between the two copies' statistics (they must agree to rounding, and make the same decisions).
+Copies of the same network (a chain of ``--nodes`` nodes, or a random tree with ``--tree``;
+position sensors at 10 Hz, sends every 0.5 s, window ``--window`` states) are run in lockstep on
+the same data: one with the current test; one with the implementation before 2026-11-25
+(reproduced below: a smoothing pass without cached gains before and after the message, one
+eigendecomposition per block in ``split_blocks`` and in the statistic); one with the test of
+2026-11-28 before its covariance bounds (``exact``: the smoothed covariances of the whole pass
+before the message, ``add_information_moments(exact_covariances=True)``, and the means computed
+afresh before every message); one without a test. Each step the order of the copies
+alternates, so the load of a shared machine hits all alike. Printed: median and mean CPU
+(``process_time``) of ``FusionNode.receive`` per message for each, the test's own part and
+the ratios, and the largest difference between the copies' statistics (they must agree to
+rounding, and make the same decisions).
 
-Usage: python benchmarks/guard_cpu.py [--nodes 2] [--window 60] [--steps 600]
+Usage: python benchmarks/guard_cpu.py [--nodes 2] [--tree] [--window 60] [--steps 600]
 """
 from __future__ import annotations
 
@@ -20,7 +24,8 @@ import time
 import numpy as np
 
 from dfusion.fusion import FusionNode
-from dfusion.fusion.guard import EIG_RTOL, NEGLIGIBLE, RANGE_TOL, GuardConfig, NeighbourGuard
+from dfusion.fusion.guard import (EIG_RTOL, NEGLIGIBLE, RANGE_TOL, GuardConfig, NeighbourGuard, block_eigen,
+                                  information_statistic, split_blocks)
 from dfusion.linalg import chi2_isf
 from dfusion.models import ConstantVelocity, PositionSensor
 
@@ -118,6 +123,21 @@ def _old_add_tested(node, entries):
     return stat, dof, len(add)
 
 
+def _exact_add_tested(node, entries):
+    """The test of 2026-11-28 before the covariance bounds: the exact smoothed covariances."""
+    f = node.filter
+    eigen = block_eigen(entries[0][1]) if len(entries) == 1 else None
+    add, other = split_blocks(entries, eigen)
+    if other:
+        f.add_information_batch(other, validate=False)
+    if not add:
+        return 0.0, 0, 0
+    f._traj._means = None   # (no means kept from the message before)
+    mu0, P0, mu1 = f.add_information_moments(add, exact_covariances=True)
+    stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
+    return stat, dof, len(add)
+
+
 # ------------------------------------------------------------------ the run
 class _Recording(NeighbourGuard):
     def __init__(self, nbrs, log):
@@ -130,16 +150,21 @@ class _Recording(NeighbourGuard):
         return super().judge(j, stat, dof)
 
 
-def _chain(n: int, window: int, log: list, old: bool, guard: bool = True) -> list[FusionNode]:
+def _network(n: int, window: int, log: list, lane: str, tree: bool) -> list[FusionNode]:
+    """A chain, or a random tree (each node's parent drawn among the nodes before it, seed 1)."""
     motion = ConstantVelocity(2, 0.05)
     prior = (0.0, np.zeros(4), np.eye(4))
     names = [f"n{i}" for i in range(n)]
+    rng = np.random.default_rng(1)
+    parent = [None] + [int(rng.integers(i)) if tree else i - 1 for i in range(1, n)]
+    nbrs = {i: [names[j] for j in range(n) if parent[j] == i] + ([names[parent[i]]] if i else []) for i in range(n)}
     nodes = []
     for i, name in enumerate(names):
-        nbrs = [names[j] for j in (i - 1, i + 1) if 0 <= j < n]
-        node = FusionNode(name, nbrs, motion, window=window, prior=prior, epoch=i + 1, guard=_Recording(nbrs, log) if guard else None)
-        if old:
-            node._add_tested = (lambda nd: (lambda entries: _old_add_tested(nd, entries)))(node)
+        node = FusionNode(name, nbrs[i], motion, window=window, prior=prior, epoch=i + 1,
+                          guard=_Recording(nbrs[i], log) if lane != "off" else None)
+        if lane in ("old", "exact"):
+            fn = _old_add_tested if lane == "old" else _exact_add_tested
+            node._add_tested = (lambda nd, fn: (lambda entries: fn(nd, entries)))(node, fn)
         nodes.append(node)
     return nodes
 
@@ -147,19 +172,21 @@ def _chain(n: int, window: int, log: list, old: bool, guard: bool = True) -> lis
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--nodes", type=int, default=2)
+    ap.add_argument("--tree", action="store_true", help="a random tree instead of a chain")
     ap.add_argument("--window", type=int, default=60)
     ap.add_argument("--steps", type=int, default=600)
     args = ap.parse_args(argv)
     sensor = PositionSensor(2, 0.5)
-    logs = {"old": [], "new": [], "off": []}
-    nets = {k: _chain(args.nodes, args.window, logs[k], k == "old", k != "off") for k in logs}
-    cpu = {"old": [], "new": [], "off": []}
+    lanes = ("old", "exact", "new", "off")
+    logs = {k: [] for k in lanes}
+    nets = {k: _network(args.nodes, args.window, logs[k], k, args.tree) for k in lanes}
+    cpu = {k: [] for k in lanes}
     rng = np.random.default_rng(0)
     warm = 2 * args.window
     for k in range(1, warm + args.steps + 1):
         t = round(0.1 * k, 9)
         z = [rng.normal(size=2) * 0.5 + [0.1 * t, 0.0] for _ in range(args.nodes)]
-        order = ("old", "new", "off") if k % 2 else ("off", "new", "old")
+        order = lanes if k % 2 else lanes[::-1]
         for key in order:
             nodes = nets[key]
             for node, zi in zip(nodes, z):
@@ -174,23 +201,33 @@ def main(argv: list[str] | None = None) -> int:
                 dt = time.process_time() - t0
                 if k > warm:
                     cpu[key].append(dt)
-    so, sn = np.array(logs["old"]), np.array(logs["new"])
-    assert so.shape == sn.shape and np.array_equal(so[:, 1], sn[:, 1]), "different tests or degrees of freedom"
-    fin = np.isfinite(so[:, 0])
-    rel = np.max(np.abs(so[fin, 0] - sn[fin, 0]) / np.maximum(1.0, np.abs(so[fin, 0])))
-    o, n_, z = (np.array(cpu[k]) * 1e3 for k in ("old", "new", "off"))
-    print(f"chain of {args.nodes} nodes, window {args.window}, {len(o)} messages received per copy, "
-          f"{len(so)} tested")
-    print(f"receive CPU ms per message   before: median {np.median(o):.3f} mean {o.mean():.3f}   "
-          f"now: median {np.median(n_):.3f} mean {n_.mean():.3f}   ratio of means {o.mean() / n_.mean():.2f}")
-    print(f"without the test: median {np.median(z):.3f} mean {z.mean():.3f}; the test's own CPU per message, "
-          f"before {o.mean() - z.mean():.3f}, now {n_.mean() - z.mean():.3f} ms: "
-          f"ratio {(o.mean() - z.mean()) / max(n_.mean() - z.mean(), 1e-9):.1f}")
-    dof = so[:, 1].astype(int)
+    stats = {k: np.array(logs[k]) for k in ("old", "exact", "new")}
+    ref = stats["exact"]
+    for k in ("old", "new"):
+        assert stats[k].shape == ref.shape and np.array_equal(stats[k][:, 1], ref[:, 1]), \
+            f"different tests or degrees of freedom ({k} against exact)"
+    fin = np.isfinite(ref[:, 0])
+
+    def rel(a):
+        return np.max(np.abs(a[fin, 0] - ref[fin, 0]) / np.maximum(1.0, np.abs(ref[fin, 0])))
+
+    ms = {k: np.array(cpu[k]) * 1e3 for k in lanes}
+    own = {k: ms[k].mean() - ms["off"].mean() for k in ("old", "exact", "new")}
+    shape = f"random tree of {args.nodes} nodes" if args.tree else f"chain of {args.nodes} nodes"
+    print(f"{shape}, window {args.window}, {len(ms['new'])} messages received per copy, {len(ref)} tested")
+    print("receive CPU ms per message (process_time):")
+    print(f"{'copy':<34} {'median':>8} {'mean':>8} {'test':>8} {'test / now':>11}")
+    label = {"old": "before 2026-11-25", "exact": "2026-11-28, exact covariances", "new": "now", "off": "no test"}
+    for k in lanes:
+        t = f"{own[k]:8.3f} {own[k] / max(own['new'], 1e-9):11.2f}" if k != "off" else f"{'-':>8} {'-':>11}"
+        print(f"{label[k]:<34} {np.median(ms[k]):8.3f} {ms[k].mean():8.3f} {t}")
+    dof = ref[:, 1].astype(int)
     c = np.array([chi2_isf(1e-3, int(d)) for d in dof])
-    print(f"largest difference of the statistics (relative, >= 1 absolute): {rel:.1e}; failures "
-          f"{int(np.sum(so[:, 0] > c))} before, {int(np.sum(sn[:, 0] > c))} now, same messages: "
-          f"{np.array_equal(so[:, 0] > c, sn[:, 0] > c)}")
+    fails = {k: stats[k][:, 0] > c for k in stats}
+    print(f"largest difference of the statistics from the exact copy's (relative, >= 1 absolute): "
+          f"before 2026-11-25 {rel(stats['old']):.1e}, now {rel(stats['new']):.1e}; failures "
+          f"{int(fails['old'].sum())} / {int(fails['exact'].sum())} / {int(fails['new'].sum())}, same messages: "
+          f"{np.array_equal(fails['old'], fails['exact']) and np.array_equal(fails['new'], fails['exact'])}")
     return 0
 
 

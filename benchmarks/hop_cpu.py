@@ -2,7 +2,10 @@
 
 The hop of ``benchmarks/transport.py`` section 3 without the transport: node ``a`` predicts,
 fuses a measurement and builds its message (the *sender*); node ``b`` predicts to the
-sender's time, fuses the message and reads its estimate (the *receiver*); then, outside
+sender's time, fuses the message and reads its estimate (the *receiver*), as runs do: the
+frame's checksum and MAC checked on arrival (``FusionNode.check_frame``, stage ``b.check``; a run's
+transport does it in its thread) and the message received with ``receive(data, checked=True)``,
+which does not compute them again; then, outside
 the timing, ``b`` acknowledges, ``a`` fuses the acknowledgement and both nodes do the
 bookkeeping they left for later (``FusionNode.settle``, as an idle node does; skipped
 for code without it). Same nodes as transport.py (4-state constant velocity, a full
@@ -40,7 +43,18 @@ import transport as T  # the same hop as transport.py section 3: make_node, Mini
 
 from dfusion.fusion import FusionNode, GuardConfig
 
-STAGES = ("a.predict", "a.update", "a.message_to", "b.predict", "b.receive", "b.estimate", "minimal")
+STAGES = ("a.predict", "a.update", "a.message_to", "b.check", "b.predict", "b.receive", "b.estimate", "minimal")
+
+
+def arrival_check(node: FusionNode):
+    """``(check, receive)`` of a receiver as runs use it: the transport runs the node's
+    ``check_frame`` (checksum, MAC) on every copy as it arrives and hands the node the copies
+    that passed with ``receive(data, checked=True)``, which does not compute them again
+    (``dfusion.run.node_process``). For code without it: no check, ``receive(data)``."""
+    import inspect
+    if hasattr(node, "check_frame") and "checked" in inspect.signature(node.receive).parameters:
+        return node.check_frame, (lambda data: node.receive(data, checked=True))
+    return (lambda data: None), node.receive
 
 
 def settle(node: FusionNode) -> None:
@@ -62,23 +76,26 @@ def hop(a, b, t: float, z, sensor, profile=None) -> tuple[float, ...]:
     data = a.message_to("b", sent_at=t)
     t3 = pc()
     settle(a)   # idle after the send (transport.py does the same)
+    check, receive = arrival_check(b)
     t4 = pc()
+    check(data)   # (in a run: in the transport's thread, as the frame arrives)
+    t4b = pc()
     if t > b.latest_time + 1e-9:
         b.predict(t)
     t5 = pc()
     if profile is not None:
         profile.enable()
-        b.receive(data)
+        receive(data)
         profile.disable()
     else:
-        b.receive(data)
+        receive(data)
     t6 = pc()
     b.estimate()
     t7 = pc()
     a.receive(b.message_to("a", sent_at=t))   # the acknowledgement, outside the timing
     settle(b)
     settle(a)
-    return t1 - t0, t2 - t1, t3 - t2, t5 - t4, t6 - t5, t7 - t6
+    return t1 - t0, t2 - t1, t3 - t2, t4b - t4, t5 - t4b, t6 - t5, t7 - t6
 
 
 def run(W: int, hops: int, guard: bool = False, warm: int = 50, profile=None) -> tuple[dict[str, float], dict]:
@@ -131,14 +148,15 @@ def main() -> int:
         for guard in guards:
             m, g = run(W, args.hops, guard)
             snd = m["a.predict"] + m["a.update"] + m["a.message_to"]
-            rcv = m["b.predict"] + m["b.receive"] + m["b.estimate"]
+            rcv = m["b.check"] + m["b.predict"] + m["b.receive"] + m["b.estimate"]
             mn = m["minimal"]
             rows.append([W, "on" if guard else "off", f"{snd:.0f}", f"{snd / mn:.2f}", f"{rcv:.0f}", f"{rcv / mn:.2f}",
                          f"{snd + rcv:.0f}", f"{(snd + rcv) / mn:.2f}", f"{mn:.0f}"]
                         + [f"{m[s]:.0f}" for s in STAGES[:-1]]
                         + [f"{g['tests']}/{g['failures']}/{g['quarantines']}" if g else "-"])
     print(T.table(rows, head))
-    print("sender = a.predict + a.update + a.message_to; receiver = b.predict + b.receive + b.estimate;\n"
+    print("sender = a.predict + a.update + a.message_to; receiver = b.check + b.predict + b.receive + b.estimate\n"
+          "(b.check: the arrival check of a run's transport, checksum and MAC; b.receive then with checked=True);\n"
           "minimal = MinimalHop send + receive (benchmarks/transport.py 3b.); guard on: GuardConfig() on both\n"
           "nodes, with the receiver's counters (messages tested / failed / quarantines)")
     return 0

@@ -149,6 +149,41 @@ def _checked_square(a: ArrayLike, n: int, name: str, spd: bool = False) -> Array
     return a
 
 
+class CovarianceBounds:
+    """Bounds on the smoothed covariances of some window states before a change, and the exact
+    values on demand (:meth:`DelayedStateEIF.add_information_moments` with
+    ``exact_covariances=False``).
+
+    ``lower`` and ``upper`` (stacks ``(len, n, n)``, in the order of the entries) satisfy
+    ``lower <= P^s <= upper`` in the Loewner order
+    (:meth:`~dfusion.estimation.trajectory.TrajectoryInformation.covariance_bounds`).
+    :meth:`exact` runs the covariance pass of the smoother on the trajectory as it was before
+    the change (a snapshot: references, no copies) and gives the same values, bit for bit, as
+    ``add_information_moments`` with exact covariances; it leaves the filter as it is.
+    """
+
+    __slots__ = ("lower", "upper", "_traj", "_before", "_rows", "_k0", "_exact")
+
+    def __init__(self, lower: Array, upper: Array, traj: TrajectoryInformation, before: tuple,
+                 rows: list[int], k0: int) -> None:
+        self.lower, self.upper = lower, upper
+        self._traj, self._before, self._rows, self._k0 = traj, before, rows, k0
+        self._exact: list[Array] | None = None
+
+    def exact(self) -> list[Array]:
+        """The smoothed covariances before the change (computed once)."""
+        if self._exact is None:
+            tr = self._traj
+            now = tr.snapshot()
+            tr.restore(self._before)
+            try:
+                covs = tr.smoothed(self._k0)[1]
+            finally:
+                tr.restore(now)
+            self._exact = [covs[r] for r in self._rows]
+        return self._exact
+
+
 class DelayedStateEIF:
     """Extended Information Filter over a bounded window of past states.
 
@@ -478,11 +513,16 @@ class DelayedStateEIF:
             self._enforce_window()
 
     def add_information_moments(
-        self, entries: list[tuple[float, Array, Array]]
-    ) -> tuple[list[Array], list[Array], list[Array]]:
+        self, entries: list[tuple[float, Array, Array]], *, exact_covariances: bool = True
+    ) -> tuple[list[Array], "list[Array] | CovarianceBounds", list[Array]]:
         """:meth:`add_information_batch` (``validate=False``) that also returns the smoothed
         moments at the entries' times: ``(means before, covariances before, means after)``,
         in the order of ``entries`` (raw means, angles not wrapped).
+
+        With ``exact_covariances=False`` the covariances before are a :class:`CovarianceBounds`
+        when the smoothing passes run: bounds from the cached forward terms
+        (:meth:`TrajectoryInformation.covariance_bounds`), the exact values computed only if
+        asked for (:meth:`CovarianceBounds.exact`), which saves the covariance pass.
 
         States are inserted for every entry time first (exact for linear models), so the
         moments before and after refer to the same trajectory; the window is enforced after
@@ -515,11 +555,18 @@ class DelayedStateEIF:
                     self._insert(tf)
             idx = [self.index_of(as_time(t)) for t, _, _ in entries]
             k0 = min(idx)
-            means0, covs0 = self._traj.smoothed(k0)
+            tr = self._traj
+            if exact_covariances:
+                means0, covs0 = tr.smoothed(k0)
+                cov_out = [covs0[k - k0] for k in idx]
+            else:
+                means0 = tr.smoothed_means(k0)
+                lower, upper = tr.covariance_bounds(idx)
+                cov_out = CovarianceBounds(lower, upper, tr, tr.snapshot(), [k - k0 for k in idx], k0)
             for k, (_, Lam, y) in zip(idx, entries):
-                self._traj.add_information(k, Lam, y)
-            means1 = self._traj.smoothed_means(k0)
-            out = ([means0[k - k0] for k in idx], [covs0[k - k0] for k in idx], [means1[k - k0] for k in idx])
+                tr.add_information(k, Lam, y)
+            means1 = tr.smoothed_means(k0)
+            out = ([means0[k - k0] for k in idx], cov_out, [means1[k - k0] for k in idx])
             self._enforce_window()
         return out
 

@@ -160,6 +160,8 @@ class TrajectoryInformation:
         # the scalar path of a small state (dfusion.estimation.scalar): the forward pass on floats
         # (the kernels are looked up, not kept: an instance stays picklable)
         self._scalar = self.n <= _SCALAR_MAX_N
+        # the last smoothed means, (k_from, means of k_from .. m-1), while nothing changed since
+        self._means: tuple[int, list[Array]] | None = None
 
     def __len__(self) -> int:
         return len(self.L)
@@ -174,10 +176,12 @@ class TrajectoryInformation:
         base, L, y, f, c, kept = snap
         self.base, self.L, self.y, self.factors, self._cache = base, list(L), list(y), list(f), list(c)
         self._kept = kept
+        self._means = None
 
     # ---------------------------------------------------------------- mutation
     def _invalidate(self, k: int) -> None:
         """Forget the filtered terms of states ``k ..`` and their predictions."""
+        self._means = None
         if k < len(self._cache):
             del self._cache[k:]
             self._kept = None
@@ -188,6 +192,7 @@ class TrajectoryInformation:
         """Add a single-state factor: ``Omega[k,k] += Lam``, ``eta[k] += y``."""
         self.L[k] = symmetrize(self.L[k] + Lam)
         self.y[k] = self.y[k] + y
+        self._means = None
         cache = self._cache
         if k < len(cache):
             # x_k's prediction does not depend on its own single-state factor: keep it
@@ -199,6 +204,7 @@ class TrajectoryInformation:
         self.L.append(np.zeros((self.n, self.n)))
         self.y.append(np.zeros(self.n))
         self.factors.append(factor)
+        self._means = None
         # filtered terms of older states do not depend on later factors
 
     def split(self, a: int, first: MotionFactor, second: MotionFactor) -> None:
@@ -224,6 +230,7 @@ class TrajectoryInformation:
         if len(self.L) < 2:
             raise ValueError("cannot marginalize the only state")
         self._forward(2)
+        self._means = None
         f1 = self._cache[1]
         self.base = (f1.pred_mean, f1.pred_cov)
         del self.L[0], self.y[0], self.factors[0], self._cache[0]
@@ -327,7 +334,9 @@ class TrajectoryInformation:
         missing = [k for k in range(k_from, m - 1) if cache[k + 1]._gain is None]
         if missing:
             Pp = np.array([cache[k + 1].pred_cov for k in missing])
-            B = np.array([factors[k].F @ cache[k].cov for k in missing])     # F P_k = P^-_{k+1} G_k^T
+            # F P_k = P^-_{k+1} G_k^T, as one stacked product (numpy's matmul loop: the same products
+            # as one call per state, bit for bit)
+            B = np.array([factors[k].F for k in missing]) @ np.array([cache[k].cov for k in missing])
             with np.errstate(invalid="ignore", divide="ignore"):
                 try:
                     C = _cholesky(Pp)
@@ -363,18 +372,56 @@ class TrajectoryInformation:
 
     def smoothed_means(self, k_from: int) -> list[Array]:
         """Smoothed means of states ``k_from .. m-1``: the mean recursion of :meth:`smoothed`
-        without the covariances, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})``."""
+        without the covariances, ``mu_k = mu_k|k + G_k (mu_{k+1} - mu^-_{k+1})``.
+
+        The result is kept until the trajectory changes: a later call reads it, and one from an
+        older state continues the recursion where it stopped (the same operations on the same
+        values as a pass from the newest state: the same bits). A node's consistency test
+        (:meth:`dfusion.estimation.DelayedStateEIF.add_information_moments`) computes the means
+        after one message and, when nothing happened in between, needs them before the next."""
         m = len(self.L)
+        kept = self._means
+        if kept is not None and kept[0] <= k_from:
+            return kept[1][k_from - kept[0]:]
         self._forward(m)
-        mu = self.latest()[0]
-        means = [mu]
         cache = self._cache
         G = self.gains(k_from)
-        for k in range(m - 2, k_from - 1, -1):
+        if kept is not None:
+            top, means = kept[0], kept[1][::-1]   # (newest first, as the recursion builds it)
+            mu = means[-1]
+        else:
+            top, mu = m - 1, self.latest()[0]
+            means = [mu]
+        for k in range(top - 1, k_from - 1, -1):
             mu = cache[k].mean + G[k - k_from] @ (mu - cache[k + 1].pred_mean)
             means.append(mu)
         means.reverse()
-        return means
+        self._means = (k_from, means)
+        return means[:]
+
+    def covariance_bounds(self, idx: list[int]) -> tuple[Array, Array]:
+        r"""Bounds ``(lower, upper)`` (stacks, in the order of ``idx``) on the smoothed covariances of
+        the states ``idx``, from the cached forward terms and gains (valid after :meth:`smoothed_means`
+        from ``min(idx)`` or earlier, nothing changed since): in the Loewner order
+        ``P_k - G_k P^-_{k+1} G_k^T  <=  P^s_k  <=  P_k``. The RTS recursion (module docstring)
+        gives ``P^s_k = (P_k - G_k P^-_{k+1} G_k^T) + G_k P^s_{k+1} G_k^T``: the first term is the
+        covariance of ``x_k`` given ``x_{k+1}`` and the information up to ``x_k``, the second is
+        positive semi-definite, hence the lower bound; and ``P^s_k = P_k - G_k (P^-_{k+1} -
+        P^s_{k+1}) G_k^T`` with ``P^s_{k+1} <= P^-_{k+1}`` (information only shrinks a
+        covariance), hence the upper one (Rauch, Tung & Striebel 1965; Saerkkae, *Bayesian
+        Filtering and Smoothing*, 2013, Theorem 8.2). Both are exact (``P^s``) at the newest
+        state. O(len(idx)): for a test that needs a smoothed covariance only against thresholds
+        (:mod:`dfusion.fusion.guard`), without the O(m) covariance pass of :meth:`smoothed`."""
+        cache = self._cache
+        m = len(cache)
+        upper = np.array([cache[k].cov for k in idx])
+        older = [i for i, k in enumerate(idx) if k < m - 1]
+        lower = upper.copy()
+        if older:
+            G = np.array([cache[idx[i] + 1]._gain for i in older])
+            Pp = np.array([cache[idx[i] + 1].pred_cov for i in older])
+            lower[older] = upper[older] - G @ Pp @ G.transpose(0, 2, 1)
+        return lower, upper
 
     def blocks(self) -> tuple[list[Array], list[Array], list[Array]]:
         """Assembled ``(D, U, eta)``: diagonal and super-diagonal blocks and vector."""

@@ -20,6 +20,11 @@ the smoothed means at the blocks' times before (``mu0``) and after (``mu1``) add
 (the identity ``nu^T S^-1 nu = (z - H mu0)^T R^-1 (z - H mu1)`` of a Kalman update,
 applied to the stacked pseudo-measurement; ``mu1 - mu0`` is the joint update of the
 trajectory, so the correlations between the blocks' times are accounted for). The
+smoothed covariances before, ``P0``, enter only the two threshold tests below (a
+direction negligible, a value out of range): they are decided from bounds
+``P_k - G_k P^-_{k+1} G_k^T <= P0 <= P_k`` that the smoother's cached terms give without
+its covariance pass, and the exact ``P0`` is computed only when the bounds do not decide
+(:func:`_thresholds_from_bounds`: the same verdicts). The
 message *fails* when ``D^2 > chi2^-1_{sum r}(1 - alpha)``; ``alpha`` (default 1e-3)
 is the false-alarm probability *per message*, whatever the number of blocks.
 
@@ -93,12 +98,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dfusion.errors import ValidationError
+from dfusion.estimation.delayed_state import CovarianceBounds
 from dfusion.linalg import Array, chi2_isf
 
 log = logging.getLogger(__name__)
 
 __all__ = ["GuardConfig", "LinkRecord", "NeighbourGuard", "block_eigen", "information_statistic", "split_blocks",
-           "HEALTH_STATES"]
+           "split_blocks_eigen", "HEALTH_STATES"]
 
 HEALTH_STATES = ("ok", "degraded", "lost")
 
@@ -109,6 +115,9 @@ NEGLIGIBLE = 1e-9
 #: The part of ``y`` outside the range of ``Lambda`` may shift the receiver's mean by this many
 #: standard deviations (squared) at most: more is information no measurement can produce.
 RANGE_TOL = 1e-6
+#: Bounds on the covariances decide a threshold test only when they clear it by this fraction of
+#: ``|x|^2 tr(upper)``, ``x`` the quadratic form's vector (:func:`_thresholds_from_bounds`).
+BOUND_RTOL = 1e-8
 
 
 #: ``chi2_isf`` values by ``(alpha, dof)``, shared by the guards of a process (the nodes of a host).
@@ -197,34 +206,63 @@ def split_blocks(entries: list[tuple[float, Array, Array]],
         if sc == 0.0:
             return ([e], []) if any(e[2].tolist()) else ([], [])
     w = np.linalg.eigvalsh(np.array([e[1] for e in entries]))
+    a, o = _split_rows(entries, w)
+    return [entries[i] for i in a], [entries[i] for i in o]
+
+
+def _split_rows(entries: list[tuple[float, Array, Array]], w: Array) -> tuple[list[int], list[int]]:
+    """:func:`split_blocks` by rows, from the stacked eigenvalues ``w`` (ascending) of the blocks."""
     scale = np.max(np.abs(w), axis=1)
     psd = w[:, 0] >= -EIG_RTOL * scale
     add, other = [], []
-    for e, sc, ok in zip(entries, scale.tolist(), psd.tolist()):
+    for i, (sc, ok) in enumerate(zip(scale.tolist(), psd.tolist())):
         if sc > 0.0:
-            (add if ok else other).append(e)
-        elif np.any(e[2]):
-            add.append(e)   # y without Lambda: tested (rounding passes, more fails: out of range)
+            (add if ok else other).append(i)
+        elif any(entries[i][2].tolist()):
+            add.append(i)   # y without Lambda: tested (rounding passes, more fails: out of range)
     return add, other
 
 
-def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
-                          mu1: list[Array], eigen: tuple[list[float], Array] | None = None) -> tuple[float, int]:
+def split_blocks_eigen(entries: list[tuple[float, Array, Array]]) -> tuple[list, list, tuple[Array, Array] | None]:
+    """:func:`split_blocks` of several blocks with one stacked eigendecomposition for the split and
+    the statistic: ``(additions, others, (l, V))``, ``l, V`` the stacked eigenvalues and vectors
+    of the additions (``Lambda_t = V_t diag(l_t) V_t^T``, of ``(Lambda + Lambda^T) / 2``: the
+    decomposition :func:`information_statistic` computes), for its ``stacked`` argument. The
+    eigenvalues of ``numpy.linalg.eigh`` instead of ``eigvalsh`` decide the split: the same
+    LAPACK routine (``syevd``) with the vectors, which can move an eigenvalue by a rounding
+    error, against a threshold of ``EIG_RTOL = 1e-9`` of the largest."""
+    if not entries:
+        return [], [], None
+    L = np.array([e[1] for e in entries])
+    w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    a, o = _split_rows(entries, w)
+    return [entries[i] for i in a], [entries[i] for i in o], ((w[a], V[a]) if a else None)
+
+
+def information_statistic(entries: list[tuple[float, Array, Array]], mu0: list[Array],
+                          P0: list[Array] | CovarianceBounds, mu1: list[Array],
+                          eigen: tuple[list[float], Array] | None = None,
+                          stacked: tuple[Array, Array] | None = None) -> tuple[float, int]:
     """``(D^2, dof)`` of the blocks ``entries`` as joint pseudo-measurements (module docstring).
 
     ``mu0, P0``: the belief's smoothed means and covariances at the blocks' times before
-    they are added; ``mu1``: the means after. Returns ``(inf, dof)`` if some ``y`` is not
+    they are added; ``mu1``: the means after. ``P0`` enters only two threshold tests (a
+    direction negligible, ``y`` out of range), so it may be given as
+    :class:`~dfusion.estimation.delayed_state.CovarianceBounds`: the tests are then decided from
+    the bounds, and the exact covariances computed only when the bounds do not decide them
+    (:func:`_thresholds_from_bounds`; the same verdicts). Returns ``(inf, dof)`` if some ``y`` is not
     in the range of its ``Lambda``. All blocks at once: one stacked eigendecomposition
     ``Lambda_t = V_t diag(l_t) V_t^T`` and masks for the directions kept (positive, and not
     negligible), which gives per block exactly the terms of a loop over the blocks. One block
     is computed on 4 x 4 matrices and Python floats instead (``eigen``: its
-    :func:`block_eigen`, if known).
+    :func:`block_eigen`, if known). ``stacked``: the stacked decomposition of ``entries``, if
+    known (:func:`split_blocks_eigen`).
     """
     if not entries:
         return 0.0, 0
-    if len(entries) == 1:
+    if len(entries) == 1 and not isinstance(P0, CovarianceBounds):
         return _statistic_one(entries[0], mu0[0], P0[0], mu1[0], eigen)
-    return _statistic_stacked(entries, mu0, P0, mu1)
+    return _statistic_stacked(entries, mu0, P0, mu1, stacked)
 
 
 def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array,
@@ -254,21 +292,65 @@ def _statistic_one(entry: tuple[float, Array, Array], mu0: Array, P0: Array, mu1
     return stat, dof
 
 
-def _statistic_stacked(entries: list[tuple[float, Array, Array]], mu0: list[Array], P0: list[Array],
-                       mu1: list[Array]) -> tuple[float, int]:
+def _thresholds_from_bounds(w: Array, V: Array, out: Array, pos: Array,
+                            bounds: CovarianceBounds) -> tuple[Array, Array] | None:
+    """``(bad, use)`` of :func:`_statistic_stacked` decided from bounds ``lower <= P0 <= upper``
+    on the covariances before, or None when the bounds do not decide every comparison.
+
+    Both tests compare a quadratic form of ``P0`` with a threshold: ``out^T P0 out > RANGE_TOL``
+    and ``l_i v_i^T P0 v_i > NEGLIGIBLE`` (``l_i > 0``). A quadratic form ``x^T P x`` is
+    monotone in the Loewner order, so ``q(lower) <= q(P0) <= q(upper)``, and ``q(upper) <=
+    |x|^2 tr(upper)`` (``upper`` is positive semi-definite): the bounds decide a comparison when
+    both ends are on the same side. A margin of ``BOUND_RTOL |x|^2 tr(upper)`` (the covariances'
+    size; the rounding of the smoother and of the bounds is about ``1e-16`` of it) keeps the
+    decision the one that ``P0`` as the smoother computes it gives; a comparison inside the
+    margin is left to the exact ``P0`` (:meth:`CovarianceBounds.exact`). The cheap forms are
+    tried first: ``|out|^2 tr(upper)`` for the range (``out`` is rounding for a sound block),
+    the lower bound alone for the directions kept."""
+    lo, hi = bounds.lower, bounds.upper
+    tr = np.trace(hi, axis1=1, axis2=2)                          # >= the largest eigenvalue
+    oo = np.sum(out * out, axis=(1, 2))                          # |out|^2
+    if float(np.max(oo * tr)) * (1.0 + BOUND_RTOL) <= RANGE_TOL:
+        bad = np.zeros(len(tr), dtype=bool)                      # (q(upper) <= |out|^2 tr(upper))
+    else:
+        r_lo = (out.transpose(0, 2, 1) @ lo @ out).reshape(-1)
+        r_hi = (out.transpose(0, 2, 1) @ hi @ out).reshape(-1)
+        r_tol = BOUND_RTOL * oo * tr
+        bad = r_lo - r_tol > RANGE_TOL
+        if not np.all(bad | (r_hi + r_tol <= RANGE_TOL)):
+            return None
+    s_tol = BOUND_RTOL * tr[:, None] * np.abs(w)                 # (|v_i| = 1)
+    use = pos & (w * np.sum(V * (lo @ V), axis=1) - s_tol > NEGLIGIBLE)
+    if not np.all(use | ~pos):
+        s_hi = w * np.sum(V * (hi @ V), axis=1)
+        if not np.all(use | ~pos | (s_hi + s_tol <= NEGLIGIBLE)):
+            return None
+    return bad, use
+
+
+def _statistic_stacked(entries: list[tuple[float, Array, Array]], mu0: list[Array],
+                       P0: list[Array] | CovarianceBounds, mu1: list[Array],
+                       stacked: tuple[Array, Array] | None = None) -> tuple[float, int]:
     """:func:`information_statistic` of any number of blocks, on stacked arrays."""
-    L = np.array([e[1] for e in entries])
     y = np.array([e[2] for e in entries])[:, :, None]
-    C0 = np.array(P0)
-    w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    if stacked is None:
+        L = np.array([e[1] for e in entries])
+        w, V = np.linalg.eigh(0.5 * (L + L.transpose(0, 2, 1)))
+    else:
+        w, V = stacked
     Vt = V.transpose(0, 2, 1)
     scale = np.max(np.abs(w), axis=1, keepdims=True)
     pos = (w > EIG_RTOL * scale) & (scale > 0)
     Vy = (Vt @ y)[:, :, 0]                                       # V^T y
     out = y - V @ np.where(pos, Vy, 0.0)[:, :, None]             # the part of y outside the range
-    bad = (out.transpose(0, 2, 1) @ C0 @ out).reshape(-1) > RANGE_TOL
-    signal = w * np.sum(V * (C0 @ V), axis=1)                    # l_i v_i^T P0 v_i
-    use = pos & (signal > NEGLIGIBLE)
+    decided = _thresholds_from_bounds(w, V, out, pos, P0) if isinstance(P0, CovarianceBounds) else None
+    if decided is not None:
+        bad, use = decided
+    else:
+        C0 = np.array(P0.exact() if isinstance(P0, CovarianceBounds) else P0)
+        bad = (out.transpose(0, 2, 1) @ C0 @ out).reshape(-1) > RANGE_TOL
+        signal = w * np.sum(V * (C0 @ V), axis=1)                # l_i v_i^T P0 v_i
+        use = pos & (signal > NEGLIGIBLE)
     if bad.any():
         i = int(np.argmax(bad))
         return math.inf, int(use[:i].sum()) + int(pos[i].sum())

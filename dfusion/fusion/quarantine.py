@@ -16,7 +16,7 @@ import math
 
 from dfusion.errors import DfusionError
 from dfusion.fusion.channel import ChannelFilter, time_keys
-from dfusion.fusion.guard import block_eigen, information_statistic, split_blocks
+from dfusion.fusion.guard import block_eigen, information_statistic, split_blocks, split_blocks_eigen
 from dfusion.linalg import Array
 
 import numpy as np
@@ -42,14 +42,18 @@ class GuardedLinks:
         caller's transaction). Returns ``(D^2, dof, blocks tested)``
         (:func:`dfusion.fusion.guard.information_statistic`)."""
         f = self.filter
-        eigen = block_eigen(entries[0][1]) if len(entries) == 1 else None   # (one decomposition for both)
-        add, other = split_blocks(entries, eigen)
+        eigen = stacked = None   # (one decomposition for the split and the statistic)
+        if len(entries) == 1:
+            eigen = block_eigen(entries[0][1])
+            add, other = split_blocks(entries, eigen)
+        else:
+            add, other, stacked = split_blocks_eigen(entries)
         if other:
             f.add_information_batch(other, validate=False)
         if not add:
             return 0.0, 0, 0
-        mu0, P0, mu1 = f.add_information_moments(add)
-        stat, dof = information_statistic(add, mu0, P0, mu1, eigen)
+        mu0, P0, mu1 = f.add_information_moments(add, exact_covariances=False)   # (bounds: the statistic
+        stat, dof = information_statistic(add, mu0, P0, mu1, eigen, stacked)    # asks for P0 if they do not decide)
         return stat, dof, len(add)
 
     def _deferred_test(self, block: tuple[float, Array, Array], mu0: Array, P0: Array, mu1: Array) -> tuple[float, int, int]:
@@ -107,7 +111,7 @@ class GuardedLinks:
         f = self.filter
         try:
             with f.trial():
-                mu0, P0, mu1 = f.add_information_moments(add)
+                mu0, P0, mu1 = f.add_information_moments(add, exact_covariances=False)
                 stat, dof = information_statistic(add, mu0, P0, mu1)
         except DfusionError:
             stat, dof = math.inf, 1
