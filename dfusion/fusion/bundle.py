@@ -116,8 +116,8 @@ def decode_bundle(data: bytes | bytearray | memoryview, key: FrameKey | None = N
     """Parse and validate a bundle; raises :class:`MessageError` (with ``reason``) on any defect.
 
     The per-track fusion messages are checked by the track's :class:`FusionNode` when it
-    receives them; here: the envelope, every field's type and range, no track twice, and a
-    merge always into a track born no later (:mod:`dfusion.fusion.tracking_node`, the rule).
+    receives them; here: the envelope, every field's type and range, no track twice, no track
+    merged into itself.
     """
     body, _ = open_frame(data, key, max_bytes, magic=BUNDLE_MAGIC, version=BUNDLE_VERSION, known_flags=KEYED)
     try:

@@ -74,7 +74,8 @@ track; or a margin above the latency.
 **Ends are reliable.** An end is sent to every neighbour in the next bundle, and again to a
 neighbour whenever it sends a message for an ended track (it missed the news); messages for an
 ended track are otherwise ignored (``stats.ended_track_messages``). Ends are remembered for
-``ended_for`` seconds of the node's clock, at most ``16 max_tracks`` of them (the oldest
+``ended_for`` seconds of the node's clock (a bundle sent longer ago than that starts no track: a
+replayed or long-delayed message cannot bring back a track whose end is forgotten), at most ``16 max_tracks`` of them (the oldest
 are forgotten first: ``stats.ends_forgotten``).
 
 **Bounds.** At most ``max_tracks`` tracks (a message that would start more is not fused for
@@ -112,7 +113,8 @@ from dfusion.wire import MAX_MESSAGE_BYTES, FrameKey
 __all__ = ["TrackPrior", "TrackingNode", "TrackingStats"]
 
 _BUNDLE_OVERHEAD = 64          # bytes of a bundle's envelope and header, at most (names of up to 256 bytes aside)
-_TRACK_OVERHEAD = 300          # bytes per track entry besides its message, at most
+_TRACK_OVERHEAD = 40           # bytes per track entry besides its message and its origin's name, at most
+_END_OVERHEAD = 60             # bytes per track end besides the names, at most
 
 
 @dataclass(frozen=True)
@@ -440,12 +442,12 @@ class TrackingNode:
     # ------------------------------------------------------------------------- ends of tracks
     def _record_end(self, end: TrackEnd) -> None:
         self.ended[end.track] = (end, self.time if self.time is not None else end.at)
-        if len(self.ended) > self.max_ended:   # the oldest ends go first (a flood of ends cannot grow a node)
-            for tid in list(self.ended)[:len(self.ended) - self.max_ended]:
-                del self.ended[tid]
-                for pending in self._announce.values():
-                    pending.pop(tid, None)
-                self.stats.ends_forgotten += 1
+        while len(self.ended) > self.max_ended:   # the oldest ends go first (a flood of ends cannot grow a node)
+            tid = next(iter(self.ended))
+            del self.ended[tid]
+            for pending in self._announce.values():
+                pending.pop(tid, None)
+            self.stats.ends_forgotten += 1
         for j in self.links:
             self._announce.setdefault(j, {})[end.track] = end
 
@@ -499,19 +501,21 @@ class TrackingNode:
         born = self._views[keep].born if keep in self._views else keep_born
         if born is None:
             raise ValidationError(f"merge of {gone} into {keep}: the survivor's birth time is unknown here")
+        own = source.own_information()
+        seen_gone = self._views[gone].seen_here
+        self._drop(gone)   # first: its place is the survivor's if the survivor is new here and the node is full
         target = self._track(keep, born)
-        if target is None:
-            return
-        for t, L, y in source.own_information():
+        if target is None:   # (cannot happen: a place was just freed)
+            raise ValidationError(f"merge of {gone} into {keep}: no place for the survivor")
+        for t, L, y in own:
             if t < target.filter.oldest_time - target.filter.time_tol:
                 self.stats.merge_outside_window += 1
                 continue
             if t > target.latest_time:
                 target.predict(t)
             target.add_local_information(t, L, y)
-        seen = [v for v in (self._views[gone].seen_here, self._views[keep].seen_here) if v is not None]
+        seen = [v for v in (seen_gone, self._views[keep].seen_here) if v is not None]
         self._views[keep].seen_here = max(seen) if seen else None   # this node saw the target under either
-        self._drop(gone)
         self.stats.merges += 1
         self.stats.merges_decided += int(decided)
         self._record_end(TrackEnd(gone, keep, born, self.time or 0.0))
@@ -563,21 +567,22 @@ class TrackingNode:
         return out
 
     def _chunks(self, messages: list[TrackMessage], ends: tuple[TrackEnd, ...]):
-        """Split into bundles of at most ``max_message_bytes`` and ``MAX_TRACKS_PER_BUNDLE`` entries."""
-        budget = self.max_message_bytes - _BUNDLE_OVERHEAD - 2 * len(self.name) - 600
-        msgs, size = [], 0
-        chunks = []
-        for m in messages:
-            cost = len(m.frame) + _TRACK_OVERHEAD
-            if msgs and (size + cost > budget or len(msgs) >= MAX_TRACKS_PER_BUNDLE):
-                chunks.append(msgs)
-                msgs, size = [], 0
-            msgs.append(m)
+        """Split into bundles of at most ``max_message_bytes`` and ``MAX_TRACKS_PER_BUNDLE`` tracks and ends
+        each (the ends count in the byte budget as the track messages do)."""
+        budget = self.max_message_bytes - _BUNDLE_OVERHEAD - len(self.name) - 256   # and the recipient's name
+        msgs: list[TrackMessage] = []
+        kept: list[TrackEnd] = []
+        size = 0
+        items = [(m, len(m.frame) + _TRACK_OVERHEAD + len(m.track.origin)) for m in messages]
+        items += [(e, _END_OVERHEAD + len(e.track.origin) + (len(e.into.origin) if e.into else 0)) for e in ends]
+        for item, cost in items:
+            full = len(msgs) >= MAX_TRACKS_PER_BUNDLE or len(kept) >= MAX_TRACKS_PER_BUNDLE
+            if (msgs or kept) and (size + cost > budget or full):
+                yield tuple(msgs), tuple(kept)
+                msgs, kept, size = [], [], 0
+            (msgs if isinstance(item, TrackMessage) else kept).append(item)
             size += cost
-        chunks.append(msgs)
-        end_chunks = [ends[i:i + MAX_TRACKS_PER_BUNDLE // 4] for i in range(0, len(ends), MAX_TRACKS_PER_BUNDLE // 4)]
-        for i in range(max(len(chunks), len(end_chunks))):
-            yield tuple(chunks[i]) if i < len(chunks) else (), tuple(end_chunks[i]) if i < len(end_chunks) else ()
+        yield tuple(msgs), tuple(kept)
 
     def _rejected(self, reason: str, detail: str) -> MessageError:
         self.stats.bundles_rejected += 1
@@ -619,6 +624,13 @@ class TrackingNode:
                 self._announce.setdefault(bundle.src, {})[m.track] = self.ended[m.track][0]
                 continue
             known = m.track in self.tracks
+            if not known and self.time is not None and bundle.sent_at < self.time - self.ended_for:
+                # older than what the ends remember: a replayed or long-delayed message must not bring
+                # back a track that ended (its end may be forgotten by now); counted
+                self.stats.track_messages_rejected += 1
+                self.rejection_log.add("stale", f"track {m.track} from {bundle.src!r} in a bundle sent at "
+                                                f"{bundle.sent_at}, more than {self.ended_for:g} s ago")
+                continue
             if known and abs(self._views[m.track].born - m.born) > 1e-9:
                 self.stats.track_messages_rejected += 1
                 self.rejection_log.add("born", f"track {m.track} from {bundle.src!r} born at {m.born}, here at "

@@ -100,6 +100,9 @@ _TAG = 32
 #: Lag lines a node logs before it only counts them.
 _LAG_LINES = 5
 _SAME_TIME = 1e-9
+#: Most bundle copies one step frame may carry (a link delivers a few per step), and its largest size.
+_MAX_COPIES = 1024
+_MAX_FRAME_BYTES = 64 * 1024 * 1024
 
 
 # ---------------------------------------------------------------------------- step frames
@@ -123,10 +126,17 @@ def decode_frame(key: bytes, network: str, run: str, src: str, dst: str,
     if len(data) <= _TAG or not hmac.compare_digest(tag, _frame_tag(key, network, run, src, dst, body)):
         raise MessageError(f"step frame {src} -> {dst} fails its HMAC")
     try:
-        step, copies = msgpack.unpackb(body, raw=False)
-        out = [(float(t), int(i), bytes(b)) for t, i, b in copies]
-        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
-            raise ValueError(step)
+        step, copies = msgpack.unpackb(body, raw=False, max_bin_len=len(body), max_array_len=_MAX_COPIES,
+                                       max_str_len=0, max_map_len=0, max_ext_len=0)
+        if (isinstance(step, bool) or not isinstance(step, int) or step < 0
+                or not isinstance(copies, list) or len(copies) > _MAX_COPIES):
+            raise ValueError(f"step {step!r}")
+        out = []
+        for t, i, b in copies:
+            if (not isinstance(b, bytes) or isinstance(i, bool) or not isinstance(i, int)
+                    or isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t)):
+                raise ValueError("a copy must be [finite arrival time, integer index, bytes]")
+            out.append((float(t), i, b))
     except (ValueError, TypeError, msgpack.UnpackException) as exc:
         raise MessageError(f"malformed step frame {src} -> {dst}: {exc}") from None
     return step, out
@@ -142,10 +152,14 @@ class _Inbox:
         self.pending: list[tuple[float, int, int, int, bytes]] = []   # (t_arrival, step, sender rank, copy, data)
         self.frames_lost = 0
         self.frames_rejected = 0
+        self.frames_repeated = 0
         self.delivered = 0
         self.last = -1   # the run's last step
 
     def add(self, src: str, step: int, copies: list[tuple[float, int, bytes]]) -> None:
+        if step <= self.have[src]:   # a step frame again (a replay: a link delivers each once): ignored, counted
+            self.frames_repeated += 1
+            return
         if step > self.have[src] + 1:
             self.frames_lost += step - self.have[src] - 1
             log.warning("%s: the step frames %d-%d of %s never came", self.me, self.have[src] + 1, step - 1, src)
@@ -204,12 +218,31 @@ class _NodeProcess:
                                 ZenohConfig(connect=tuple(known), report_endpoints=True))
             try:
                 registry.register(self.name, [self.name], bound_endpoints(tr.session)[0])
+                # forged and garbage copies are dropped in Zenoh's callback, before they take queue space
+                # (a flood could otherwise push genuine step frames out of the bounded queue)
+                tr.set_check(self.name, self._check_on_arrival, _MAX_FRAME_BYTES)
             except BaseException:
                 tr.close()
                 raise
         return tr
 
+    def _check_on_arrival(self, data: bytes) -> None:
+        """A step frame of one of this node's links, or :class:`MessageError` (Zenoh's callback)."""
+        body, tag = data[:-_TAG], data[-_TAG:]
+        if len(data) > _TAG and any(hmac.compare_digest(tag, _frame_tag(self.key, self.network, self.run_id, j,
+                                                                         self.name, body)) for j in self.neighbors):
+            return
+        err = MessageError("a step frame of no link of this node (its HMAC fails)")
+        err.reason = "unauthenticated"
+        raise err
+
     def _drain(self, tr: ZenohTransport) -> None:
+        counts, detail = tr.take_rejections(self.name)   # dropped on arrival (_check_on_arrival): counted
+        if counts:
+            before = self.inbox.frames_rejected
+            self.inbox.frames_rejected += sum(counts.values())
+            if before < _LAG_LINES:
+                log.warning("%s: %d copies rejected on arrival (%s)", self.name, sum(counts.values()), detail)
         for d in tr.receive(self.name):
             try:
                 step, copies = decode_frame(self.key, self.network, self.run_id, d.src, self.name, d.data)
@@ -287,6 +320,7 @@ class _NodeProcess:
             total = self.net.stats.total
             result = {"node": self.name, "stats": self.driver.stats(), "records": records, "lags": self.lags,
                       "frames_lost": self.inbox.frames_lost, "frames_rejected": self.inbox.frames_rejected,
+                      "frames_repeated": self.inbox.frames_repeated,
                       "traffic": {"sent": int(total.sent), "duplicated": int(total.duplicated),
                                   "dropped": int(total.dropped), "delivered": self.inbox.delivered,
                                   "in_flight": len(self.inbox.pending)}}

@@ -436,3 +436,50 @@ def test_a_track_is_not_deleted_just_before_the_scan_that_detects_it():
         a.process(Scan(t, np.array([[1.0 * t, 0.0]]), sensor, 1e-3, 0.9))
     assert a.stats.births == 1 and a.stats.deletions == 0
     assert [str(tid) for tid, _, _ in a.estimates()] == ["a#0"]
+
+
+def test_ends_count_in_the_byte_budget_of_a_split_send():
+    """One large track message and many ends: every bundle stays under max_message_bytes (the
+    receiver would refuse a larger one whole, ends and tracks with it)."""
+    m = ConstantVelocity(2, 0.3)
+    a = TrackingNode("a", ["b"], m, prior=PRIOR, deleter=False, merger=False, epoch=1, max_message_bytes=6000)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, merger=False, epoch=2, max_message_bytes=6000)
+    s = PositionSensor(2, 0.5)
+    tid = TrackId("a", 0)
+    for k in range(60):                      # a window of 60 states: a message of several kilobytes
+        a.predict(0.1 * k)
+        a.observe(tid, 0.1 * k, [0.1 * k, 0.0], s, born=0.0)
+    for i in range(200):
+        a._record_end(TrackEnd(TrackId("gone", i)))
+    out = a.outgoing(6.0)
+    assert len(out) > 1 and all(len(d) <= 6000 for _, d in out), [len(d) for _, d in out]
+    for _, d in out:
+        b.receive(d)
+    assert len(b.ended) == 200 and [str(t) for t, _, _ in b.estimates()] == ["a#0"]
+
+
+def test_a_merge_heard_by_a_full_node_takes_the_place_of_the_merged_track():
+    m = ConstantVelocity(2, 0.3)
+    b = TrackingNode("b", ["a"], m, prior=PRIOR, deleter=False, merger=False, epoch=2, max_tracks=1)
+    s = PositionSensor(2, 0.5)
+    g, k = TrackId("b", 0), TrackId("a", 0)
+    b.observe(g, 0.0, [1.0, 2.0], s)
+    b.receive(encode_bundle(TrackBundle("a", "b", 1, 0.0, (), (TrackEnd(g, k, 0.0, 0.0),))))
+    assert list(b.tracks) == [k] and g in b.ended and b.stats.tracks_refused == 0
+    mean, _ = b.tracks[k].estimate()
+    np.testing.assert_allclose(mean[:2], [1.0, 2.0], atol=1e-3)   # b's own measurement moved into k
+
+
+def test_a_bundle_older_than_the_remembered_ends_starts_no_track():
+    """A replay of an old bundle after its track's end is forgotten (ended_for) must not bring the track back."""
+    a, b = _pair()
+    s = PositionSensor(2, 0.5)
+    g = TrackId("a", 0)
+    a.observe(g, 0.0, [1.0, 2.0], s)
+    (_, old), = a.outgoing(0.0)
+    b.receive(old)
+    b.delete(g)
+    b.predict(200.0)                          # the end is forgotten after ended_for = 120 s
+    assert g not in b.ended
+    b.receive(old)
+    assert g not in b.tracks and b.stats.track_messages_rejected == 1

@@ -132,6 +132,23 @@ def test_step_frames_are_authenticated_per_run_and_link():
         decode_frame(key, "net", "run", "a", "b", data[:-1] + bytes([data[-1] ^ 1]))
     with pytest.raises(MessageError, match="HMAC"):
         decode_frame(key, "net", "run", "a", "b", b"short")
+    # with the key, still no copy that is not [finite time, integer, bytes] (an integer would become
+    # that many zero bytes; a NaN arrival time would never be delivered)
+    import msgpack
+
+    from dfusion.run.tracking import _frame_tag
+    for bad in ([[float("nan"), 0, b"x"]], [[0.1, 0, 10**6]], [[0.1, True, b"x"]], [[0.1, 0, "text"]]):
+        body = msgpack.packb([1, bad], use_bin_type=True)
+        with pytest.raises(MessageError, match="malformed"):
+            decode_frame(key, "net", "run", "a", "b", body + _frame_tag(key, "net", "run", "a", "b", body))
+
+
+def test_a_step_frame_again_is_ignored_and_counted():
+    from dfusion.run.tracking import _Inbox
+    inbox = _Inbox("b", ("a",), {"a": 0, "b": 1})
+    inbox.add("a", 0, [(0.1, 0, b"x")])
+    inbox.add("a", 0, [(0.1, 0, b"x")])       # a replay of the same step
+    assert inbox.frames_repeated == 1 and len(inbox.pending) == 1
 
 
 def test_flags_that_do_not_apply_to_a_multi_target_run_are_refused_in_one_line(tmp_path, capsys):
