@@ -30,8 +30,9 @@ latency, jitter, drop, duplicate and reordering draws whatever the other links d
 So every node's tracks equal ``simulate``'s at every step, to the last bit, for every link
 setting (latency, jitter, drops, duplicates, reordering, outages). A frame that does not come
 within ``lag_timeout`` seconds (a stalled or killed neighbour, a lost frame) is waited for no
-longer: the node goes on, counts a **lag** and logs it (the run's JSON: ``run.lags``); the
-run is then no longer identical to ``simulate``. The processes run as fast as the lockstep
+longer: the node goes on, counts a **lag** and logs it (the run's JSON: ``run.lags``), and
+does not wait for that neighbour again until its frames have caught up; the run is then no
+longer identical to ``simulate``. The processes run as fast as the lockstep
 lets them (no real-time pacing: ``--speed`` does not apply).
 
 **Processes.** The launcher (:class:`TrackingLauncher`) writes ``RUN_DIR/run.json`` (the
@@ -208,6 +209,7 @@ class _NodeProcess:
         self.net = SimulatedNetwork(((a, b, spec) for (a, b), spec in self.sc.links.items()), seed=self.sc.seed)
         self.inbox = _Inbox(name, self.neighbors, self.rank)
         self.lags = 0
+        self.lagging: set[str] = set()   # neighbours that lagged and have not caught up since
         self.lag_timeout = float(self.cfg["lag_timeout"])
 
     def _open(self) -> ZenohTransport:
@@ -255,16 +257,21 @@ class _NodeProcess:
 
     def _wait_for(self, tr: ZenohTransport, k: int | None, what: str) -> None:
         """Wait until the frames needed at step ``k`` (``None``: every last frame) are here, at most
-        ``lag_timeout`` seconds."""
+        ``lag_timeout`` seconds. A neighbour that lagged is not waited for again until its frames
+        have caught up (a stalled but live neighbour costs one ``lag_timeout``, not one per step)."""
         deadline = time.monotonic() + self.lag_timeout
         while True:
             self._drain(tr)
             missing = self.inbox.missing(k)
+            self.lagging &= set(missing)       # caught up: waited for again from now on
             if not missing:
                 return
             gone = [j for j in missing if not tr.alive(j)]
             left = deadline - time.monotonic()
+            if all(j in self.lagging for j in missing) and k is not None:
+                return                         # only neighbours that lag already: go on at once
             if left <= 0 or len(gone) == len(missing):
+                self.lagging |= set(missing)
                 self.lags += 1
                 if self.lags <= _LAG_LINES:
                     log.warning("%s: lag at %s: no frame from %s after %.1f s%s (the run is no longer identical "

@@ -159,3 +159,39 @@ def test_flags_that_do_not_apply_to_a_multi_target_run_are_refused_in_one_line(t
     assert main(["run", str(path), "-q", "--speed", "10"]) == 2     # lockstep: no real-time pacing to speed up
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "--speed is not available for a multi-target scenario" in err, err
+
+
+def test_a_stalled_neighbour_costs_one_lag_timeout_not_one_per_step():
+    """A neighbour alive but silent: the first step waits lag_timeout and counts a lag; the next
+    steps do not wait for it again until its frames catch up (then it is waited for again)."""
+    import time as _time
+
+    from dfusion.run.tracking import _Inbox, _NodeProcess
+
+    class Silent:                      # a transport on which the neighbour is alive and sends nothing
+        def receive(self, node):
+            return []
+
+        def take_rejections(self, node):
+            return {}, ""
+
+        def alive(self, node):
+            return True
+
+        def wait(self, seconds):
+            _time.sleep(seconds)
+
+    p = object.__new__(_NodeProcess)
+    p.name, p.lags, p.lagging, p.lag_timeout = "b", 0, set(), 0.3
+    p.inbox = _Inbox("b", ("a",), {"a": 0, "b": 1})
+    t0 = _time.monotonic()
+    p._wait_for(Silent(), 0, "step 0")
+    first = _time.monotonic() - t0
+    t0 = _time.monotonic()
+    for k in range(1, 6):
+        p._wait_for(Silent(), k, f"step {k}")
+    later = _time.monotonic() - t0
+    assert first >= 0.3 and later < 0.3 and p.lags == 1 and p.lagging == {"a"}
+    p.inbox.add("a", 5, [])            # its frames catch up: waited for again
+    p._wait_for(Silent(), 5, "step 5")
+    assert p.lagging == set()
